@@ -1,0 +1,1 @@
+"""rclpy component container: loads nodes by plugin name and connects them intra-process."""

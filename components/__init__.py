@@ -1,0 +1,1 @@
+"""Built-in component plugins: simulated sensor drivers, demo talker/listener and the rosbag2 recorder."""
