@@ -1,0 +1,52 @@
+"""Build hook: compile the interface packages in srv/ into real ROS 2 typesupport during ``pip install``.
+
+Everything else about the project is declared in pyproject.toml. The generated Python packages are built
+into ``build/interfaces/python`` and the shared libraries into ``build/interfaces/lib``, then installed as the
+``composition_interfaces`` / ``rosbag2_interfaces`` packages (libraries inside) and ``<prefix>/share`` data
+files (definitions, type descriptions, ament index markers), the layout the ROS wheels themselves use.
+"""
+from __future__ import annotations
+
+import pathlib
+import sys
+
+from setuptools import setup
+from setuptools.command.build_py import build_py
+
+ROOT = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT / "srv"))
+from build_interfaces import build_all, interface_packages  # noqa: E402
+
+BUILD_DIR = pathlib.Path("build") / "interfaces"
+INTERFACES = interface_packages()
+
+
+def _data_files() -> list[tuple[str, list[str]]]:
+    """The share/ files the interface build produced, by install folder."""
+    out = ROOT / BUILD_DIR
+    groups: dict[str, list[str]] = {}
+    for path in sorted(p for p in (out / "share").rglob("*") if p.is_file()):
+        groups.setdefault(str(path.parent.relative_to(out)), []).append(str(path.relative_to(ROOT)))
+    return sorted(groups.items())
+
+
+class BuildPyWithInterfaces(build_py):
+    """build_py that first generates and compiles the srv/ interface packages."""
+
+    def run(self) -> None:
+        build_all(ROOT / BUILD_DIR)
+        self.distribution.data_files = _data_files()
+        super().run()
+
+
+INTERFACE_PACKAGES = [*INTERFACES, *(f"{name}.{kind}" for name in INTERFACES for kind in ("msg", "srv")
+                                     if (ROOT / "srv" / name / kind).is_dir())]
+for _name in INTERFACE_PACKAGES:  # setuptools checks package folders exist before build_py fills them
+    (ROOT / BUILD_DIR / "python" / _name.replace(".", "/")).mkdir(parents=True, exist_ok=True)
+
+setup(
+    packages=["component_container", "components", "components.recorder", *INTERFACE_PACKAGES],
+    package_dir={name: str(BUILD_DIR / "python" / name.replace(".", "/")) for name in INTERFACE_PACKAGES},
+    package_data={name: ["*.so"] for name in INTERFACES},
+    cmdclass={"build_py": BuildPyWithInterfaces},
+)
