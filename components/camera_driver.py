@@ -1,0 +1,174 @@
+"""Simulated camera: publishes ``sensor_msgs/Image`` plus ``sensor_msgs/CameraInfo`` at ``fps``.
+
+Parameters (all read-only, validated at construction; a bad value raises ValueError naming the parameter):
+
+==============  ===============  =====================================================================
+``width``       640              image width in pixels
+``height``      480              image height in pixels
+``encoding``    ``'rgb8'``       see :data:`ENCODINGS` (rgb8, bgr8, rgba8, bgra8, rgb16 ..., mono8, mono16,
+                                 bayer_*8/16, yuv422 (UYVY), yuv422_yuy2, uyvy, yuyv) and the generic
+                                 ``8UC1`` ... ``64FC4`` forms
+``fps``         30.0             frames per second (> 0)
+``frame_id``    ``'camera'``     header.frame_id of image and camera_info
+``topic``       ``'~/image_raw'``  image topic; camera_info goes to the sibling topic (``~/camera_info``)
+``qos``         ``'reliable'``   ``'reliable'`` or ``'sensor_data'`` (best effort), for both topics
+==============  ===============  =====================================================================
+
+Frame contents: random bytes. A pool of random bytes (frame size plus up to one more frame, at most 16 MiB
+extra) is generated once; frame ``n`` is the slice of the pool at a rolling offset, so consecutive frames
+differ, and producing a frame is one memcpy into a fresh ``array.array('B')`` plus the copy rclpy's field
+setter makes (never a numpy array: assigning one to a ``uint8[]`` field is ~200x slower).
+
+Sequence number: the first 8 bytes of ``Image.data`` hold the image sequence number (0, 1, 2 ...) as a
+little-endian uint64. The matching CameraInfo has the same ``header.stamp`` as its image.
+"""
+from __future__ import annotations
+
+import re
+import sys
+from array import array
+from typing import Any, Optional
+
+import numpy as np
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+from components.sensor_driver import SensorDriver, stamp_from_ns
+
+#: Named encodings: bytes per pixel, and the (width, height) divisors the image size must respect.
+ENCODINGS: dict[str, tuple[int, tuple[int, int]]] = {
+    "rgb8": (3, (1, 1)), "bgr8": (3, (1, 1)), "rgba8": (4, (1, 1)), "bgra8": (4, (1, 1)),
+    "rgb16": (6, (1, 1)), "bgr16": (6, (1, 1)), "rgba16": (8, (1, 1)), "bgra16": (8, (1, 1)),
+    "mono8": (1, (1, 1)), "mono16": (2, (1, 1)),
+    "bayer_rggb8": (1, (2, 2)), "bayer_bggr8": (1, (2, 2)), "bayer_gbrg8": (1, (2, 2)), "bayer_grbg8": (1, (2, 2)),
+    "bayer_rggb16": (2, (2, 2)), "bayer_bggr16": (2, (2, 2)), "bayer_gbrg16": (2, (2, 2)),
+    "bayer_grbg16": (2, (2, 2)),
+    # 4:2:2 packed formats: 2 bytes per pixel, pixels come in pairs.
+    "yuv422": (2, (2, 1)), "yuv422_yuy2": (2, (2, 1)), "uyvy": (2, (2, 1)), "yuyv": (2, (2, 1)),
+}
+_GENERIC_ENCODING = re.compile(r"^(8U|8S|16U|16S|32S|32F|64F)C([1-4])$")
+_GENERIC_DEPTH_BYTES = {"8U": 1, "8S": 1, "16U": 2, "16S": 2, "32S": 4, "32F": 4, "64F": 8}
+
+#: Largest frame accepted, in bytes.
+MAX_FRAME_BYTES = 1 << 30
+#: Extra pool bytes beyond one frame, at most (the rolling offset ranges over them).
+MAX_POOL_EXTRA = 16 << 20
+#: Rolling-offset stride in bytes per frame.
+OFFSET_STRIDE = 4099
+#: Horizontal field of view of the simulated pinhole camera, used for CameraInfo.
+HORIZONTAL_FOV_DEG = 60.0
+
+
+def encoding_info(encoding: str) -> Optional[tuple[str, int, tuple[int, int]]]:
+    """``(canonical name, bytes per pixel, (width divisor, height divisor))`` or None if unknown."""
+    lowered = encoding.lower()
+    if lowered in ENCODINGS:
+        bytes_per_pixel, divisors = ENCODINGS[lowered]
+        return lowered, bytes_per_pixel, divisors
+    match = _GENERIC_ENCODING.match(encoding.upper())
+    if match:
+        depth, channels = match.groups()
+        return f"{depth}C{channels}", _GENERIC_DEPTH_BYTES[depth] * int(channels), (1, 1)
+    return None
+
+
+def camera_info_topic_for(image_topic: str) -> str:
+    """The camera_info topic next to an image topic: ``~/image_raw`` -> ``~/camera_info``."""
+    head, sep, _ = image_topic.rpartition("/")
+    return f"{head}{sep}camera_info"
+
+
+class CameraDriver(SensorDriver):
+    """Simulated camera publishing random-content images and a matching CameraInfo."""
+
+    DEFAULT_TOPIC = "~/image_raw"
+    DEFAULT_FRAME_ID = "camera"
+    RATE_PARAMETER = "fps"
+    DEFAULT_RATE = 30.0
+
+    def __init__(self, node_name: str = "camera", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+
+    def configure(self) -> None:
+        self.width = self.declare_int_parameter("width", 640, "image width in pixels", minimum=1)
+        self.height = self.declare_int_parameter("height", 480, "image height in pixels", minimum=1)
+        requested = self.declare_string_parameter("encoding", "rgb8", "image encoding (sensor_msgs image_encodings)")
+        info = encoding_info(requested)
+        if info is None:
+            raise ValueError(
+                f"parameter 'encoding': unknown encoding {requested!r}; supported: {', '.join(ENCODINGS)} "
+                "and 8UC1 ... 64FC4")
+        self.encoding, self.bytes_per_pixel, (width_divisor, height_divisor) = info
+        if self.width % width_divisor:
+            raise ValueError(f"parameter 'width' must be a multiple of {width_divisor} for encoding "
+                             f"{self.encoding!r}, got {self.width}")
+        if self.height % height_divisor:
+            raise ValueError(f"parameter 'height' must be a multiple of {height_divisor} for encoding "
+                             f"{self.encoding!r}, got {self.height}")
+        self.step = self.width * self.bytes_per_pixel
+        if self.step > 0xFFFFFFFF:
+            raise ValueError(f"parameter 'width': row of {self.step} bytes does not fit Image.step (uint32)")
+        self.frame_bytes = self.step * self.height
+        if self.frame_bytes > MAX_FRAME_BYTES:
+            raise ValueError(f"parameters 'width'/'height': frame of {self.frame_bytes} bytes exceeds "
+                             f"{MAX_FRAME_BYTES} bytes")
+        if self.frame_bytes < 8:
+            raise ValueError(f"parameters 'width'/'height': frame of {self.frame_bytes} bytes cannot hold the "
+                             "8-byte sequence number")
+        self.camera_info_topic = camera_info_topic_for(self.topic)
+        if self.camera_info_topic == self.topic:
+            raise ValueError(f"parameter 'topic': {self.topic!r} collides with its camera_info topic")
+        self.check_topic_name("topic", self.camera_info_topic)
+        self.is_bigendian = 1 if sys.byteorder == "big" else 0
+
+        extra = min(self.frame_bytes, MAX_POOL_EXTRA)
+        self._pool = np.random.default_rng(0x5EED).bytes(self.frame_bytes + extra)  # immutable bytes
+        self._pool_view = memoryview(self._pool)
+        self._offsets = extra + 1
+        self._stride = OFFSET_STRIDE if OFFSET_STRIDE % self._offsets else 1
+
+        fx = self.width / (2.0 * np.tan(np.radians(HORIZONTAL_FOV_DEG) / 2.0))
+        cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
+        self._k = (fx, 0.0, cx, 0.0, fx, cy, 0.0, 0.0, 1.0)
+        self._r = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+        self._p = (fx, 0.0, cx, 0.0, 0.0, fx, cy, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+        self.image_publisher = self.create_publisher(Image, self.topic, self.qos_profile)
+        self.camera_info_publisher = self.create_publisher(CameraInfo, self.camera_info_topic, self.qos_profile)
+
+    # ------------------------------------------------------------------ frames
+    def make_image(self, sequence: int, stamp_ns: int) -> Image:
+        """A fresh Image with its own data buffer; sequence number in data[0:8] (uint64 LE)."""
+        offset = (sequence * self._stride) % self._offsets
+        data = array("B")
+        data.frombytes(self._pool_view[offset:offset + self.frame_bytes])
+        data[0:8] = array("B", (sequence & 0xFFFFFFFFFFFFFFFF).to_bytes(8, "little"))
+        msg = Image()
+        msg.header = Header(stamp=stamp_from_ns(stamp_ns), frame_id=self.frame_id)
+        msg.height = self.height
+        msg.width = self.width
+        msg.encoding = self.encoding
+        msg.is_bigendian = self.is_bigendian
+        msg.step = self.step
+        msg.data = data
+        return msg
+
+    def make_camera_info(self, stamp_ns: int) -> CameraInfo:
+        """A fresh CameraInfo of the simulated pinhole camera (no distortion)."""
+        msg = CameraInfo()
+        msg.header = Header(stamp=stamp_from_ns(stamp_ns), frame_id=self.frame_id)
+        msg.height = self.height
+        msg.width = self.width
+        msg.distortion_model = "plumb_bob"
+        msg.d = [0.0, 0.0, 0.0, 0.0, 0.0]
+        msg.k = self._k
+        msg.r = self._r
+        msg.p = self._p
+        return msg
+
+    def publish_frame(self) -> None:
+        stamp_ns = self.get_clock().now().nanoseconds
+        image = self.make_image(self.next_sequence(self.image_publisher), stamp_ns)
+        info = self.make_camera_info(stamp_ns)
+        self.image_publisher.publish(image)
+        self.camera_info_publisher.publish(info)

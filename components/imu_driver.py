@@ -1,0 +1,85 @@
+"""Simulated IMU: publishes ``sensor_msgs/Imu`` at ``rate`` (default 200 Hz, up to 1 kHz and beyond).
+
+Parameters (all read-only, validated at construction; a bad value raises ValueError naming the parameter):
+
+============  ==============  ============================================================
+``rate``      200.0           messages per second (> 0, at most 10 kHz)
+``frame_id``  ``'imu'``       header.frame_id
+``topic``     ``'~/imu'``
+``qos``       ``'reliable'``  ``'reliable'`` or ``'sensor_data'`` (best effort)
+============  ==============  ============================================================
+
+Contents: a gyro/accelerometer-only IMU at rest on a gently yawing platform. ``linear_acceleration`` is gravity
+(+9.80665 m/s^2 on z) plus noise, ``angular_velocity`` a slow yaw oscillation plus noise; both covariances are
+diagonal with the noise variances. Noise samples come from a pool drawn once, taken at a rolling index.
+
+No orientation estimate is provided: per REP 145, ``orientation_covariance[0] == -1`` and ``orientation`` is the
+identity quaternion, which consumers must ignore.
+
+Sequence number: ``orientation_covariance[1]`` holds the message sequence number (0, 1, 2 ...) as a float64,
+exact up to 2**53. Since element 0 is -1 the rest of the orientation covariance carries no meaning, so this does
+not disturb REP 145 consumers.
+
+Rate: above 500 Hz the base class's catch-up loop publishes several messages per 2 ms timer tick instead of
+asking the executor for one timer callback per message.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import Quaternion, Vector3
+from sensor_msgs.msg import Imu
+from std_msgs.msg import Header
+
+from components.sensor_driver import SensorDriver, stamp_from_ns
+
+GRAVITY = 9.80665
+ACCEL_NOISE_SIGMA = 0.02   # m/s^2
+GYRO_NOISE_SIGMA = 0.002   # rad/s
+YAW_RATE_AMPLITUDE = 0.2   # rad/s
+YAW_RATE_FREQUENCY = 0.25  # Hz
+NOISE_POOL = 4096          # samples; a prime stride walks the pool
+NOISE_STRIDE = 1031
+
+
+class ImuDriver(SensorDriver):
+    """Simulated 6-axis IMU (no orientation) publishing sensor_msgs/Imu."""
+
+    DEFAULT_TOPIC = "~/imu"
+    DEFAULT_FRAME_ID = "imu"
+    RATE_PARAMETER = "rate"
+    DEFAULT_RATE = 200.0
+
+    def __init__(self, node_name: str = "imu", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+
+    def configure(self) -> None:
+        noise = np.random.default_rng(0x1B0).normal(0.0, 1.0, (NOISE_POOL, 6))
+        noise[:, :3] *= GYRO_NOISE_SIGMA
+        noise[:, 3:] *= ACCEL_NOISE_SIGMA
+        self._noise = tuple(tuple(row) for row in noise.tolist())  # plain floats: no numpy per message
+        gyro_var = GYRO_NOISE_SIGMA ** 2
+        accel_var = ACCEL_NOISE_SIGMA ** 2
+        self._gyro_cov = (gyro_var, 0.0, 0.0, 0.0, gyro_var, 0.0, 0.0, 0.0, gyro_var)
+        self._accel_cov = (accel_var, 0.0, 0.0, 0.0, accel_var, 0.0, 0.0, 0.0, accel_var)
+        self.publisher = self.create_publisher(Imu, self.topic, self.qos_profile)
+
+    def make_imu(self, sequence: int, stamp_ns: int) -> Imu:
+        """A fresh Imu message; sequence number in orientation_covariance[1]."""
+        gx, gy, gz, ax, ay, az = self._noise[(sequence * NOISE_STRIDE) % NOISE_POOL]
+        yaw_rate = YAW_RATE_AMPLITUDE * math.sin(2.0 * math.pi * YAW_RATE_FREQUENCY * sequence / self.rate)
+        msg = Imu()
+        msg.header = Header(stamp=stamp_from_ns(stamp_ns), frame_id=self.frame_id)
+        msg.orientation = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+        msg.orientation_covariance = (-1.0, float(sequence), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        msg.angular_velocity = Vector3(x=gx, y=gy, z=yaw_rate + gz)
+        msg.angular_velocity_covariance = self._gyro_cov
+        msg.linear_acceleration = Vector3(x=ax, y=ay, z=GRAVITY + az)
+        msg.linear_acceleration_covariance = self._accel_cov
+        return msg
+
+    def publish_frame(self) -> None:
+        stamp_ns = self.get_clock().now().nanoseconds
+        self.publisher.publish(self.make_imu(self.next_sequence(self.publisher), stamp_ns))

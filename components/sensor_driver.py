@@ -1,0 +1,261 @@
+"""Shared machinery of the simulated sensor drivers (camera, lidar, IMU).
+
+:class:`SensorDriver` is a :class:`~component_container.component_node.ComponentNode` that
+
+* declares the parameters every driver has: ``qos``, ``frame_id``, ``topic`` and a rate parameter (``rate`` by
+  default, ``fps`` for the camera), validates them and raises :class:`ValueError` naming the parameter when a
+  value is wrong (the component container reports constructor exceptions to the user);
+* keeps a sequence counter per publisher (:meth:`SensorDriver.next_sequence`);
+* runs a drift-free rate loop that calls the subclass's :meth:`SensorDriver.publish_frame` once per frame.
+
+Rate loop
+---------
+Frame ``k`` (k = 0, 1, 2 ...) is due at ``t0 + k / rate`` on the steady clock, where ``t0`` lies half a timer
+period before the first timer tick (so ticks that are early or late by less than half a period stay in
+phase). On every tick the driver publishes every frame that is due, i.e. until
+``published_count + skipped_count == floor((now - t0) * rate) + 1``. Late ticks are therefore caught up and the
+average rate is exact, without drift, however irregular the ticks are. The timer period is ``1 / rate`` but
+never shorter than :attr:`SensorDriver.MIN_TIMER_PERIOD` (2 ms): above 500 Hz each tick publishes several
+messages instead of asking the executor for one callback per message.
+
+A tick publishes at most :attr:`SensorDriver.max_burst` frames (about 0.1 s worth, at least 3). When more are
+due (the process was stalled, or producing a frame takes longer than its period) the oldest due frames are
+dropped at the source and counted in :attr:`SensorDriver.skipped_count` instead of building an ever-growing
+backlog. Skipped frames consume no sequence number: sequence numbers count published messages, so a gap seen
+by a subscriber always means a message lost after publish().
+
+``header.stamp`` of each message is the capture time: the node clock (``use_sim_time`` aware) read just before
+the frame is built, so frames published in one catch-up burst carry their real, slightly later, build times.
+
+Ownership
+---------
+Once ``publish()`` returned, the message and its buffers belong to the subscribers (the container may hand the
+very same object to intra-process subscriptions). Drivers therefore build a fresh message object, with fresh
+buffers, for every publish and never touch it afterwards; the precomputed pools they copy from are immutable
+(``bytes``) or never written.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Iterable, Optional
+
+from builtin_interfaces.msg import Time
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+from component_container.component_node import ComponentNode
+
+#: Names accepted by the ``qos`` parameter.
+QOS_CHOICES = ("reliable", "sensor_data")
+
+
+def qos_profile_for(name: str) -> QoSProfile:
+    """The QoS profile for a ``qos`` parameter value: ``'reliable'`` or ``'sensor_data'``."""
+    if name == "reliable":
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=10,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        )
+    if name == "sensor_data":
+        return qos_profile_sensor_data
+    raise ValueError(f"parameter 'qos': unknown QoS {name!r}; expected one of {', '.join(QOS_CHOICES)}")
+
+
+def stamp_from_ns(nanoseconds: int) -> Time:
+    """A fresh ``builtin_interfaces/Time`` for a time in nanoseconds."""
+    sec, nanosec = divmod(nanoseconds, 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+class SensorDriver(ComponentNode):
+    """Base class of the simulated sensor drivers.
+
+    Subclasses set the class attributes below, declare their own parameters and create their publishers in
+    :meth:`configure`, and build and publish one frame in :meth:`publish_frame`.
+    """
+
+    #: Default of the ``topic`` parameter.
+    DEFAULT_TOPIC = "~/data"
+    #: Default of the ``frame_id`` parameter.
+    DEFAULT_FRAME_ID = "sensor"
+    #: Name of the rate parameter (``'fps'`` for cameras) and its default in Hz.
+    RATE_PARAMETER = "rate"
+    DEFAULT_RATE = 10.0
+    #: Highest rate accepted, in Hz.
+    MAX_RATE = 10_000.0
+    #: Shortest timer period in seconds; faster rates publish several messages per tick.
+    MIN_TIMER_PERIOD = 0.002
+    #: How much backlog, in seconds of frames, one tick may catch up before older frames are skipped.
+    MAX_CATCH_UP = 0.1
+
+    def __init__(self, node_name: str, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self._published_count = 0
+        self._skipped_count = 0
+        self._sequences: dict[int, int] = {}
+        self._timer = None
+        try:
+            qos = self.declare_choice_parameter(
+                "qos", "reliable", QOS_CHOICES,
+                "'reliable' (reliable, keep last 10, volatile) or 'sensor_data' (best effort, keep last 5)")
+            self.qos_name: str = qos
+            self.qos_profile: QoSProfile = qos_profile_for(qos)
+            self.frame_id: str = self.declare_string_parameter(
+                "frame_id", self.DEFAULT_FRAME_ID, "header.frame_id of the published messages", allow_empty=False)
+            self.topic: str = self.declare_topic_parameter("topic", self.DEFAULT_TOPIC, "topic to publish on")
+            self.rate: float = self.declare_float_parameter(
+                self.RATE_PARAMETER, self.DEFAULT_RATE, "publishing rate in Hz",
+                minimum=0.0, minimum_inclusive=False, maximum=self.MAX_RATE)
+            self.configure()
+            self._start_rate_loop()
+        except BaseException:
+            # The container reports the exception; do not leave a half-built node in the graph.
+            self.destroy_node()
+            raise
+
+    # ------------------------------------------------------------------ subclass interface
+    def configure(self) -> None:
+        """Declare the driver's own parameters, create its publishers and precompute its pools."""
+
+    def publish_frame(self) -> None:
+        """Build one fresh frame stamped with the capture time and publish it."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ public state
+    @property
+    def published_count(self) -> int:
+        """Frames published so far (for the camera: images; camera_info messages are not counted)."""
+        return self._published_count
+
+    @property
+    def skipped_count(self) -> int:
+        """Frames dropped at the source because a tick had more than :attr:`max_burst` frames to catch up."""
+        return self._skipped_count
+
+    @property
+    def max_burst(self) -> int:
+        """Most frames one timer tick publishes."""
+        return self._max_burst
+
+    @property
+    def timer_period(self) -> float:
+        """Period of the rate-loop timer in seconds."""
+        return self._timer_period
+
+    def next_sequence(self, publisher: Any) -> int:
+        """Return the next sequence number of ``publisher`` (0, 1, 2 ... per publisher) and advance it."""
+        key = id(publisher)
+        sequence = self._sequences.get(key, 0)
+        self._sequences[key] = sequence + 1
+        return sequence
+
+    def capture_stamp(self) -> Time:
+        """A fresh ``Time`` holding the node clock's current time."""
+        return stamp_from_ns(self.get_clock().now().nanoseconds)
+
+    # ------------------------------------------------------------------ rate loop
+    def _start_rate_loop(self) -> None:
+        self._timer_period = max(1.0 / self.rate, self.MIN_TIMER_PERIOD)
+        per_tick = math.ceil(self._timer_period * self.rate)
+        self._max_burst = max(3, 2 * per_tick + 1, math.ceil(self.rate * self.MAX_CATCH_UP))
+        self._rate_origin_ns: Optional[int] = None
+        self._frames_due_done = 0  # published + skipped
+        # A steady-clock timer: simulated hardware runs on wall time even when the node uses sim time.
+        self._timer = self.create_timer(
+            self._timer_period, self._on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _on_tick(self) -> None:
+        now_ns = time.monotonic_ns()
+        if self._rate_origin_ns is None:
+            self._rate_origin_ns = now_ns - int(self._timer_period * 5e8)  # half a timer period earlier
+        due_total = int((now_ns - self._rate_origin_ns) * self.rate / 1e9) + 1
+        due = due_total - self._frames_due_done
+        if due <= 0:
+            return
+        if due > self._max_burst:
+            skipped = due - self._max_burst
+            self._skipped_count += skipped
+            self._frames_due_done += skipped
+            due = self._max_burst
+            self.get_logger().warn(
+                f"cannot keep up with {self.rate:g} Hz: skipped {skipped} frame(s), {self._skipped_count} in total",
+                throttle_duration_sec=5.0)
+        for _ in range(due):
+            self.publish_frame()
+            self._published_count += 1
+            self._frames_due_done += 1
+
+    # ------------------------------------------------------------------ parameter helpers
+    def _declare(self, name: str, default: Any, description: str) -> Any:
+        descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
+        return self.declare_parameter(name, default, descriptor).value
+
+    def declare_int_parameter(self, name: str, default: int, description: str, *,
+                              minimum: Optional[int] = None, maximum: Optional[int] = None) -> int:
+        """Declare a read-only integer parameter and validate it, raising ValueError naming it."""
+        value = self._declare(name, default, description)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"parameter '{name}' must be an integer, got {value!r}")
+        if minimum is not None and value < minimum:
+            raise ValueError(f"parameter '{name}' must be >= {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            raise ValueError(f"parameter '{name}' must be <= {maximum}, got {value}")
+        return value
+
+    def declare_float_parameter(self, name: str, default: float, description: str, *,
+                                minimum: Optional[float] = None, minimum_inclusive: bool = True,
+                                maximum: Optional[float] = None) -> float:
+        """Declare a read-only number parameter (integers accepted) and validate it."""
+        value = self._declare(name, default, description)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"parameter '{name}' must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ValueError(f"parameter '{name}' must be finite, got {value}")
+        if minimum is not None and (value < minimum or (value == minimum and not minimum_inclusive)):
+            relation = ">=" if minimum_inclusive else ">"
+            raise ValueError(f"parameter '{name}' must be {relation} {minimum:g}, got {value:g}")
+        if maximum is not None and value > maximum:
+            raise ValueError(f"parameter '{name}' must be <= {maximum:g}, got {value:g}")
+        return value
+
+    def declare_string_parameter(self, name: str, default: str, description: str, *,
+                                 allow_empty: bool = True) -> str:
+        """Declare a read-only string parameter and validate it."""
+        value = self._declare(name, default, description)
+        if not isinstance(value, str):
+            raise ValueError(f"parameter '{name}' must be a string, got {value!r}")
+        if not allow_empty and not value:
+            raise ValueError(f"parameter '{name}' must not be empty")
+        return value
+
+    def declare_choice_parameter(self, name: str, default: str, choices: Iterable[str], description: str) -> str:
+        """Declare a read-only string parameter that must be one of ``choices``."""
+        choices = tuple(choices)
+        value = self.declare_string_parameter(name, default, description)
+        if value not in choices:
+            raise ValueError(f"parameter '{name}': unknown value {value!r}; expected one of {', '.join(choices)}")
+        return value
+
+    def declare_topic_parameter(self, name: str, default: str, description: str) -> str:
+        """Declare a read-only topic-name parameter and check that the name is valid for this node."""
+        value = self.declare_string_parameter(name, default, description, allow_empty=False)
+        self.check_topic_name(name, value)
+        return value
+
+    def check_topic_name(self, parameter: str, topic: str) -> None:
+        """Raise ValueError naming ``parameter`` unless ``topic`` expands to a valid topic name."""
+        try:
+            self.resolve_topic_name(topic)
+        except Exception as exc:  # rclpy raises its own name-validation exceptions
+            raise ValueError(f"parameter '{parameter}': invalid topic name {topic!r}: {exc}") from exc

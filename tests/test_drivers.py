@@ -1,0 +1,419 @@
+"""Tests of the simulated sensor drivers (components.camera_driver / lidar_driver / imu_driver).
+
+Each DDS test runs a driver and a plain rclpy listener node in one process and one fresh rclpy Context,
+waits until the listener's subscriptions are matched, spins a SingleThreadedExecutor for a while and checks
+what arrived.
+"""
+from __future__ import annotations
+
+import math
+import statistics
+import time
+import types
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, Imu, PointCloud2, PointField
+
+from components import sensor_driver
+from components.camera_driver import CameraDriver, camera_info_topic_for
+from components.imu_driver import ImuDriver
+from components.lidar_driver import POINT_DTYPE, LidarDriver
+
+SPIN_SECONDS = 1.5
+RATE_TOLERANCE = 0.15
+
+
+class Ros:
+    """One rclpy Context with an executor, a listener node and the nodes a test creates."""
+
+    def __init__(self) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.nodes: list[Node] = []
+        self.listener = self.add(Node("listener", context=self.context))
+        self.subscriptions: list[Any] = []
+
+    def add(self, node: Node) -> Node:
+        self.nodes.append(node)
+        return node
+
+    def driver(self, cls: type, name: str, **params: Any) -> Any:
+        overrides = [Parameter(key, value=value) for key, value in params.items()]
+        return self.add(cls(name, context=self.context, parameter_overrides=overrides))
+
+    def listen(self, msg_type: type, topic: str, reliable: bool = True) -> list[tuple[float, Any]]:
+        """Subscribe the listener to ``topic``; returns the list the (receive time, message) pairs go to."""
+        received: list[tuple[float, Any]] = []
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=1000,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
+        subscription = self.listener.create_subscription(
+            msg_type, topic, lambda msg: received.append((time.monotonic(), msg)), qos)
+        self.subscriptions.append(subscription)
+        return received
+
+    def wait_matched(self, timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while any(sub.get_publisher_count() < 1 for sub in self.subscriptions):
+            assert time.monotonic() < deadline, "listener subscriptions never matched the driver's publishers"
+            time.sleep(0.02)
+
+    def spin(self, *drivers: Node, seconds: float = SPIN_SECONDS) -> float:
+        """Match, then spin listener and drivers for ``seconds``; returns the time spun."""
+        self.wait_matched()
+        self.executor.add_node(self.listener)
+        for driver in drivers:
+            self.executor.add_node(driver)
+        start = time.monotonic()
+        while time.monotonic() - start < seconds:
+            self.executor.spin_once(timeout_sec=0.05)
+        elapsed = time.monotonic() - start
+        for driver in drivers:  # stop publishing, then drain what is in flight
+            self.executor.remove_node(driver)
+        drain_end = time.monotonic() + 0.3
+        while time.monotonic() < drain_end:
+            self.executor.spin_once(timeout_sec=0.02)
+        return elapsed
+
+    def close(self) -> None:
+        try:
+            self.executor.shutdown()
+            for node in self.nodes:
+                node.destroy_node()
+        finally:
+            rclpy.shutdown(context=self.context)
+
+
+@pytest.fixture
+def ros():
+    harness = Ros()
+    try:
+        yield harness
+    finally:
+        harness.close()
+
+
+def topic_of(driver: Node, topic: str) -> str:
+    return driver.resolve_topic_name(topic)
+
+
+def stamp_ns(msg: Any) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def seq_from_data(msg: Any) -> int:
+    return int.from_bytes(bytes(msg.data[:8]), "little")
+
+
+def check_sequence_and_timing(msgs: list[Any], seq_of: Callable[[Any], int], rate: float) -> None:
+    assert len(msgs) >= 5, f"only {len(msgs)} messages received"
+    seqs = [seq_of(m) for m in msgs]
+    assert seqs == list(range(len(seqs))), f"sequence not 0, 1, 2 ... without gaps: {seqs[:20]} ..."
+    stamps = [stamp_ns(m) for m in msgs]
+    assert all(b > a for a, b in zip(stamps, stamps[1:])), "header.stamp not strictly increasing"
+    measured = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
+    assert abs(measured - rate) <= RATE_TOLERANCE * rate, f"average rate {measured:.1f} Hz, requested {rate} Hz"
+
+
+def check_published_count(driver: Any, elapsed: float, received: int) -> None:
+    expected = driver.rate * elapsed
+    assert abs(driver.published_count - expected) <= RATE_TOLERANCE * expected + 1, \
+        f"published_count {driver.published_count} after {elapsed:.2f} s at {driver.rate} Hz"
+    assert driver.published_count == received, "reliable: every published message should arrive"
+    assert driver.skipped_count == 0
+
+
+# ---------------------------------------------------------------------------------------------- camera
+def test_camera_publishes_images_and_camera_info(ros):
+    camera = ros.driver(CameraDriver, "cam", width=320, height=240, fps=30.0, frame_id="cam_optical")
+    assert camera.rate == 30.0 and camera.width == 320 and camera.encoding == "rgb8"
+    images = ros.listen(Image, topic_of(camera, "~/image_raw"))
+    infos = ros.listen(CameraInfo, topic_of(camera, "~/camera_info"))
+    elapsed = ros.spin(camera)
+
+    msgs = [m for _, m in images]
+    check_sequence_and_timing(msgs, seq_from_data, 30.0)
+    check_published_count(camera, elapsed, len(msgs))
+    for msg in msgs:
+        assert (msg.width, msg.height, msg.encoding, msg.step) == (320, 240, "rgb8", 960)
+        assert len(msg.data) == 960 * 240
+        assert msg.header.frame_id == "cam_optical"
+        assert msg.is_bigendian == 0
+    for a, b in zip(msgs, msgs[1:]):
+        assert bytes(a.data[8:]) != bytes(b.data[8:]), "consecutive frames have identical payload"
+
+    info_msgs = [m for _, m in infos]
+    assert len(info_msgs) == len(msgs)
+    assert [stamp_ns(m) for m in info_msgs] == [stamp_ns(m) for m in msgs]
+    info = info_msgs[0]
+    assert (info.width, info.height, info.header.frame_id) == (320, 240, "cam_optical")
+    assert info.distortion_model == "plumb_bob" and len(info.d) == 5
+    assert info.k[0] > 0 and info.k[4] == info.k[0] and info.k[8] == 1.0
+    assert info.k[2] == pytest.approx(159.5) and info.k[5] == pytest.approx(119.5)
+    assert info.p[0] == info.k[0] and info.p[10] == 1.0
+
+
+@pytest.mark.parametrize("encoding, width, height, bytes_per_pixel", [
+    ("rgb8", 64, 48, 3), ("bgr8", 64, 48, 3), ("rgba8", 64, 48, 4), ("bgra8", 64, 48, 4),
+    ("mono8", 64, 48, 1), ("mono16", 64, 48, 2), ("rgb16", 64, 48, 6), ("yuv422", 64, 48, 2),
+    ("yuv422_yuy2", 64, 48, 2), ("bayer_rggb8", 64, 48, 1), ("bayer_grbg16", 64, 48, 2),
+    ("32FC1", 64, 48, 4), ("16UC3", 64, 48, 6), ("8UC4", 63, 47, 4), ("64FC2", 10, 10, 16),
+])
+def test_camera_encodings(ros, encoding, width, height, bytes_per_pixel):
+    camera = ros.driver(CameraDriver, "cam", encoding=encoding, width=width, height=height)
+    msg = camera.make_image(7, 1_000_000_123)
+    assert msg.encoding == encoding
+    assert msg.step == width * bytes_per_pixel
+    assert len(msg.data) == msg.step * height
+    assert (msg.width, msg.height) == (width, height)
+    assert seq_from_data(msg) == 7
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1, 123)
+
+
+def test_camera_info_topic_is_sibling():
+    assert camera_info_topic_for("~/image_raw") == "~/camera_info"
+    assert camera_info_topic_for("/front/left/image_rect") == "/front/left/camera_info"
+    assert camera_info_topic_for("image") == "camera_info"
+
+
+def test_camera_frames_are_fresh_objects(ros):
+    camera = ros.driver(CameraDriver, "cam", width=64, height=48)
+    first = camera.make_image(0, 0)
+    snapshot = bytes(first.data)
+    second = camera.make_image(1, 0)
+    assert second is not first and second.data is not first.data and second.header is not first.header
+    assert bytes(first.data) == snapshot, "building a frame modified an earlier one"
+    assert bytes(second.data[8:]) != snapshot[8:]
+    info_a, info_b = camera.make_camera_info(0), camera.make_camera_info(0)
+    assert info_a.k is not info_b.k and info_a.header is not info_b.header
+
+
+# ---------------------------------------------------------------------------------------------- lidar
+def test_lidar_publishes_point_clouds(ros):
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=4096, rings=16, rate=20.0)
+    clouds = ros.listen(PointCloud2, topic_of(lidar, "~/points"))
+    elapsed = ros.spin(lidar)
+
+    msgs = [m for _, m in clouds]
+    check_sequence_and_timing(msgs, seq_from_data, 20.0)
+    check_published_count(lidar, elapsed, len(msgs))
+    expected_fields = [("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
+                       ("intensity", 12, PointField.FLOAT32), ("ring", 16, PointField.UINT16),
+                       ("time", 20, PointField.FLOAT32)]
+    for msg in msgs:
+        assert [(f.name, f.offset, f.datatype) for f in msg.fields] == expected_fields
+        assert all(f.count == 1 for f in msg.fields)
+        assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, 4096, 24, 4096 * 24)
+        assert len(msg.data) == msg.row_step * msg.height
+        assert msg.is_dense and not msg.is_bigendian
+        assert msg.header.frame_id == "lidar"
+    points = np.frombuffer(bytes(msgs[1].data), dtype=POINT_DTYPE)
+    assert np.array_equal(points["ring"], np.arange(4096) % 16)
+    assert points["time"][0] == 0.0 and 0.0 <= points["time"].min() and points["time"].max() < 1 / 20.0
+    assert np.all(np.diff(points["time"]) >= 0)
+    xyz = np.stack([points["x"][1:], points["y"][1:], points["z"][1:]])
+    assert np.isfinite(xyz).all()
+    distance = np.linalg.norm(xyz, axis=0)
+    assert 0.5 < distance.min() and distance.max() < 50.0
+    for a, b in zip(msgs, msgs[1:]):
+        assert bytes(a.data[8:]) != bytes(b.data[8:]), "consecutive scans have identical payload"
+
+
+def test_lidar_large_scan(ros):
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=131072)
+    msg = lidar.make_cloud(3, 0)
+    assert msg.width == 131072 and len(msg.data) == 131072 * 24 and seq_from_data(msg) == 3
+    points = np.frombuffer(bytes(msg.data), dtype=POINT_DTYPE)
+    assert points["ring"].max() == 31
+
+
+# ---------------------------------------------------------------------------------------------- imu
+def test_imu_publishes_at_1khz(ros):
+    imu = ros.driver(ImuDriver, "imu", rate=1000.0)
+    received = ros.listen(Imu, topic_of(imu, "~/imu"))
+    elapsed = ros.spin(imu)
+
+    msgs = [m for _, m in received]
+    check_sequence_and_timing(msgs, lambda m: int(m.orientation_covariance[1]), 1000.0)
+    check_published_count(imu, elapsed, len(msgs))
+    for msg in msgs:
+        assert msg.header.frame_id == "imu"
+        assert msg.orientation_covariance[0] == -1.0
+        assert (msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w) == (0, 0, 0, 1)
+    accel_z = [m.linear_acceleration.z for m in msgs]
+    assert statistics.mean(accel_z) == pytest.approx(9.80665, abs=0.01)
+    assert len(set(accel_z)) > len(accel_z) // 2, "accelerometer noise does not vary"
+    assert msgs[0].linear_acceleration_covariance[0] > 0 and msgs[0].angular_velocity_covariance[0] > 0
+
+
+def test_imu_default_rate(ros):
+    imu = ros.driver(ImuDriver, "imu")
+    received = ros.listen(Imu, topic_of(imu, "~/imu"))
+    ros.spin(imu, seconds=1.0)
+    check_sequence_and_timing([m for _, m in received], lambda m: int(m.orientation_covariance[1]), 200.0)
+
+
+# ---------------------------------------------------------------------------------------------- shared
+def test_defaults(ros):
+    camera = ros.driver(CameraDriver, "cam")
+    lidar = ros.driver(LidarDriver, "lidar")
+    imu = ros.driver(ImuDriver, "imu")
+    assert (camera.width, camera.height, camera.encoding, camera.rate) == (640, 480, "rgb8", 30.0)
+    assert (camera.frame_id, camera.topic, camera.qos_name) == ("camera", "~/image_raw", "reliable")
+    assert camera.get_parameter("fps").value == 30.0
+    assert (lidar.points_per_scan, lidar.rings, lidar.rate) == (32768, 32, 10.0)
+    assert (lidar.frame_id, lidar.topic, lidar.qos_name) == ("lidar", "~/points", "reliable")
+    assert (imu.rate, imu.frame_id, imu.topic, imu.qos_name) == (200.0, "imu", "~/imu", "reliable")
+    for driver in (camera, lidar, imu):
+        assert driver.published_count == 0
+        assert driver.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+        assert driver.qos_profile.history == HistoryPolicy.KEEP_LAST and driver.qos_profile.depth == 10
+
+
+@pytest.mark.parametrize("cls, params, parameter", [
+    (CameraDriver, {"fps": -5.0}, "fps"),
+    (CameraDriver, {"fps": 0}, "fps"),
+    (CameraDriver, {"width": 0}, "width"),
+    (CameraDriver, {"height": -1}, "height"),
+    (CameraDriver, {"width": 640.5}, "width"),
+    (CameraDriver, {"encoding": "rgb9"}, "encoding"),
+    (CameraDriver, {"encoding": "yuv422", "width": 641}, "width"),
+    (CameraDriver, {"qos": "fast"}, "qos"),
+    (CameraDriver, {"frame_id": ""}, "frame_id"),
+    (CameraDriver, {"topic": "bad topic!"}, "topic"),
+    (LidarDriver, {"points_per_scan": 0}, "points_per_scan"),
+    (LidarDriver, {"rings": 0}, "rings"),
+    (LidarDriver, {"rings": 64, "points_per_scan": 32}, "rings"),
+    (LidarDriver, {"rate": -10.0}, "rate"),
+    (LidarDriver, {"rate": float("nan")}, "rate"),
+    (ImuDriver, {"rate": 0.0}, "rate"),
+    (ImuDriver, {"rate": "fast"}, "rate"),
+    (ImuDriver, {"qos": "best_effort_please"}, "qos"),
+])
+def test_invalid_parameters_raise_value_error(ros, cls, params, parameter):
+    overrides = [Parameter(key, value=value) for key, value in params.items()]
+    with pytest.raises(ValueError, match=f"'{parameter}'"):
+        cls("bad", context=ros.context, parameter_overrides=overrides)
+
+
+def test_failed_construction_leaves_no_node(ros):
+    # Keep the exception (whose traceback references the half-built node) alive: the node must be destroyed
+    # explicitly, not just when the garbage collector gets to it.
+    with pytest.raises(ValueError, match="'encoding'") as excinfo:
+        CameraDriver("broken_camera", context=ros.context, parameter_overrides=[Parameter("encoding", value="x")])
+    ros.driver(ImuDriver, "healthy_imu")
+    deadline = time.monotonic() + 10.0
+    while "healthy_imu" not in (names := ros.listener.get_node_names()):
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    assert "broken_camera" not in names
+    assert excinfo.value is not None
+
+
+def test_sensor_data_qos_is_best_effort(ros):
+    camera = ros.driver(CameraDriver, "cam", width=64, height=48, qos="sensor_data")
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=256, rings=8, qos="sensor_data")
+    imu = ros.driver(ImuDriver, "imu", qos="sensor_data")
+    images = ros.listen(Image, topic_of(camera, "~/image_raw"), reliable=False)
+    for driver, topic in ((camera, "~/image_raw"), (camera, "~/camera_info"), (lidar, "~/points"), (imu, "~/imu")):
+        assert driver.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        name = topic_of(driver, topic)
+        deadline = time.monotonic() + 10.0
+        while not (infos := ros.listener.get_publishers_info_by_topic(name)):
+            assert time.monotonic() < deadline, f"no publisher on {name} in the graph"
+            time.sleep(0.02)
+        assert [i.qos_profile.reliability for i in infos] == [ReliabilityPolicy.BEST_EFFORT]
+    ros.spin(camera, seconds=0.5)
+    assert len(images) >= 5
+
+
+def test_reliable_qos_in_graph(ros):
+    imu = ros.driver(ImuDriver, "imu")
+    name = topic_of(imu, "~/imu")
+    deadline = time.monotonic() + 10.0
+    while not (infos := ros.listener.get_publishers_info_by_topic(name)):
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    assert [i.qos_profile.reliability for i in infos] == [ReliabilityPolicy.RELIABLE]
+
+
+# ---------------------------------------------------------------------------------------------- rate loop
+class FakeClock:
+    def __init__(self) -> None:
+        self.ns = 1_000_000_000_000
+
+    def monotonic_ns(self) -> int:
+        return self.ns
+
+    def advance(self, seconds: float) -> None:
+        self.ns += round(seconds * 1e9)
+
+
+def test_rate_loop_catches_up_and_caps_bursts(ros, monkeypatch):
+    clock = FakeClock()
+    monkeypatch.setattr(sensor_driver, "time", types.SimpleNamespace(monotonic_ns=clock.monotonic_ns))
+    imu = ros.driver(ImuDriver, "imu", rate=100.0)
+    sequences: list[int] = []
+    real_make = imu.make_imu
+    monkeypatch.setattr(imu, "make_imu", lambda seq, stamp: sequences.append(seq) or real_make(seq, stamp))
+    assert imu.timer_period == pytest.approx(0.01) and imu.max_burst == 10
+
+    imu._on_tick()  # first tick: frame 0; frames are due every 10 ms from half a period before it
+    assert imu.published_count == 1
+    clock.advance(0.004)
+    imu._on_tick()  # early tick: nothing due yet
+    assert imu.published_count == 1
+    clock.advance(0.002)  # 6 ms after the first tick (11 ms after the origin): frame 1 due
+    imu._on_tick()
+    assert imu.published_count == 2
+    clock.advance(0.064)  # 70 ms after the first tick: a late tick catches up to frame 7
+    imu._on_tick()
+    assert (imu.published_count, imu.skipped_count) == (8, 0)
+    clock.advance(1.0)  # stalled for a second: 100 frames due, only max_burst published, rest skipped
+    imu._on_tick()
+    assert imu.published_count == 18 and imu.skipped_count == 90
+    for _ in range(100):  # afterwards the loop is back in phase without drift
+        clock.advance(0.01)
+        imu._on_tick()
+    assert imu.published_count + imu.skipped_count == math.floor((2.07 + 0.005) * 100) + 1
+    assert imu.skipped_count == 90
+    assert sequences == list(range(imu.published_count)), "sequence numbers must stay gap-free"
+
+
+def test_next_sequence_is_per_publisher(ros):
+    camera = ros.driver(CameraDriver, "cam", width=64, height=48)
+    assert [camera.next_sequence(camera.image_publisher) for _ in range(3)] == [0, 1, 2]
+    assert camera.next_sequence(camera.camera_info_publisher) == 0
+
+
+# ---------------------------------------------------------------------------------------------- cost
+def median_seconds(fn: Callable[[int], Any], runs: int) -> float:
+    times = []
+    for i in range(runs):
+        start = time.perf_counter()
+        fn(i)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def test_frame_generation_is_cheap(ros):
+    camera = ros.driver(CameraDriver, "cam", width=1920, height=1080, encoding="rgb8")
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=131072)
+    imu = ros.driver(ImuDriver, "imu")
+    image_cost = median_seconds(lambda i: camera.make_image(i, 0), 30)
+    cloud_cost = median_seconds(lambda i: lidar.make_cloud(i, 0), 30)
+    imu_cost = median_seconds(lambda i: imu.make_imu(i, 0), 500)
+    print(f"\n1080p rgb8 image {image_cost * 1e3:.2f} ms, 131072-point cloud {cloud_cost * 1e3:.2f} ms, "
+          f"imu {imu_cost * 1e6:.1f} us")
+    assert image_cost < 0.005
+    assert cloud_cost < 0.010
+    assert imu_cost < 0.0005
