@@ -1,0 +1,410 @@
+"""The bag writer: rosbag2's ``SequentialWriter`` for already-serialized messages.
+
+It owns the bag directory (``<uri>/metadata.yaml`` plus ``<name>_<N>.mcap`` or ``.db3``), splits
+files by size or duration, and keeps ``metadata.yaml`` true to the files: it is rewritten
+atomically at every split (so a crash later still leaves a readable bag of the closed files) and
+at close. A failed write (disk full, ...) never leaves an unreadable bag behind: the current file is
+finalized with what reached it, ``metadata.yaml`` counts exactly that, and the caller gets a
+:class:`BagWriteError` naming the file and the OS reason.
+"""
+from __future__ import annotations
+
+import dataclasses
+import errno
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import NoReturn, Protocol
+
+from .mcap_storage import MCAP_PRESETS, McapStorage
+from .message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
+from .metadata import BagMetadata, FileInfo, TopicInfo
+from .sqlite_storage import SQLITE_PRESETS, SqliteStorage
+
+__all__ = ["BagExistsError", "BagWriteError", "BagWriter", "SplitCallback"]
+
+#: Called with (closed file, opened file); the opened file is ``""`` when the bag is closed.
+SplitCallback = Callable[[str, str], None]
+
+_NS_PER_S = 1_000_000_000
+
+
+class BagWriteError(OSError):
+    """The bag could not be created or written; ``filename`` is the path, ``strerror`` the reason.
+
+    When it is raised by a write, the bag on disk is already closed and readable, holding
+    everything written before the failure.
+    """
+
+
+class BagExistsError(FileExistsError):
+    """The bag directory already exists; a bag is never written into (or over) an existing one."""
+
+
+class _Storage(Protocol):
+    """What the writer needs from a storage file (see McapStorage and SqliteStorage)."""
+
+    path: Path
+    error: OSError | None
+    readable: bool
+
+    @property
+    def size(self) -> int: ...
+
+    def add_topic(self, topic: TopicInfo, definition: tuple[str, str]) -> None: ...
+
+    def write(
+        self, topic: str, data: bytes | bytearray | memoryview, log_time_ns: int, publish_time_ns: int
+    ) -> None: ...
+
+    def close(self, serialized_metadata: str = "") -> FileInfo: ...
+
+
+_STORAGES: dict[str, tuple[type[McapStorage] | type[SqliteStorage], dict[str, object]]] = {
+    "mcap": (McapStorage, MCAP_PRESETS),  # type: ignore[dict-item]
+    "sqlite3": (SqliteStorage, SQLITE_PRESETS),  # type: ignore[dict-item]
+}
+
+
+class BagWriter:
+    """Write a rosbag2 bag (metadata version 9) from CDR-serialized messages. Thread-safe.
+
+    Args:
+        uri: the bag directory, which must not exist yet; empty or ``None`` means
+            ``rosbag2_YYYY_MM_DD-HH_MM_SS`` in the current directory.
+        storage_id: ``"mcap"`` (also for ``""``) or ``"sqlite3"``.
+        max_bagfile_size: split when the current file reaches this many bytes (0: never).
+        max_bagfile_duration: split when a message is this many seconds newer than the current
+            file's first message (0: never).
+        storage_preset_profile: rosbag2's presets: ``none``, ``fastwrite``, ``zstd_fast``,
+            ``zstd_small`` for MCAP; ``none``, ``resilient`` for sqlite3.
+        custom_data: string pairs stored in ``metadata.yaml``.
+        on_split: called after a file is closed, with its path and the next file's path
+            (``""`` when the bag is closed).
+
+    Raises:
+        ValueError: unknown storage id or preset, negative limits.
+        BagExistsError: ``uri`` exists.
+        BagWriteError: the directory or first file cannot be created.
+    """
+
+    def __init__(
+        self,
+        uri: str | Path | None = None,
+        storage_id: str = "mcap",
+        max_bagfile_size: int = 0,
+        max_bagfile_duration: float | int = 0,
+        storage_preset_profile: str = "",
+        custom_data: dict[str, str] | None = None,
+        on_split: SplitCallback | None = None,
+    ) -> None:
+        storage_id = storage_id or "mcap"
+        if storage_id not in _STORAGES:
+            raise ValueError(
+                f"unsupported storage_id {storage_id!r}: use one of {', '.join(map(repr, _STORAGES))}"
+            )
+        self._storage_class, presets = _STORAGES[storage_id]
+        if storage_preset_profile not in presets:
+            raise ValueError(
+                f"unknown {storage_id} storage_preset_profile {storage_preset_profile!r}: "
+                f"use one of {', '.join(repr(name) for name in presets if name)}"
+            )
+        if max_bagfile_size < 0 or max_bagfile_duration < 0:
+            raise ValueError("max_bagfile_size and max_bagfile_duration must not be negative")
+        if custom_data is not None and not all(
+            isinstance(key, str) and isinstance(value, str) for key, value in custom_data.items()
+        ):
+            raise ValueError("custom_data keys and values must be strings")
+
+        self._preset = storage_preset_profile
+        self._max_size = int(max_bagfile_size)
+        self._max_duration_ns = round(max_bagfile_duration * _NS_PER_S)
+        self._on_split = on_split
+        self._lock = threading.RLock()
+        self._path = Path(uri) if uri else Path.cwd() / time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
+        self._metadata = BagMetadata(storage_id, custom_data=dict(custom_data) if custom_data else None)
+        self._topics: dict[str, TopicInfo] = {}
+        self._definitions: dict[str, tuple[str, str]] = {}
+        self._closed_bytes = 0
+        self._file_index = 0
+        self._file_counts: dict[str, int] = {}
+        self._file_first_ns: int | None = None
+        self._file_last_ns: int | None = None
+        self._failure: BagWriteError | None = None
+        self._closed = False
+
+        try:
+            self._path.mkdir(parents=True)
+        except FileExistsError:
+            raise BagExistsError(
+                errno.EEXIST, "bag directory already exists; choose a new uri (bags are never overwritten)",
+                str(self._path),
+            ) from None
+        except OSError as error:
+            raise BagWriteError(
+                error.errno, f"cannot create bag directory: {error.strerror}", str(self._path)
+            ) from error
+        try:
+            self._storage: _Storage | None = self._open_storage()
+        except BagWriteError:
+            self._path.rmdir()
+            raise
+
+    # --- public API ---------------------------------------------------------------------------
+
+    @property
+    def path(self) -> Path:
+        """The bag directory."""
+        return self._path
+
+    @property
+    def current_file(self) -> Path | None:
+        """The storage file being written (``None`` once closed or after a failure)."""
+        return self._storage.path if self._storage is not None else None
+
+    @property
+    def files(self) -> list[Path]:
+        """All storage files listed in the bag so far, the current one included."""
+        with self._lock:
+            paths = [self._path / info.path for info in self._metadata.files]
+            if self._storage is not None:
+                paths.append(self._storage.path)
+            return paths
+
+    @property
+    def topics(self) -> list[TopicInfo]:
+        return list(self._metadata.topics)
+
+    @property
+    def topic_message_counts(self) -> dict[str, int]:
+        """Messages written per topic (every added topic is present, possibly with 0)."""
+        with self._lock:
+            counts = self._metadata.topic_message_counts()
+            for name, count in self._file_counts.items():
+                counts[name] += count
+            return counts
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.topic_message_counts.values())
+
+    @property
+    def bytes_written(self) -> int:
+        """Size of the closed files plus what the current file holds or is about to."""
+        with self._lock:
+            return self._closed_bytes + (self._storage.size if self._storage is not None else 0)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def add_topic(self, info: TopicInfo) -> None:
+        """Make a topic known; it is listed in the bag even if no message is ever written.
+
+        Adding a topic again is a no-op; adding its name with another type is an error. An empty
+        ``type_description_hash`` is filled in from the locally installed type.
+
+        Raises:
+            MessageDefinitionNotFoundError: the type's definition is not installed here, so the
+                bag could not describe it.
+            ValueError: the name is already used by another type.
+            BagWriteError: the storage failed (the bag is then closed, see class doc).
+        """
+        with self._lock:
+            self._require_writable()
+            existing = self._topics.get(info.name)
+            if existing is not None:
+                if existing.type != info.type:
+                    raise ValueError(
+                        f"topic {info.name} already recorded as {existing.type}, not {info.type}"
+                    )
+                return
+            if not info.type_description_hash:
+                try:
+                    info = dataclasses.replace(info, type_description_hash=type_hash(info.type))
+                except MessageDefinitionNotFoundError:
+                    pass
+            definition = self._definitions.get(info.type) or message_definition(info.type)
+            assert self._storage is not None
+            try:
+                self._storage.add_topic(info, definition)
+            except OSError as error:
+                self._fail(error)
+            self._definitions[info.type] = definition
+            self._topics[info.name] = info
+            self._metadata.topics.append(info)
+            self._file_counts[info.name] = 0
+
+    def write(
+        self, topic: str, data: bytes | bytearray | memoryview, log_time_ns: int, publish_time_ns: int
+    ) -> None:
+        """Write one CDR-serialized message (with its 4-byte encapsulation header).
+
+        ``log_time_ns`` is the receive time (bag order, splitting, metadata times);
+        ``publish_time_ns`` the source time. Splits first if the current file is full.
+
+        Raises:
+            KeyError: the topic was not added.
+            BagWriteError: the storage failed; the bag is closed and readable up to here.
+        """
+        with self._lock:
+            self._require_writable()
+            if topic not in self._topics:
+                raise KeyError(f"unknown topic {topic!r}: add_topic() it first")
+            if self._split_due(log_time_ns):
+                self._split()
+            assert self._storage is not None
+            try:
+                self._storage.write(topic, data, log_time_ns, publish_time_ns)
+            except OSError as error:
+                self._fail(error)
+            self._file_counts[topic] += 1
+            if self._file_first_ns is None or log_time_ns < self._file_first_ns:
+                self._file_first_ns = log_time_ns
+            if self._file_last_ns is None or log_time_ns > self._file_last_ns:
+                self._file_last_ns = log_time_ns
+
+    def split(self) -> None:
+        """Close the current file (complete with its summary) and continue in the next one."""
+        with self._lock:
+            self._require_writable()
+            self._split()
+
+    def close(self) -> None:
+        """Close the current file and write ``metadata.yaml``; further calls do nothing.
+
+        Raises:
+            BagWriteError: finishing the file or writing ``metadata.yaml`` failed (whatever could
+                be saved is saved). An error already raised by :meth:`write` is not raised again.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            closed = ""
+            error: OSError | None = None
+            if self._storage is not None:
+                closed = str(self._storage.path)
+                error = self._close_storage()
+            try:
+                self._metadata.write(self._path)
+            except OSError as metadata_error:
+                error = error or metadata_error
+            if closed and self._on_split is not None:
+                self._on_split(closed, "")
+            if error is not None:
+                raise self._error(error, "cannot finish bag") from error
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _require_writable(self) -> None:
+        if self._closed:
+            raise ValueError(f"bag {self._path} is closed")
+        if self._failure is not None:
+            raise BagWriteError(
+                self._failure.errno, f"writing stopped after an earlier failure: {self._failure.strerror}",
+                self._failure.filename,
+            )
+
+    def _file_path(self) -> Path:
+        return self._path / f"{self._path.name}_{self._file_index}{self._storage_class.extension}"
+
+    def _open_storage(self) -> _Storage:
+        """Create the next storage file with every known topic in it."""
+        path = self._file_path()
+        opening = dataclasses.replace(self._metadata, files=[*self._metadata.files, FileInfo(path.name)])
+        try:
+            storage: _Storage = self._storage_class(path, self._preset, opening.to_yaml())
+        except OSError as error:
+            if not isinstance(error, FileExistsError):
+                path.unlink(missing_ok=True)  # a partial file of ours; it holds no messages
+            raise self._error(error, "cannot create bag file", path) from error
+        try:
+            for topic in self._metadata.topics:
+                storage.add_topic(topic, self._definitions[topic.type])
+        except OSError as error:
+            storage.close()
+            path.unlink(missing_ok=True)
+            raise self._error(error, "cannot create bag file", path) from error
+        self._file_counts = dict.fromkeys(self._topics, 0)
+        self._file_first_ns = self._file_last_ns = None
+        return storage
+
+    def _split_due(self, log_time_ns: int) -> bool:
+        if self._file_first_ns is None:
+            return False  # never split off an empty file
+        assert self._storage is not None
+        if self._max_size and self._storage.size >= self._max_size:
+            return True
+        return bool(self._max_duration_ns) and log_time_ns - self._file_first_ns > self._max_duration_ns
+
+    def _split(self) -> None:
+        assert self._storage is not None
+        closed = self._storage.path
+        error = self._close_storage()
+        if error is not None:
+            self._stop(error, closed)
+        self._file_index += 1
+        try:
+            self._storage = self._open_storage()
+        except BagWriteError as open_error:
+            self._failure = open_error
+            self._write_metadata_quietly()
+            if self._on_split is not None:
+                self._on_split(str(closed), "")
+            raise
+        self._write_metadata_quietly()
+        if self._on_split is not None:
+            self._on_split(str(closed), str(self._storage.path))
+
+    def _close_storage(self) -> OSError | None:
+        """Close the current file, record it in the metadata; return the storage's error, if any."""
+        storage = self._storage
+        assert storage is not None
+        self._storage = None
+        current = FileInfo.from_log_times(
+            storage.path.name, self._file_first_ns, self._file_last_ns, self._file_counts
+        )
+        closing = dataclasses.replace(self._metadata, files=[*self._metadata.files, current])
+        info = storage.close(closing.to_yaml())
+        self._file_counts = {}
+        self._file_first_ns = self._file_last_ns = None
+        try:
+            self._closed_bytes += storage.path.stat().st_size
+        except OSError:
+            pass
+        if storage.readable:
+            self._metadata.files.append(info)
+        return storage.error
+
+    def _fail(self, error: OSError) -> NoReturn:
+        """The current file failed: finalize what reached it, then stop (see :meth:`_stop`)."""
+        assert self._storage is not None
+        closed = self._storage.path
+        self._close_storage()
+        self._stop(error, closed)
+
+    def _stop(self, error: OSError, closed: Path) -> NoReturn:
+        """Record the failure, save ``metadata.yaml`` for the closed files and raise."""
+        self._failure = self._error(error, "cannot write bag file", closed)
+        self._write_metadata_quietly()
+        if self._on_split is not None:
+            self._on_split(str(closed), "")
+        raise self._failure from error
+
+    def _write_metadata_quietly(self) -> None:
+        try:
+            self._metadata.write(self._path)
+        except OSError:
+            pass  # the storage error being reported is the cause; nothing more can be saved
+
+    def _error(self, error: OSError, action: str, path: Path | None = None) -> BagWriteError:
+        reason = error.strerror or str(error)
+        return BagWriteError(error.errno, f"{action}: {reason}", str(path or error.filename or self._path))

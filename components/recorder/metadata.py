@@ -1,0 +1,264 @@
+"""The bag's description: topics, files and the ``metadata.yaml`` (version 9) that ties them together.
+
+Readers trust ``metadata.yaml`` more than the storage files: ``rosbags`` only reads a topic whose
+name, type, serialization format and offered QoS profiles equal the storage's entry, and only the
+files listed here. So one module owns both the YAML document and the QoS text the storage plugins
+embed, which keeps the two representations identical by construction.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import yaml
+
+if TYPE_CHECKING:
+    from rclpy.qos import QoSProfile
+
+__all__ = [
+    "METADATA_FILENAME",
+    "METADATA_VERSION",
+    "QOS_KEYS",
+    "ROS_DISTRO",
+    "BagMetadata",
+    "FileInfo",
+    "TopicInfo",
+    "qos_profile_dict",
+    "serialize_qos_profiles",
+]
+
+METADATA_FILENAME = "metadata.yaml"
+#: The Jazzy format: QoS enums as strings and offered_qos_profiles as a YAML list.
+METADATA_VERSION = 9
+ROS_DISTRO = "jazzy"
+
+#: Every QoS profile needs all nine keys, in rosbag2's order, or readers drop the topic.
+QOS_KEYS = (
+    "history",
+    "depth",
+    "reliability",
+    "durability",
+    "deadline",
+    "lifespan",
+    "liveliness",
+    "liveliness_lease_duration",
+    "avoid_ros_namespace_conventions",
+)
+
+_NS_PER_S = 1_000_000_000
+#: RMW_DURATION_INFINITE, {sec: 9223372036, nsec: 854775807} once split.
+_INFINITE_NS = 2**63 - 1
+# Foxy-era middlewares reported "infinite" as ~2**31 s; rosbag2 maps those to RMW_DURATION_INFINITE
+# on playback, so anything this long is recorded as infinite right away.
+_LEGACY_INFINITE_NS = 0x7FFFFFFF * _NS_PER_S
+
+
+def _duration_dict(nanoseconds: int) -> dict[str, int]:
+    if nanoseconds >= _LEGACY_INFINITE_NS:
+        nanoseconds = _INFINITE_NS
+    return {"sec": nanoseconds // _NS_PER_S, "nsec": nanoseconds % _NS_PER_S}
+
+
+def qos_profile_dict(qos: QoSProfile) -> dict[str, Any]:
+    """Convert an rclpy QoS profile (e.g. from a publisher's endpoint info) to rosbag2's form.
+
+    Policies become rmw's strings (``keep_last``, ``best_effort``, ``transient_local`` ...),
+    durations ``{sec, nsec}``; an infinite duration becomes ``{sec: 9223372036, nsec: 854775807}``.
+    """
+    return {
+        "history": qos.history.name.lower(),
+        "depth": int(qos.depth),
+        "reliability": qos.reliability.name.lower(),
+        "durability": qos.durability.name.lower(),
+        "deadline": _duration_dict(qos.deadline.nanoseconds),
+        "lifespan": _duration_dict(qos.lifespan.nanoseconds),
+        "liveliness": qos.liveliness.name.lower(),
+        "liveliness_lease_duration": _duration_dict(qos.liveliness_lease_duration.nanoseconds),
+        "avoid_ros_namespace_conventions": bool(qos.avoid_ros_namespace_conventions),
+    }
+
+
+class _Dumper(yaml.SafeDumper):
+    """Block-style YAML laid out like rosbag2's yaml-cpp output (indented lists, ``~`` for null)."""
+
+    def increase_indent(self, flow: bool = False, indentless: bool = False) -> None:
+        super().increase_indent(flow, False)
+
+
+_Dumper.add_representer(
+    type(None), lambda dumper, _: dumper.represent_scalar("tag:yaml.org,2002:null", "~")
+)
+
+
+def _dump(document: Any) -> str:
+    return yaml.dump(
+        document, Dumper=_Dumper, sort_keys=False, default_flow_style=False,
+        allow_unicode=True, width=2**30,
+    )
+
+
+def serialize_qos_profiles(profiles: list[dict[str, Any]]) -> str:
+    """The QoS list as the YAML *string* that MCAP channel metadata and sqlite3 topic rows hold."""
+    return _dump(profiles)
+
+
+def _normalize_type(type_name: str) -> str:
+    """``pkg/Type`` -> ``pkg/msg/Type``: readers match topics on the three-part spelling only."""
+    parts = type_name.split("/")
+    if len(parts) == 2 and all(parts):
+        return f"{parts[0]}/msg/{parts[1]}"
+    if len(parts) == 3 and all(parts):
+        return type_name
+    raise ValueError(f"not a ROS type name (expected 'pkg/msg/Type'): {type_name!r}")
+
+
+@dataclass
+class TopicInfo:
+    """One recorded topic as rosbag2 describes it (``TopicMetadata``).
+
+    ``offered_qos_profiles`` are the publishers' offers (see :func:`qos_profile_dict`), each with
+    all of :data:`QOS_KEYS`. ``type_description_hash`` is ``RIHS01_<sha256 hex>``; leaving it empty
+    lets the bag writer fill in the locally installed type's hash.
+    """
+
+    name: str
+    type: str
+    serialization_format: str = "cdr"
+    offered_qos_profiles: list[dict[str, Any]] = field(default_factory=list)
+    type_description_hash: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.name.startswith("/"):
+            raise ValueError(f"topic name must be fully qualified (start with '/'): {self.name!r}")
+        self.type = _normalize_type(self.type)
+        for profile in self.offered_qos_profiles:
+            missing = [key for key in QOS_KEYS if key not in profile]
+            if missing:
+                raise ValueError(f"QoS profile of {self.name} lacks {', '.join(missing)}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``topic_metadata`` entry of ``metadata.yaml``."""
+        return {
+            "name": self.name,
+            "type": self.type,
+            "serialization_format": self.serialization_format,
+            "offered_qos_profiles": [
+                {key: profile[key] for key in QOS_KEYS} for profile in self.offered_qos_profiles
+            ],
+            "type_description_hash": self.type_description_hash,
+        }
+
+
+@dataclass
+class FileInfo:
+    """What one storage file holds; ``path`` is relative to the bag directory.
+
+    ``topic_message_counts`` is not written into the file's ``files`` entry; the bag sums it into
+    ``topics_with_message_count``.
+    """
+
+    path: str
+    starting_time_ns: int = 0
+    duration_ns: int = 0
+    message_count: int = 0
+    topic_message_counts: dict[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def from_log_times(
+        cls, path: str, first_ns: int | None, last_ns: int | None, topic_message_counts: dict[str, int]
+    ) -> FileInfo:
+        """Build the entry from the earliest and latest log time (``None`` when empty)."""
+        counts = {topic: count for topic, count in topic_message_counts.items() if count}
+        if first_ns is None or last_ns is None:
+            return cls(path, 0, 0, 0, counts)
+        return cls(path, first_ns, last_ns - first_ns, sum(counts.values()), counts)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``files`` entry of ``metadata.yaml``."""
+        return {
+            "path": self.path,
+            "starting_time": {"nanoseconds_since_epoch": self.starting_time_ns},
+            "duration": {"nanoseconds": self.duration_ns},
+            "message_count": self.message_count,
+        }
+
+
+@dataclass
+class BagMetadata:
+    """The whole bag: every topic (with or without messages) and every file, in order."""
+
+    storage_identifier: str
+    topics: list[TopicInfo] = field(default_factory=list)
+    files: list[FileInfo] = field(default_factory=list)
+    custom_data: dict[str, str] | None = None
+
+    @property
+    def message_count(self) -> int:
+        return sum(info.message_count for info in self.files)
+
+    @property
+    def starting_time_ns(self) -> int:
+        """Earliest log time in the bag (0 for a bag without messages)."""
+        starts = [info.starting_time_ns for info in self.files if info.message_count]
+        return min(starts, default=0)
+
+    @property
+    def duration_ns(self) -> int:
+        """Latest minus earliest log time."""
+        ends = [info.starting_time_ns + info.duration_ns for info in self.files if info.message_count]
+        return max(ends) - self.starting_time_ns if ends else 0
+
+    def topic_message_counts(self) -> dict[str, int]:
+        """Messages per topic over all files; every known topic is present, possibly with 0."""
+        counts = {topic.name: 0 for topic in self.topics}
+        for info in self.files:
+            for name, count in info.topic_message_counts.items():
+                counts[name] = counts.get(name, 0) + count
+        return counts
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``rosbag2_bagfile_information`` document, keys in rosbag2's order."""
+        counts = self.topic_message_counts()
+        return {
+            "version": METADATA_VERSION,
+            "storage_identifier": self.storage_identifier,
+            "duration": {"nanoseconds": self.duration_ns},
+            "starting_time": {"nanoseconds_since_epoch": self.starting_time_ns},
+            "message_count": self.message_count,
+            "topics_with_message_count": [
+                {"topic_metadata": topic.to_dict(), "message_count": counts[topic.name]}
+                for topic in self.topics
+            ],
+            "compression_format": "",
+            "compression_mode": "",
+            "relative_file_paths": [info.path for info in self.files],
+            "files": [info.to_dict() for info in self.files],
+            "custom_data": dict(self.custom_data) if self.custom_data else None,
+            "ros_distro": ROS_DISTRO,
+        }
+
+    def to_yaml(self) -> str:
+        """The document without its wrapper, as MCAP's ``serialized_metadata`` and sqlite3 hold it."""
+        return _dump(self.to_dict())
+
+    def write(self, bag_directory: str | os.PathLike[str]) -> Path:
+        """Write ``metadata.yaml`` atomically (temporary file, fsync, rename).
+
+        A reader, or a crash, never sees a half-written file: either the previous complete version
+        or the new one is there.
+        """
+        path = Path(bag_directory) / METADATA_FILENAME
+        temporary = path.with_name(f".{METADATA_FILENAME}.tmp")
+        text = _dump({"rosbag2_bagfile_information": self.to_dict()})
+        try:
+            with open(temporary, "w", encoding="utf-8") as file:
+                file.write(text)
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(temporary, path)
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+        return path
