@@ -8,8 +8,8 @@ import sys
 import time
 from typing import Any
 
-import rclpy
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from component_container.parameter_values import parameter_msg
@@ -74,7 +74,10 @@ class ContainerClient:
 
     def _call(self, client: Any, request: Any, timeout: float = 20.0) -> Any:
         future = client.call_async(request)
-        rclpy.spin_until_future_complete(self.node, future, timeout_sec=timeout)
+        executor = SingleThreadedExecutor(context=self.node.context)
+        executor.add_node(self.node)
+        executor.spin_until_future_complete(future, timeout_sec=timeout)
+        executor.remove_node(self.node)
         if not future.done():
             raise AssertionError(f"no reply from {client.srv_name} within {timeout} s")
         return future.result()

@@ -1,0 +1,30 @@
+# Fresh-machine entry points: `make demo` and `make test` create .venv, install the project (building the
+# srv/ interfaces with the system C compiler) and run. Every ROS run is isolated: a random ROS_DOMAIN_ID
+# and discovery limited to localhost.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+
+.PHONY: setup demo test bench clean
+
+$(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python examples/record_demo.py
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+bench: $(STAMP)
+	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python benchmarks/record_bench.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,266 @@
+"""The intra-process path with real rclpy nodes over Fast DDS.
+
+"In the container" is a context holding the intra-process manager; "outside" is a second context, i.e. a
+separate DDS participant that can only be reached over the wire (plus one test with a real second process).
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from typing import Any, Callable, Iterator
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from component_container.component_executors import EXECUTOR_KINDS, make_component_executor
+from component_container.component_node import ComponentNode, IntraProcessPublisher
+from component_container.intra_process import IntraProcessManager
+
+from container_process import ContainerClient, ContainerProcess
+
+
+@pytest.fixture
+def contexts() -> Iterator[tuple[Context, Context]]:
+    inside, outside = Context(), Context()
+    rclpy.init(context=inside)
+    rclpy.init(context=outside)
+    yield inside, outside
+    rclpy.try_shutdown(context=inside)
+    rclpy.try_shutdown(context=outside)
+
+
+@pytest.fixture
+def ipm() -> IntraProcessManager:
+    return IntraProcessManager()
+
+
+def spin_until(executor: Any, condition: Callable[[], bool], timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        executor.spin_once(timeout_sec=0.05)
+    return condition()
+
+
+def test_subscriber_gets_the_very_object_published(contexts, ipm):
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    received: list[String] = []
+    sub_node.create_subscription(String, "chatter", received.append, 10)
+    publisher = pub_node.create_publisher(String, "chatter", 10)
+    assert isinstance(publisher, IntraProcessPublisher)
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    published = [String(data=f"m{i}") for i in range(5)]
+    for msg in published:
+        publisher.publish(msg)
+    assert spin_until(executor, lambda: len(received) == 5)
+    assert all(got is sent for got, sent in zip(received, published))
+    # Nobody outside: nothing was written to DDS (the publication log never advanced).
+    assert publisher._publication.log._next_sequence == 1
+    executor.shutdown()
+
+
+def test_external_subscriber_gets_everything_and_local_one_no_duplicates(contexts, ipm):
+    inside, outside = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    external = Node("external", context=outside)
+    local_got: list[String] = []
+    external_got: list[str] = []
+    sub_node.create_subscription(String, "chatter", local_got.append, 100)
+    external.create_subscription(String, "chatter", lambda m: external_got.append(m.data), 100)
+    publisher = pub_node.create_publisher(String, "chatter", 100)
+    inside_exec = SingleThreadedExecutor(context=inside)
+    inside_exec.add_node(sub_node)
+    outside_exec = SingleThreadedExecutor(context=outside)
+    outside_exec.add_node(external)
+    deadline = time.monotonic() + 10
+    while publisher.get_subscription_count() < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)  # the local DDS reader and the external one
+    published = [String(data=f"m{i}") for i in range(50)]
+    for msg in published:
+        publisher.publish(msg)
+        time.sleep(0.002)
+    assert spin_until(outside_exec, lambda: len(external_got) == 50, timeout=10)
+    assert external_got == [m.data for m in published]
+    # Give the local DDS reader every chance to deliver a duplicate before checking there is none.
+    spin_until(inside_exec, lambda: False, timeout=1.0)
+    assert len(local_got) == 50
+    assert all(got is sent for got, sent in zip(local_got, published))
+    inside_exec.shutdown()
+    outside_exec.shutdown()
+
+
+def test_external_publisher_reaches_in_process_subscriber(contexts, ipm):
+    inside, outside = contexts
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    external = Node("external_pub", context=outside)
+    got: list[str] = []
+    sub_node.create_subscription(String, "chatter", lambda m: got.append(m.data), 100)
+    publisher = external.create_publisher(String, "chatter", 100)
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    deadline = time.monotonic() + 10
+    while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    spin_until(executor, lambda: False, timeout=0.5)  # let the reader side finish matching too
+    for i in range(20):
+        publisher.publish(String(data=f"x{i}"))
+    assert spin_until(executor, lambda: len(got) == 20, timeout=10)
+    assert got == [f"x{i}" for i in range(20)]
+    executor.shutdown()
+
+
+def test_keep_last_queue_drops_oldest_and_counts(contexts, ipm):
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("slow", context=inside, intra_process_manager=ipm)
+    got: list[String] = []
+    subscription = sub_node.create_subscription(String, "chatter", got.append, 5)
+    publisher = pub_node.create_publisher(String, "chatter", 10)
+    published = [String(data=str(i)) for i in range(20)]
+    for msg in published:  # the subscriber is not spinning: publish() must not wait for it
+        publisher.publish(msg)
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    assert spin_until(executor, lambda: len(got) == 5)
+    spin_until(executor, lambda: False, timeout=0.3)
+    assert [m.data for m in got] == [str(i) for i in range(15, 20)]
+    assert subscription.dropped_count == 15
+    assert subscription.received_count == 20
+    executor.shutdown()
+
+
+def test_transient_local_late_joiner_gets_last_n(contexts, ipm):
+    inside, _ = contexts
+    latched = QoSProfile(depth=3, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    publisher = pub_node.create_publisher(String, "map", latched)
+    published = [String(data=str(i)) for i in range(5)]
+    for msg in published:
+        publisher.publish(msg)
+    sub_node = ComponentNode("late", context=inside, intra_process_manager=ipm)
+    got: list[String] = []
+    sub_node.create_subscription(String, "map", got.append, latched)
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    assert spin_until(executor, lambda: len(got) == 3)
+    spin_until(executor, lambda: False, timeout=0.5)  # and no second copy through the DDS history
+    assert len(got) == 3
+    assert all(a is b for a, b in zip(got, published[2:]))
+    executor.shutdown()
+
+
+def test_fan_out_and_qos_compatibility(contexts, ipm):
+    inside, _ = contexts
+    best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("subs", context=inside, intra_process_manager=ipm)
+    reliable_got: list[list[String]] = [[], [], []]
+    for sink in reliable_got:
+        sub_node.create_subscription(String, "fan", sink.append, 10)
+    best_effort_got: list[String] = []
+    sub_node.create_subscription(String, "fan", best_effort_got.append, best_effort)
+    reliable_pub = pub_node.create_publisher(String, "fan", 10)
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    msg = String(data="shared")
+    reliable_pub.publish(msg)
+    assert spin_until(executor, lambda: all(reliable_got) and best_effort_got)
+    assert all(sink == [msg] and sink[0] is msg for sink in reliable_got)
+    assert best_effort_got[0] is msg
+    # A best-effort publisher does not feed reliable subscriptions, only the best-effort one.
+    lossy_pub = pub_node.create_publisher(String, "fan", best_effort)
+    lossy = String(data="lossy")
+    lossy_pub.publish(lossy)
+    assert spin_until(executor, lambda: len(best_effort_got) == 2)
+    spin_until(executor, lambda: False, timeout=0.3)
+    assert best_effort_got[1] is lossy
+    assert all(len(sink) == 1 for sink in reliable_got)
+    executor.shutdown()
+
+
+@pytest.mark.parametrize("kind", EXECUTOR_KINDS)
+def test_all_executor_models_deliver_in_process(contexts, ipm, kind):
+    inside, _ = contexts
+    executor = make_component_executor(kind, inside, thread_num=2)
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    got: list[String] = []
+    sub_node.create_subscription(String, "chatter", got.append, 1000)
+    publisher = pub_node.create_publisher(String, "chatter", 10)
+    executor.add(pub_node)
+    executor.add(sub_node)
+    published = [String(data=str(i)) for i in range(200)]
+    for msg in published:
+        publisher.publish(msg)
+    deadline = time.monotonic() + 10
+    while len(got) < 200 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert len(got) == 200
+    assert {id(m) for m in got} == {id(m) for m in published}
+    executor.remove(sub_node)
+    sub_node.destroy_node()
+    publisher.publish(String(data="after unload"))  # nobody left: must not raise
+    executor.shutdown()
+
+
+def test_components_that_do_not_opt_in_use_plain_dds(contexts):
+    inside, _ = contexts
+    node = ComponentNode("plain", context=inside)
+    publisher = node.create_publisher(String, "chatter", 10)
+    assert not isinstance(publisher, IntraProcessPublisher)
+    assert not node.uses_intra_process
+
+
+def _external_listener(count: int) -> subprocess.Popen:
+    code = f"""
+import rclpy, sys, time
+from rclpy.node import Node
+from std_msgs.msg import String
+rclpy.init()
+node = Node('external_listener')
+got = []
+node.create_subscription(String, '/chatter', lambda m: got.append(m.data), 1000)
+deadline = time.monotonic() + 30
+while len(got) < {count} and time.monotonic() < deadline:
+    rclpy.spin_once(node, timeout_sec=0.1)
+print(len(got), len(set(got)), flush=True)
+"""
+    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+
+
+def test_container_process_talker_reaches_other_process_and_unload_under_traffic():
+    with ContainerProcess("--use-intra-process-comms", "--executor", "multi") as container:
+        node_context = Context()
+        rclpy.init(context=node_context)
+        listener_proc = _external_listener(40)
+        try:
+            node = Node("ipc_test_client", context=node_context)
+            client = ContainerClient(node)
+            client.wait()
+            listener = client.load("components::Listener")
+            talker = client.load("components::Talker", parameters={"rate": 50.0})
+            assert listener.success and talker.success
+            out, _ = listener_proc.communicate(timeout=40)
+            received, distinct = map(int, out.split())
+            assert received >= 40 and distinct == received  # over DDS, every message once
+            assert client.unload(listener.unique_id).success  # while the talker keeps publishing
+            assert client.unload(talker.unique_id).success
+            assert list(client.list().unique_ids) == []
+            assert container.alive()
+        finally:
+            if listener_proc.poll() is None:
+                listener_proc.kill()
+                listener_proc.wait()
+            rclpy.try_shutdown(context=node_context)
+        assert container.stop() == 0
