@@ -282,19 +282,23 @@ class BagWriter:
             if self._closed:
                 return
             self._closed = True
-            closed = ""
-            error: OSError | None = None
+            closed: Path | None = None
+            error: BagWriteError | None = None
+            cause: OSError | None = None
             if self._storage is not None:
-                closed = str(self._storage.path)
-                error = self._close_storage()
+                closed = self._storage.path
+                cause = self._close_storage()
+                if cause is not None:
+                    error = self._error(cause, "cannot finish bag file", closed)
             try:
                 self._metadata.write(self._path)
             except OSError as metadata_error:
-                error = error or metadata_error
-            if closed and self._on_split is not None:
-                self._on_split(closed, "")
+                if error is None:
+                    error, cause = self._error(metadata_error, "cannot write metadata.yaml"), metadata_error
+            if closed is not None and self._on_split is not None:
+                self._on_split(str(closed), "")
             if error is not None:
-                raise self._error(error, "cannot finish bag") from error
+                raise error from cause
 
     def __enter__(self) -> BagWriter:
         return self

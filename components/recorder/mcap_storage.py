@@ -49,8 +49,9 @@ PROFILE = "ros2"
 _METADATA_NAME = "rosbag2"
 _METADATA_KEY = "serialized_metadata"
 _MAGIC = b"\x89MCAP0\r\n"
-# Writes go to the file in large pieces; small messages (fastwrite) are batched by this buffer.
-_WRITE_BUFFER = 1 << 20
+# Unchunked files (fastwrite) get one record per message, batched by this buffer; chunked files
+# are written a chunk at a time anyway, and a small buffer keeps what a failure can lose small.
+_UNCHUNKED_BUFFER = 1 << 20
 # How often a repair may shorten the file further when the summary does not fit.
 _REPAIR_ATTEMPTS = 32
 
@@ -97,8 +98,8 @@ class McapStorage:
         self.error: OSError | None = None
         #: False only if the file could not be given a summary (then readers cannot open it).
         self.readable = True
-        self._chunked = options.use_chunking
-        self._file: BinaryIO = open(path, "xb", buffering=_WRITE_BUFFER)  # noqa: SIM115
+        buffering = io.DEFAULT_BUFFER_SIZE if options.use_chunking else _UNCHUNKED_BUFFER
+        self._file: BinaryIO = open(path, "xb", buffering=buffering)  # noqa: SIM115
         self._writer = Writer(
             self._file,
             chunk_size=options.chunk_size,

@@ -33,13 +33,15 @@ CREATE INDEX timestamp_idx ON messages (timestamp ASC);
 INSERT INTO schema(schema_version, ros_distro) VALUES ({SCHEMA_VERSION}, '{ROS_DISTRO}');
 """
 
-#: rosbag2's sqlite3 presets as journal settings. The default keeps a rollback journal on disk
-#: (rosbag2 keeps it in memory, which lets a crash mid-transaction corrupt the file) and does not
-#: fsync; ``resilient`` uses a write-ahead log with fsync at checkpoints, as in rosbag2.
+#: rosbag2's sqlite3 presets as (journal_mode, synchronous). Both keep the rollback journal on
+#: disk (rosbag2's default keeps it in memory, so a crash mid-transaction can corrupt the file).
+#: ``resilient`` also fsyncs every commit, so a power loss costs at most the batch in flight.
+#: rosbag2 uses a write-ahead log for it, but a log that cannot be checkpointed (disk full) keeps
+#: rows that ``rosbags`` never sees; a synced rollback journal gives the same durability.
 SQLITE_PRESETS: dict[str, tuple[str, str]] = {
     "": ("DELETE", "OFF"),
     "none": ("DELETE", "OFF"),
-    "resilient": ("WAL", "NORMAL"),
+    "resilient": ("DELETE", "FULL"),
 }
 
 # A batch is committed when it holds this many bytes or messages.
@@ -174,7 +176,6 @@ class SqliteStorage:
                     "INSERT INTO metadata (metadata_version, metadata) VALUES (?, ?)",
                     (METADATA_VERSION, serialized_metadata),
                 )
-            self._db.execute("PRAGMA journal_mode=DELETE")  # checkpoints and removes any -wal
         except (sqlite3.Error, OSError) as error:
             if self.error is None:
                 self.error = error if isinstance(error, OSError) else _os_error(error, self.path)
