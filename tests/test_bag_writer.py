@@ -217,13 +217,16 @@ def test_message_definition_matches_rosbag2_layout() -> None:
     time_ = (share / "builtin_interfaces/msg/Time.msg").read_text()
     separator = "\n" + "=" * 80 + "\n"
     assert encoding == "ros2msg"
-    assert text == f"{image}{separator}MSG: std_msgs/Header\n{header}{separator}MSG: builtin_interfaces/Time\n{time_}"
-    assert message_definition("std_msgs/String") == ("ros2msg", (share / "std_msgs/msg/String.msg").read_text())
+    assert text == (f"{image}{separator}MSG: std_msgs/Header\n{header}"
+                    f"{separator}MSG: builtin_interfaces/Time\n{time_}")
+    string = (share / "std_msgs/msg/String.msg").read_text()
+    assert message_definition("std_msgs/String") == ("ros2msg", string)
 
 
 @pytest.mark.parametrize("type_name", sorted({t for t, _ in TOPICS.values()}))
 def test_definition_text_hashes_to_the_type_hash(type_name: str) -> None:
     encoding, text = message_definition(type_name)
+    assert encoding == "ros2msg"
     assert text.count("MSG: std_msgs/Header") == (0 if type_name.startswith("std_msgs") else 1)
     store = get_typestore(Stores.EMPTY)
     store.register(get_types_from_msg(text, type_name))
@@ -306,7 +309,8 @@ def test_mcap_bag_reads_back_with_both_readers(tmp_path: Path) -> None:
     assert sorted(read_rosbags(bag)) == expected
     from_mcap = read_mcap(bag / "my_bag_0.mcap")
     assert sorted((t, log, f) for t, log, _, _, f in from_mcap) == expected
-    assert {(t, log, pub) for t, log, pub, _, _ in from_mcap} == {(w.topic, w.log_time, w.publish_time) for w in written}
+    assert {(t, log, pub) for t, log, pub, _, _ in from_mcap} == \
+        {(w.topic, w.log_time, w.publish_time) for w in written}
     assert sorted(seq for t, _, _, seq, _ in from_mcap if t == "/imu") == [0, 1, 2]
 
     with open(bag / "my_bag_0.mcap", "rb") as file:
@@ -323,9 +327,9 @@ def test_mcap_bag_reads_back_with_both_readers(tmp_path: Path) -> None:
         for channel in summary.channels.values():
             assert channel.message_encoding == "cdr"
             assert set(channel.metadata) == {"offered_qos_profiles", "topic_type_hash"}
-            assert channel.metadata["topic_type_hash"] == topics[channel.topic]["topic_metadata"]["type_description_hash"]
-            assert yaml.safe_load(channel.metadata["offered_qos_profiles"]) == \
-                topics[channel.topic]["topic_metadata"]["offered_qos_profiles"]
+            topic = topics[channel.topic]["topic_metadata"]
+            assert channel.metadata["topic_type_hash"] == topic["type_description_hash"]
+            assert yaml.safe_load(channel.metadata["offered_qos_profiles"]) == topic["offered_qos_profiles"]
         assert summary.chunk_indexes and all(c.message_index_offsets for c in summary.chunk_indexes)
         assert [m.name for m in summary.metadata_indexes] == ["rosbag2", "rosbag2"]
         records = [yaml.safe_load(m.metadata["serialized_metadata"]) for m in reader.iter_metadata()]
@@ -393,6 +397,18 @@ def test_sqlite_presets_leave_no_journal(tmp_path: Path, preset: str) -> None:
     assert len(read_rosbags(bag)) == len(written) == 50
 
 
+def test_sqlite_definition_rows_carry_the_hash_of_their_text(tmp_path: Path) -> None:
+    """A publisher announcing another version of a type does not make the stored text lie."""
+    foreign = "RIHS01_" + "ab" * 32
+    with BagWriter(tmp_path / "bag", storage_id="sqlite3") as writer:
+        writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String", type_description_hash=foreign))
+    db = sqlite3.connect(tmp_path / "bag" / "bag_0.db3")
+    assert db.execute("SELECT type_description_hash FROM topics").fetchall() == [(foreign,)]
+    assert db.execute("SELECT type_description_hash FROM message_definitions").fetchall() == \
+        [(type_hash("std_msgs/msg/String"),)]
+    db.close()
+
+
 def test_message_larger_than_chunk_is_indexed(tmp_path: Path) -> None:
     bag = tmp_path / "big"
     image = serialize_message(make_image(1))
@@ -455,7 +471,7 @@ def test_split_by_size(tmp_path: Path, storage_id: str) -> None:
     ext = ".mcap" if storage_id == "mcap" else ".db3"
     assert len(files) >= 2 and files == [f"sized_{n}{ext}" for n in range(len(files))]
     paths = [str(bag / f) for f in files]
-    assert events == list(zip(paths, [*paths[1:], ""]))
+    assert events == list(zip(paths, [*paths[1:], ""], strict=True))
     for path in paths[:-1]:  # every closed file got to the limit
         assert os.path.getsize(path) >= 200_000
 
@@ -624,3 +640,76 @@ def test_disk_full_leaves_a_readable_bag(
     assert sorted(os.listdir(bag)) == sorted([*meta["relative_file_paths"], "metadata.yaml"])
     if storage_id == "mcap":
         assert len(read_mcap(bag / "full_0.mcap")) == len(read)
+
+
+LIMIT_SWEEP_CHILD = textwrap.dedent("""
+    import json, os, resource, signal, sys
+    sys.path.insert(0, {repo!r})
+    from rclpy.serialization import serialize_message
+    from tests.test_bag_writer import TOPICS, T0, topic_info
+    from components.recorder.bag_writer import BagWriter, BagWriteError
+
+    plan, limits, root = {args!r}
+    payloads = [serialize_message(TOPICS[topic][1](n)) for n, topic in enumerate(plan)]
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
+    results = []
+    full_size = None
+    for limit in limits:  # None: no limit; negative: relative to the unlimited file's size
+        if limit is not None and limit < 0:
+            limit += full_size
+        bag = f"{{root}}/bag_{{limit}}"
+        writer = BagWriter(bag)
+        for topic in sorted(set(plan)):
+            writer.add_topic(topic_info(topic))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (hard if limit is None else limit, hard))
+        failed = None
+        try:
+            for n, topic in enumerate(plan):
+                writer.write(topic, payloads[n], T0 + n, T0 + n)
+        except BagWriteError as error:
+            failed = "write"
+        try:
+            writer.close()
+        except BagWriteError as error:
+            failed = failed or "close"
+        resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
+        if limit is None:
+            full_size = os.path.getsize(f"{{bag}}/bag_None_0.mcap")
+        results.append([bag, failed, writer.topic_message_counts])
+    print(json.dumps(results))
+""")
+
+
+def test_any_file_size_limit_leaves_a_consistent_bag(tmp_path: Path) -> None:
+    """Fail the MCAP file at many sizes (inside the header, metadata, chunks and indexes)."""
+    plan = ["/chatter", "/camera/image_raw", "/imu", "/chatter", "/camera/image_raw", "/imu",
+            "/camera/image_raw"]
+    image = len(serialize_message(make_image(0)))
+    # Below ~3 kB not even metadata.yaml fits; above, cut through header, metadata and chunks;
+    # negative limits (relative to the complete file) cut the summary written by close().
+    limits = [None, *range(3_000, 30_000, 1_500), *range(image, 3 * image, 97_003),
+              -1, -500, -3_000, -6_000, -12_000]
+    script = LIMIT_SWEEP_CHILD.format(repo=str(REPO), args=(plan, limits, str(tmp_path)))
+    child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert child.returncode == 0, child.stderr
+    outcomes = set()
+    for bag, failed, counts in json.loads(child.stdout.strip().splitlines()[-1]):
+        meta = load_metadata(Path(bag))
+        if not meta["relative_file_paths"]:
+            # Too small even for the summary: the file is left out and the bag is empty.
+            assert failed and sum(counts.values()) == 0
+            outcomes.add((failed, -1))
+            continue
+        read = sorted(read_rosbags(Path(bag)), key=lambda item: item[1])
+        from_mcap = read_mcap(Path(bag) / f"{Path(bag).name}_0.mcap")
+        assert meta["message_count"] == len(read) == len(from_mcap) == sum(counts.values())
+        # What survives is always a prefix of what was written, decoded intact.
+        assert [(topic, ts) for topic, ts, _ in read] == [(plan[n], T0 + n) for n in range(len(read))]
+        assert all(fields == message_fields(TOPICS[topic][0], TOPICS[topic][1](n))
+                   for n, (topic, _, fields) in enumerate(read))
+        assert failed is not None or len(read) == len(plan)
+        outcomes.add((failed, len(read)))
+    # The sweep reached failures in write() and in close(), with empty and partial bags.
+    assert {failed for failed, _ in outcomes} == {"write", "close", None}
+    assert len({count for _, count in outcomes}) >= 4

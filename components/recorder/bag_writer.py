@@ -9,6 +9,7 @@ finalized with what reached it, ``metadata.yaml`` counts exactly that, and the c
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import threading
@@ -17,10 +18,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, Protocol
 
-from .mcap_storage import MCAP_PRESETS, McapStorage
+from .mcap_storage import McapStorage
 from .message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
 from .metadata import BagMetadata, FileInfo, TopicInfo
-from .sqlite_storage import SQLITE_PRESETS, SqliteStorage
+from .sqlite_storage import SqliteStorage
 
 __all__ = ["BagExistsError", "BagWriteError", "BagWriter", "SplitCallback"]
 
@@ -61,9 +62,9 @@ class _Storage(Protocol):
     def close(self, serialized_metadata: str = "") -> FileInfo: ...
 
 
-_STORAGES: dict[str, tuple[type[McapStorage] | type[SqliteStorage], dict[str, object]]] = {
-    "mcap": (McapStorage, MCAP_PRESETS),  # type: ignore[dict-item]
-    "sqlite3": (SqliteStorage, SQLITE_PRESETS),  # type: ignore[dict-item]
+_STORAGES: dict[str, type[McapStorage] | type[SqliteStorage]] = {
+    McapStorage.storage_id: McapStorage,
+    SqliteStorage.storage_id: SqliteStorage,
 }
 
 
@@ -81,7 +82,7 @@ class BagWriter:
             ``zstd_small`` for MCAP; ``none``, ``resilient`` for sqlite3.
         custom_data: string pairs stored in ``metadata.yaml``.
         on_split: called after a file is closed, with its path and the next file's path
-            (``""`` when the bag is closed).
+            (``""`` when the bag is closed); it runs with the writer's (reentrant) lock held.
 
     Raises:
         ValueError: unknown storage id or preset, negative limits.
@@ -104,11 +105,11 @@ class BagWriter:
             raise ValueError(
                 f"unsupported storage_id {storage_id!r}: use one of {', '.join(map(repr, _STORAGES))}"
             )
-        self._storage_class, presets = _STORAGES[storage_id]
-        if storage_preset_profile not in presets:
+        self._storage_class = _STORAGES[storage_id]
+        if storage_preset_profile not in self._storage_class.presets:
             raise ValueError(
                 f"unknown {storage_id} storage_preset_profile {storage_preset_profile!r}: "
-                f"use one of {', '.join(repr(name) for name in presets if name)}"
+                f"use one of {', '.join(repr(name) for name in self._storage_class.presets if name)}"
             )
         if max_bagfile_size < 0 or max_bagfile_duration < 0:
             raise ValueError("max_bagfile_size and max_bagfile_duration must not be negative")
@@ -138,17 +139,19 @@ class BagWriter:
             self._path.mkdir(parents=True)
         except FileExistsError:
             raise BagExistsError(
-                errno.EEXIST, "bag directory already exists; choose a new uri (bags are never overwritten)",
+                errno.EEXIST,
+                "bag directory already exists; choose a new uri (bags are never overwritten)",
                 str(self._path),
             ) from None
         except OSError as error:
             raise BagWriteError(
-                error.errno, f"cannot create bag directory: {error.strerror}", str(self._path)
+                error.errno, f"cannot create bag directory: {error.strerror}", str(self._path),
             ) from error
         try:
             self._storage: _Storage | None = self._open_storage()
         except BagWriteError:
-            self._path.rmdir()
+            with contextlib.suppress(OSError):
+                self._path.rmdir()
             raise
 
     # --- public API ---------------------------------------------------------------------------
@@ -221,10 +224,8 @@ class BagWriter:
                     )
                 return
             if not info.type_description_hash:
-                try:
+                with contextlib.suppress(MessageDefinitionNotFoundError):
                     info = dataclasses.replace(info, type_description_hash=type_hash(info.type))
-                except MessageDefinitionNotFoundError:
-                    pass
             definition = self._definitions.get(info.type) or message_definition(info.type)
             assert self._storage is not None
             try:
@@ -294,7 +295,8 @@ class BagWriter:
                 self._metadata.write(self._path)
             except OSError as metadata_error:
                 if error is None:
-                    error, cause = self._error(metadata_error, "cannot write metadata.yaml"), metadata_error
+                    error = self._error(metadata_error, "cannot write metadata.yaml")
+                    cause = metadata_error
             if closed is not None and self._on_split is not None:
                 self._on_split(str(closed), "")
             if error is not None:
@@ -313,7 +315,8 @@ class BagWriter:
             raise ValueError(f"bag {self._path} is closed")
         if self._failure is not None:
             raise BagWriteError(
-                self._failure.errno, f"writing stopped after an earlier failure: {self._failure.strerror}",
+                self._failure.errno,
+                f"writing stopped after an earlier failure: {self._failure.strerror}",
                 self._failure.filename,
             )
 
@@ -380,10 +383,8 @@ class BagWriter:
         info = storage.close(closing.to_yaml())
         self._file_counts = {}
         self._file_first_ns = self._file_last_ns = None
-        try:
+        with contextlib.suppress(OSError):
             self._closed_bytes += storage.path.stat().st_size
-        except OSError:
-            pass
         if storage.readable:
             self._metadata.files.append(info)
         return storage.error
@@ -397,17 +398,19 @@ class BagWriter:
 
     def _stop(self, error: OSError, closed: Path) -> NoReturn:
         """Record the failure, save ``metadata.yaml`` for the closed files and raise."""
-        self._failure = self._error(error, "cannot write bag file", closed)
+        action = "cannot write bag file"
+        if closed.name not in {info.path for info in self._metadata.files}:
+            action += " (it could not be finalized and is left out of metadata.yaml)"
+        self._failure = self._error(error, action, closed)
         self._write_metadata_quietly()
         if self._on_split is not None:
             self._on_split(str(closed), "")
         raise self._failure from error
 
     def _write_metadata_quietly(self) -> None:
-        try:
+        # Used while a storage error is being reported: that error is the one the caller needs.
+        with contextlib.suppress(OSError):
             self._metadata.write(self._path)
-        except OSError:
-            pass  # the storage error being reported is the cause; nothing more can be saved
 
     def _error(self, error: OSError, action: str, path: Path | None = None) -> BagWriteError:
         reason = error.strerror or str(error)

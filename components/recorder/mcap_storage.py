@@ -12,9 +12,11 @@ appends a fresh summary, dropping trailing records only if even that does not fi
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import struct
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -29,9 +31,10 @@ from mcap.records import (
     DataEnd,
     Footer,
     Header,
+    McapRecord,
+    MessageIndex,
     Metadata,
     MetadataIndex,
-    MessageIndex,
     Schema,
     Statistics,
     SummaryOffset,
@@ -84,6 +87,7 @@ class McapStorage:
 
     storage_id = "mcap"
     extension = ".mcap"
+    presets = MCAP_PRESETS
 
     def __init__(self, path: Path, preset: str = "", serialized_metadata: str = "") -> None:
         """Create ``path`` (never overwriting it) and write the header and opening metadata."""
@@ -225,9 +229,8 @@ class McapStorage:
         if self.error is None:
             self.error = error
         try:
-            self._file.close()
-        except OSError:
-            pass
+            with contextlib.suppress(OSError):
+                self._file.close()  # flushing the buffer fails again; the repair reads the file
         finally:
             raw = getattr(self._file, "raw", None)
             if raw is not None and not raw.closed:
@@ -346,9 +349,10 @@ def _scan(file: BinaryIO, size: int) -> tuple[int, list[_Unit]]:
         body = end - position - 9
         if opcode == Opcode.MESSAGE_INDEX and chunk is not None:
             channel_id, length = struct.unpack("<HI", file.read(6))
-            assert chunk.chunk_index is not None
-            chunk.chunk_index.message_index_offsets[channel_id] = position
-            chunk.chunk_index.message_index_length = end - chunk.chunk_index.chunk_start_offset - chunk.chunk_index.chunk_length
+            index = chunk.chunk_index
+            assert index is not None
+            index.message_index_offsets[channel_id] = position
+            index.message_index_length = end - index.chunk_start_offset - index.chunk_length
             chunk.counts[channel_id] = length // 16
             chunk.end = end
             position = end
@@ -458,7 +462,7 @@ def _tail(
     summary = RecordBuilder()
     offsets: list[SummaryOffset] = []
 
-    def group(opcode: Opcode, records: list) -> None:  # type: ignore[type-arg]
+    def group(opcode: Opcode, records: Sequence[McapRecord]) -> None:
         begin = summary.count
         for record in records:
             record.write(summary)
@@ -483,5 +487,5 @@ def _tail(
     crc = zlib.crc32(summary_bytes)
     crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
     footer = RecordBuilder()
-    Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc).write(footer)
+    Footer(summary_start, summary_offset_start, crc).write(footer)
     return data.end() + summary_bytes + footer.end() + _MAGIC

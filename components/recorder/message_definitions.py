@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import re
 import sys
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 __all__ = [
@@ -56,7 +56,7 @@ def _split_type_name(type_name: str) -> tuple[str, str, str]:
     return package, folder or "msg", name
 
 
-@lru_cache(maxsize=None)
+@cache
 def _share_directories(package: str) -> tuple[Path, ...]:
     """Places a package's interface files may be in, best first.
 
@@ -85,7 +85,7 @@ def _find_file(package: str, folder: str, name: str, extension: str) -> Path | N
     return None
 
 
-@lru_cache(maxsize=None)
+@cache
 def _read_definition(type_name: str, extension: str) -> str:
     package, folder, name = _split_type_name(type_name)
     path = _find_file(package, folder, name, extension)
@@ -128,7 +128,7 @@ def _full_text(root: str, extension: str, label: str) -> str:
     return append(root, _MAX_DEPTH)
 
 
-@lru_cache(maxsize=None)
+@cache
 def message_definition(type_name: str) -> tuple[str, str]:
     """Return ``(encoding, text)`` of a message type as rosbag2 stores it in a bag.
 
@@ -156,7 +156,7 @@ def message_definition(type_name: str) -> tuple[str, str]:
         ) from None
 
 
-@lru_cache(maxsize=None)
+@cache
 def type_hash(type_name: str) -> str:
     """Return the ``RIHS01_<sha256>`` type hash that rosidl generated for a type.
 

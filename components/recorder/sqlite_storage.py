@@ -8,10 +8,12 @@ still in a write-ahead log.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import sqlite3
 from pathlib import Path
 
+from .message_definitions import MessageDefinitionNotFoundError, type_hash
 from .metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
 __all__ = ["SQLITE_PRESETS", "SqliteStorage"]
@@ -68,6 +70,7 @@ class SqliteStorage:
 
     storage_id = "sqlite3"
     extension = ".db3"
+    presets = SQLITE_PRESETS
 
     def __init__(self, path: Path, preset: str = "", serialized_metadata: str = "") -> None:
         """Create the database at ``path`` (which must not exist) with the empty tables.
@@ -88,15 +91,19 @@ class SqliteStorage:
         # Claim the name first: sqlite3.connect would happily open an existing database.
         path.open("xb").close()
         try:
+            # Autocommit mode: transactions are begun explicitly, one per batch.
             self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        except sqlite3.Error as error:
+            raise _os_error(error, path) from error
+        try:
             self._db.execute(f"PRAGMA journal_mode={journal_mode}")
             self._db.execute(f"PRAGMA synchronous={synchronous}")
             with self._db:
                 self._db.execute("BEGIN")
                 self._create_tables()
         except sqlite3.Error as error:
-            self.error = _os_error(error, path)
-            raise self.error from error
+            self._db.close()
+            raise _os_error(error, path) from error
         self._topic_ids: dict[str, int] = {}
         self._defined_types: set[str] = set()
         self._batch: list[tuple[int, int, bytes | memoryview]] = []
@@ -118,11 +125,19 @@ class SqliteStorage:
         return self.path.stat().st_size + self._batch_bytes
 
     def add_topic(self, topic: TopicInfo, definition: tuple[str, str]) -> None:
-        """Insert the topic row and, once per type, its message definition row."""
+        """Insert the topic row and, once per type, its message definition row.
+
+        The definition row carries the hash of its own text (the locally installed type's hash),
+        so it is correct even when a publisher announced a different version of the type.
+        """
         self._require_open()
         if topic.name in self._topic_ids:
             return
         encoding, text = definition
+        try:
+            definition_hash = type_hash(topic.type)
+        except MessageDefinitionNotFoundError:
+            definition_hash = topic.type_description_hash
         try:
             with self._db:
                 self._db.execute("BEGIN")
@@ -136,7 +151,7 @@ class SqliteStorage:
                     self._db.execute(
                         "INSERT INTO message_definitions (topic_type, encoding,"
                         " encoded_message_definition, type_description_hash) VALUES (?, ?, ?, ?)",
-                        (topic.type, encoding, text, topic.type_description_hash),
+                        (topic.type, encoding, text, definition_hash),
                     )
         except sqlite3.Error as error:
             raise self._fail(error) from error
@@ -180,7 +195,8 @@ class SqliteStorage:
             if self.error is None:
                 self.error = error if isinstance(error, OSError) else _os_error(error, self.path)
         finally:
-            self._db.close()
+            with contextlib.suppress(sqlite3.Error):
+                self._db.close()
         self._info = FileInfo.from_log_times(self.path.name, self._first_ns, self._last_ns, self._counts)
         return self._info
 
@@ -195,7 +211,7 @@ class SqliteStorage:
                 )
         except sqlite3.Error as error:
             raise self._fail(error) from error
-        for (_, log_time_ns, _), topic in zip(self._batch, self._batch_topics):
+        for (_, log_time_ns, _), topic in zip(self._batch, self._batch_topics, strict=True):
             self._counts[topic] += 1
             if self._first_ns is None or log_time_ns < self._first_ns:
                 self._first_ns = log_time_ns
