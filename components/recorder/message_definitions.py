@@ -141,12 +141,11 @@ def message_definition(type_name: str) -> tuple[str, str]:
         MessageDefinitionNotFoundError: neither form is installed for the type or a dependency.
         ValueError: ``type_name`` is not a ROS type name.
     """
-    _split_type_name(type_name)
+    package, folder, name = _split_type_name(type_name)
     try:
         return "ros2msg", _full_text(type_name, ".msg", "MSG")
     except MessageDefinitionNotFoundError:
         pass
-    package, folder, name = _split_type_name(type_name)
     root = f"{package}/{folder}/{name}"
     try:
         return "ros2idl", f"{_SEPARATOR}IDL: {root}\n" + _full_text(root, ".idl", "IDL")
