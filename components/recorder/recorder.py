@@ -1,0 +1,242 @@
+"""``components::Recorder``: a rosbag2-compatible recorder that takes intra-process messages without a copy.
+
+Loaded into a container next to the drivers with ``use_intra_process_comms``, it receives their message
+objects by reference; topics from other processes arrive through raw DDS subscriptions as CDR bytes (never
+deserialized). Both go to the same :class:`RecordingSession`, whose writer thread serializes and writes.
+
+Services (private): ``~/pause``, ``~/resume``, ``~/toggle_paused``, ``~/is_paused``, ``~/split_bagfile``,
+``~/snapshot`` (rosbag2_interfaces), ``~/start_recording``, ``~/stop_recording`` and ``~/get_stats``
+(std_srvs/Trigger; get_stats answers the live counts as JSON in ``message``). Events: ``events/write_split``.
+
+Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
+``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM.
+"""
+from __future__ import annotations
+
+import functools
+import importlib
+import json
+import os
+import threading
+import time
+from typing import Any
+
+from rclpy.qos import QoSProfile
+from rosbag2_interfaces.msg import WriteSplitEvent
+from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
+from std_srvs.srv import Trigger
+
+from component_container.component_node import ComponentNode
+from components.recorder.metadata import TopicInfo, qos_profile_dict
+from components.recorder.recorder_options import declare_options
+from components.recorder.recording_session import RecordingSession
+from components.recorder.topic_selection import TopicFilter, adapt_qos, load_qos_overrides
+
+SPLIT_EVENT_TOPIC = "events/write_split"
+
+
+def message_class(type_name: str) -> Any:
+    """The Python class of ``pkg/msg/Type``; ImportError/AttributeError if it is not installed."""
+    package, _, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.msg"), name)
+
+
+class Recorder(ComponentNode):
+    """Records selected topics into rosbag2 bags (see module docstring)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        overrides = {p.name: p for p in kwargs.get("parameter_overrides") or []}
+        self._lock = threading.RLock()
+        self._session: RecordingSession | None = None
+        super().__init__("recorder", **kwargs)
+        try:
+            self._options = declare_options(self, overrides)
+            self._qos_overrides = load_qos_overrides(self._options.qos_profile_overrides_path)
+            self._split_events = self.create_publisher(WriteSplitEvent, SPLIT_EVENT_TOPIC, 10)
+            self._filter = TopicFilter(self._options, {self._split_events.topic_name})
+            self._paused = self._options.start_paused
+            self._topics: dict[str, TopicInfo] = {}
+            self._topic_subscriptions: dict[str, Any] = {}
+            self._ignored: set[str] = set()
+            self._bag_count = 0
+            self._finished_stats: list[dict[str, Any]] = []
+            self._start_session()
+        except Exception:
+            self.stop_recording()  # no half-built node or open bag is left behind
+            super().destroy_node()
+            raise
+        self._recorder_services = [
+            self.create_service(Pause, "~/pause", self._on_pause),
+            self.create_service(Resume, "~/resume", self._on_resume),
+            self.create_service(TogglePaused, "~/toggle_paused", self._on_toggle_paused),
+            self.create_service(IsPaused, "~/is_paused", self._on_is_paused),
+            self.create_service(SplitBagfile, "~/split_bagfile", self._on_split_bagfile),
+            self.create_service(Snapshot, "~/snapshot", self._on_snapshot),
+            self.create_service(Trigger, "~/start_recording", self._on_start_recording),
+            self.create_service(Trigger, "~/stop_recording", self._on_stop_recording),
+            self.create_service(Trigger, "~/get_stats", self._on_get_stats),
+        ]
+        self.context.on_shutdown(self.stop_recording)
+        self._discover_topics()
+        self._poll_timer = self.create_timer(self._options.polling_interval, self._discover_topics)
+
+    # --- sessions -----------------------------------------------------------------------------------------
+    def _next_uri(self) -> str:
+        """storage.uri for the first bag; ``<uri>_1``, ``<uri>_2``... after a stop/start, never overwriting."""
+        base = self._options.uri or time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
+        uri = base if self._bag_count == 0 else f"{base}_{self._bag_count}"
+        while self._bag_count > 0 and os.path.exists(uri):
+            self._bag_count += 1
+            uri = f"{base}_{self._bag_count}"
+        self._bag_count += 1
+        return uri
+
+    def _start_session(self) -> RecordingSession:
+        session = RecordingSession(self._options, self._next_uri(), self.get_logger(), self._publish_split)
+        for info in self._topics.values():
+            session.add_topic(info)
+        self._session = session
+        self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
+                               + (" paused" if self._paused else ""))
+        return session
+
+    def stop_recording(self) -> dict[str, Any] | None:
+        """Finalize the current bag (flush, summary, metadata.yaml); returns its final counts. Idempotent."""
+        with self._lock:
+            session, self._session = self._session, None
+        if session is None:
+            return None
+        session.finish()
+        stats = self._with_queue_drops(session.stats())
+        self._finished_stats.append(stats)
+        return stats
+
+    def _publish_split(self, closed_file: str, opened_file: str) -> None:
+        if self.context.ok():
+            self._split_events.publish(WriteSplitEvent(closed_file=closed_file, opened_file=opened_file,
+                                                       node_name=self.get_fully_qualified_name()))
+
+    # --- discovery and intake -----------------------------------------------------------------------------
+    def _discover_topics(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._topic_subscriptions or topic in self._ignored:
+                continue
+            if len(types) != 1:
+                self._ignore(topic, f"it has more than one type ({', '.join(types)})")
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if self._filter.selects(topic, types[0], len(publishers)):
+                self._subscribe(topic, types[0], publishers)
+
+    def _ignore(self, topic: str, reason: str) -> None:
+        self._ignored.add(topic)
+        self.get_logger().warning(f"Not recording {topic}: {reason}")
+
+    def _subscribe(self, topic: str, type_name: str, publishers: list[Any]) -> None:
+        try:
+            msg_type = message_class(type_name)
+        except (ImportError, AttributeError, ValueError) as exc:
+            self._ignore(topic, f"type {type_name} is not installed here ({exc})")
+            return
+        offered = [p.qos_profile for p in publishers]
+        qos: QoSProfile = self._qos_overrides.get(topic) or adapt_qos(offered)
+        type_hash = next((str(p.topic_type_hash) for p in publishers if str(p.topic_type_hash).startswith("RIHS01_")),
+                         "")
+        info = TopicInfo(topic, type_name, "cdr", [qos_profile_dict(q) for q in offered], type_hash)
+        with self._lock:
+            self._topics[topic] = info
+            if self._session is not None:
+                self._session.add_topic(info)
+        self._topic_subscriptions[topic] = self.create_subscription(
+            msg_type, topic, functools.partial(self._intake, topic), qos, raw=True)
+        self.get_logger().info(f"Subscribed to {topic} ({type_name})")
+
+    def _intake(self, topic: str, message: Any, info: dict[str, Any]) -> None:
+        """Runs on the executor: hand the message (object or CDR bytes) to the writer thread, nothing more."""
+        session = self._session
+        if session is None or self._paused:
+            return
+        received = info.get("received_timestamp") or time.time_ns()
+        session.offer(topic, message, received, info.get("source_timestamp") or received)
+
+    # --- statistics ---------------------------------------------------------------------------------------
+    def _with_queue_drops(self, stats: dict[str, Any]) -> dict[str, Any]:
+        """Add the in-process queue drops (messages that never reached the intake) to a session's counts."""
+        for topic, subscription in self._topic_subscriptions.items():
+            lost = getattr(subscription, "dropped_count", 0)
+            entry = stats["topics"].setdefault(topic, {"received": 0, "written": 0, "dropped": 0})
+            entry["dropped"] += lost
+            entry["queue_dropped"] = lost
+        return stats
+
+    def stats(self) -> dict[str, Any]:
+        """Live counts of the current bag plus the final counts of bags already closed."""
+        session = self._session
+        return {"recording": session is not None, "paused": self._paused,
+                "current": self._with_queue_drops(session.stats()) if session else None,
+                "finished": list(self._finished_stats)}
+
+    # --- services -----------------------------------------------------------------------------------------
+    def _set_paused(self, paused: bool) -> None:
+        if paused != self._paused:
+            self._paused = paused
+            self.get_logger().info("Recording paused" if paused else "Recording resumed")
+
+    def _on_pause(self, request: Pause.Request, response: Pause.Response) -> Pause.Response:
+        self._set_paused(True)
+        return response
+
+    def _on_resume(self, request: Resume.Request, response: Resume.Response) -> Resume.Response:
+        self._set_paused(False)
+        return response
+
+    def _on_toggle_paused(self, request: TogglePaused.Request,
+                          response: TogglePaused.Response) -> TogglePaused.Response:
+        self._set_paused(not self._paused)
+        return response
+
+    def _on_is_paused(self, request: IsPaused.Request, response: IsPaused.Response) -> IsPaused.Response:
+        response.paused = self._paused
+        return response
+
+    def _on_split_bagfile(self, request: SplitBagfile.Request,
+                          response: SplitBagfile.Response) -> SplitBagfile.Response:
+        session = self._session
+        if session is None or not session.split():
+            self.get_logger().warning("split_bagfile ignored: not recording")
+        return response
+
+    def _on_snapshot(self, request: Snapshot.Request, response: Snapshot.Response) -> Snapshot.Response:
+        session = self._session
+        response.success = session is not None and session.snapshot()
+        return response
+
+    def _on_start_recording(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self._lock:
+            if self._session is not None:
+                response.success, response.message = False, f"already recording to {self._session.writer.path}"
+                return response
+            try:
+                session = self._start_session()
+            except (OSError, ValueError) as exc:
+                response.success, response.message = False, f"cannot start recording: {exc}"
+                self.get_logger().error(response.message)
+                return response
+        response.success, response.message = True, f"recording to {session.writer.path}"
+        return response
+
+    def _on_stop_recording(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        stats = self.stop_recording()
+        if stats is None:
+            response.success, response.message = False, "not recording"
+        else:
+            response.success, response.message = stats["error"] is None, json.dumps(stats)
+        return response
+
+    def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = True, json.dumps(self.stats())
+        return response
+
+    def destroy_node(self) -> None:
+        self.stop_recording()
+        super().destroy_node()

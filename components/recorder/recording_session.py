@@ -1,0 +1,161 @@
+"""One bag being recorded: the write path from the intake cache to the files.
+
+The session owns a :class:`BagWriter`, the :class:`MessageCache` the intake fills, and the writer thread
+that serializes intra-process message objects (DDS payloads already are CDR bytes) and writes them. Nothing
+here runs on the executor except :meth:`offer`, which only appends to the cache.
+
+A storage failure (disk full, file removed) ends the session: the error is kept and logged, the bag is
+closed with what was written, and further messages are counted as dropped. ``finish`` is idempotent.
+"""
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from typing import Any, Callable
+
+from rclpy.serialization import serialize_message
+
+from components.recorder.bag_writer import BagWriteError, BagWriter
+from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
+from components.recorder.metadata import TopicInfo
+from components.recorder.recorder_options import RecordOptions
+
+Serializer = Callable[[Any], bytes]
+
+
+class RecordingSession:
+    """Records into one bag directory until :meth:`finish`."""
+
+    def __init__(self, options: RecordOptions, uri: str, logger: Any,
+                 on_split: Callable[[str, str], None] | None = None,
+                 serialize: Serializer = serialize_message) -> None:
+        self._logger = logger
+        self._serialize = serialize
+        self.writer = BagWriter(uri, options.storage_id, options.max_bagfile_size,
+                                options.max_bagfile_duration, options.storage_preset_profile,
+                                options.custom_data or None, on_split)
+        self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
+        self.received: Counter[str] = Counter()
+        self.write_dropped: Counter[str] = Counter()
+        self.error: str | None = None
+        self._snapshot_mode = options.snapshot_mode
+        self._snapshot_requested = threading.Event()
+        self._finish_lock = threading.Lock()
+        self._finished = False
+        self._thread = threading.Thread(target=self._run, name=f"bag_writer:{self.writer.path.name}",
+                                        daemon=True)
+        self._thread.start()
+
+    @property
+    def active(self) -> bool:
+        return not self._finished and self.error is None
+
+    def add_topic(self, info: TopicInfo) -> None:
+        """Declare a topic in the bag (listed even if it never gets a message)."""
+        try:
+            self.writer.add_topic(info)
+        except BagWriteError as exc:
+            self._fail(exc)
+
+    def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> None:
+        """Intake: hand one message to the writer thread. Never blocks on I/O."""
+        self.received[topic] += 1
+        self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
+
+    def snapshot(self) -> bool:
+        """Snapshot mode: write what the ring cache holds now. False outside snapshot mode or when failed."""
+        if not self._snapshot_mode or not self.active:
+            return False
+        self._snapshot_requested.set()
+        return True
+
+    def split(self) -> bool:
+        if not self.active:
+            return False
+        try:
+            self.writer.split()
+        except BagWriteError as exc:
+            self._fail(exc)
+            return False
+        return True
+
+    # --- writer thread ----------------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            if self._snapshot_mode:
+                self._snapshot_requested.wait(0.2)
+                batch = self.cache.drain() if self._snapshot_requested.is_set() else []
+                self._snapshot_requested.clear()
+            else:
+                batch = self.cache.take_all(timeout=0.2)
+            for index, message in enumerate(batch):
+                if not self._write(message):
+                    for lost in batch[index:]:
+                        self.write_dropped[lost.topic] += 1
+                    return
+            if self.cache.closed and not batch:
+                return
+
+    def _write(self, message: CachedMessage) -> bool:
+        payload = message.payload
+        data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
+        message.payload = None  # let the message object go as soon as it is serialized
+        try:
+            self.writer.write(message.topic, data, message.log_time_ns, message.publish_time_ns)
+        except BagWriteError as exc:
+            self._fail(exc)
+            return False
+        finally:
+            self.cache.release(message)
+        return True
+
+    def _fail(self, exc: BagWriteError) -> None:
+        if self.error is None:
+            self.error = str(exc)
+            self._logger.error(f"Recording to {self.writer.path} stopped: {exc}. The bag holds what was written "
+                               "before the failure; later messages are counted as dropped.")
+        self.cache.close()
+
+    # --- end --------------------------------------------------------------------------------------------
+    def finish(self) -> None:
+        """Flush the cache, close the bag (summary, metadata.yaml) and log the counts. Idempotent."""
+        with self._finish_lock:
+            if self._finished:
+                return
+            self._finished = True
+        if self._snapshot_mode:
+            for message in self.cache.drain():  # a ring that was never snapshotted is simply discarded
+                self.cache.release(message)
+        self.cache.close()
+        self._thread.join()
+        for message in self.cache.drain():  # left behind by a failed writer: counted, not written
+            self.write_dropped[message.topic] += 1
+        try:
+            self.writer.close()
+        except BagWriteError as exc:
+            self._fail(exc)
+        self._logger.info(self.summary())
+
+    def stats(self) -> dict[str, Any]:
+        """Live counts per topic, for the ``~/get_stats`` service and the closing log line."""
+        written = self.writer.topic_message_counts
+        topics = sorted(set(written) | set(self.received))
+        dropped = self.cache.dropped + self.write_dropped
+        return {
+            "bag": str(self.writer.path),
+            "current_file": str(self.writer.current_file or ""),
+            "bytes_written": self.writer.bytes_written,
+            "cache_bytes": self.cache.bytes,
+            "error": self.error,
+            "topics": {t: {"received": self.received[t], "written": written.get(t, 0),
+                           "dropped": dropped[t]} for t in topics},
+        }
+
+    def summary(self) -> str:
+        stats = self.stats()
+        lines = [f"Bag {stats['bag']} closed: {sum(t['written'] for t in stats['topics'].values())} messages, "
+                 f"{stats['bytes_written']} bytes" + (f", error: {stats['error']}" if stats["error"] else "")]
+        for topic, counts in stats["topics"].items():
+            lines.append(f"  {topic}: received {counts['received']}, written {counts['written']}, "
+                         f"dropped {counts['dropped']}")
+        return "\n".join(lines)

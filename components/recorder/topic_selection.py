@@ -1,0 +1,116 @@
+"""Which topics the recorder subscribes to, and with which QoS: rosbag2's TopicFilter and QoS adaptation.
+
+Selection: ``all_topics``, or the explicit ``topics`` / ``topic_types`` / ``regex`` (any match selects),
+minus ``exclude_topics`` / ``exclude_topic_types`` / ``exclude_regex``; hidden topics (a name part starting
+with ``_``) only with ``include_hidden_topics``; topics without publishers only with
+``include_unpublished_topics``. The recorder's own event topic is never recorded.
+
+QoS: reliable only if every publisher offers reliable, transient_local only if every publisher offers it,
+keep_last with depth 10; an entry in the ``qos_profile_overrides_path`` YAML file replaces this.
+"""
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import yaml
+from rclpy.duration import Duration
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    LivelinessPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+
+from components.recorder.recorder_options import RecordOptions
+
+RECORDER_DEPTH = 10
+
+
+class TopicFilter:
+    """Decides per (topic, type) whether it is recorded."""
+
+    def __init__(self, options: RecordOptions, own_topics: set[str]) -> None:
+        self._options = options
+        self._own_topics = own_topics
+        self._regex = re.compile(options.regex) if options.regex else None
+        self._exclude_regex = re.compile(options.exclude_regex) if options.exclude_regex else None
+        self._topics = {_absolute(t) for t in options.topics}
+        self._exclude_topics = {_absolute(t) for t in options.exclude_topics}
+
+    def selects(self, topic: str, type_name: str, publisher_count: int) -> bool:
+        o = self._options
+        if topic in self._own_topics:
+            return False
+        if publisher_count == 0 and not o.include_unpublished_topics:
+            return False
+        explicitly_named = topic in self._topics
+        if _is_hidden(topic) and not (o.include_hidden_topics or explicitly_named):
+            return False
+        wanted = (o.all_topics or explicitly_named or type_name in o.topic_types
+                  or bool(self._regex and self._regex.search(topic)))
+        if not wanted:
+            return False
+        if topic in self._exclude_topics or type_name in o.exclude_topic_types:
+            return False
+        return not (self._exclude_regex and self._exclude_regex.search(topic))
+
+
+def _absolute(topic: str) -> str:
+    return topic if topic.startswith("/") else f"/{topic}"
+
+
+def _is_hidden(topic: str) -> bool:
+    return any(part.startswith("_") for part in topic.split("/"))
+
+
+def adapt_qos(offered: list[QoSProfile]) -> QoSProfile:
+    """The subscription QoS that can receive from every offering publisher (rosbag2's rules)."""
+    reliable = bool(offered) and all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+    transient = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=RECORDER_DEPTH,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+
+
+_POLICIES = {
+    "history": HistoryPolicy,
+    "reliability": ReliabilityPolicy,
+    "durability": DurabilityPolicy,
+    "liveliness": LivelinessPolicy,
+}
+
+
+def load_qos_overrides(path: str) -> dict[str, QoSProfile]:
+    """Parse a rosbag2 QoS override file: ``{topic: {history: keep_last, depth: 10, ...}}``."""
+    if not path:
+        return {}
+    try:
+        with open(path, encoding="utf-8") as stream:
+            document = yaml.safe_load(stream) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"parameter 'record.qos_profile_overrides_path': cannot read '{path}': {exc}") from exc
+    if not isinstance(document, dict):
+        raise ValueError(f"QoS override file '{path}' must map topic names to QoS profiles")
+    return {_absolute(topic): _profile(topic, spec) for topic, spec in document.items()}
+
+
+def _profile(topic: str, spec: Any) -> QoSProfile:
+    if not isinstance(spec, dict):
+        raise ValueError(f"QoS override for '{topic}' must be a mapping, got {spec!r}")
+    kwargs: dict[str, Any] = {"depth": int(spec.get("depth", RECORDER_DEPTH))}
+    for key, value in spec.items():
+        if key in _POLICIES:
+            try:
+                kwargs[key] = _POLICIES[key][str(value).upper()]
+            except KeyError as exc:
+                raise ValueError(f"QoS override for '{topic}': unknown {key} '{value}'") from exc
+        elif key in ("deadline", "lifespan", "liveliness_lease_duration"):
+            kwargs[key] = Duration(seconds=int(value.get("sec", 0)), nanoseconds=int(value.get("nsec", 0)))
+        elif key in ("avoid_ros_namespace_conventions",):
+            kwargs[key] = bool(value)
+        elif key != "depth":
+            raise ValueError(f"QoS override for '{topic}': unknown key '{key}'")
+    return QoSProfile(**kwargs)
