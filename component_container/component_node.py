@@ -165,10 +165,9 @@ class IntraProcessSubscriber:
 
 
 def _takes_message_info(callback: Callable[..., None]) -> bool:
-    """rclpy passes MessageInfo to callbacks that take two positional parameters; so do we."""
+    """rclpy's rule: a callback that can be called with the message alone gets only the message."""
     try:
-        parameters = inspect.signature(callback).parameters.values()
-    except (TypeError, ValueError):
-        return False
-    positional = [p for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    return len(positional) >= 2
+        inspect.signature(callback).bind(object())
+    except TypeError:
+        return True
+    return False
