@@ -10,7 +10,8 @@ closed with what was written, and further messages are counted as dropped. ``fin
 from __future__ import annotations
 
 import threading
-from collections import Counter
+import time
+from collections import Counter, deque
 from typing import Any, Callable
 
 from rclpy.serialization import serialize_message
@@ -21,6 +22,16 @@ from components.recorder.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
 Serializer = Callable[[Any], bytes]
+LATENCY_SAMPLES = 20_000
+
+
+def _percentiles(samples_ns: list[int]) -> dict[str, float] | None:
+    """p50/p99 in milliseconds of the receive-to-write latencies, None before the first write."""
+    if not samples_ns:
+        return None
+    ordered = sorted(samples_ns)
+    return {q: ordered[min(len(ordered) - 1, int(len(ordered) * f))] / 1e6
+            for q, f in (("p50", 0.50), ("p99", 0.99))}
 
 
 class RecordingSession:
@@ -38,6 +49,8 @@ class RecordingSession:
         self.received: Counter[str] = Counter()
         self.write_dropped: Counter[str] = Counter()
         self.error: str | None = None
+        # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
+        self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
         self._snapshot_mode = options.snapshot_mode
         self._snapshot_requested = threading.Event()
         self._finish_lock = threading.Lock()
@@ -102,6 +115,7 @@ class RecordingSession:
         message.payload = None  # let the message object go as soon as it is serialized
         try:
             self.writer.write(message.topic, data, message.log_time_ns, message.publish_time_ns)
+            self._latencies.append(time.time_ns() - message.log_time_ns)
         except BagWriteError as exc:
             self._fail(exc)
             return False
@@ -147,6 +161,7 @@ class RecordingSession:
             "bytes_written": self.writer.bytes_written,
             "cache_bytes": self.cache.bytes,
             "error": self.error,
+            "write_latency_ms": _percentiles(list(self._latencies)),
             "topics": {t: {"received": self.received[t], "written": written.get(t, 0),
                            "dropped": dropped[t]} for t in topics},
         }
