@@ -1,0 +1,407 @@
+"""``ipc-component``, the ``ros2 component``-like command line, run as users run it: the installed console
+script as a subprocess, against real container processes.
+
+Two containers live for the whole module: ``/ComponentManager`` (started with ``--allow-module-plugins``
+in a temporary directory holding ``cli_probe.py``, a component that writes down what it received) and
+``/other`` (renamed with ``--ros-args -r __node:=other``). After every test a plain rclpy client unloads
+whatever is left, so each test starts with empty containers (unique ids keep growing, so tests read them
+from the replies instead of assuming them).
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import time
+from importlib.metadata import entry_points
+from typing import Any, Iterator
+
+import pytest
+import rclpy
+
+from container_process import ContainerClient, ContainerProcess
+
+IPC_COMPONENT = shutil.which("ipc-component", path=str(pathlib.Path(sys.executable).parent)) \
+    or shutil.which("ipc-component")
+MAIN, OTHER = "/ComponentManager", "/other"
+TALKER, LISTENER = "components::Talker", "components::Listener"
+PROBE = "cli_probe:Probe"
+BUDGET = 5.0
+SLACK = 3.0  # process start-up, rclpy import and shutdown on a loaded machine
+
+PROBE_SOURCE = '''
+"""A component that writes down, once it runs, what the container gave it."""
+import json
+import os
+
+from component_container.component_node import ComponentNode
+
+
+class Probe(ComponentNode):
+    def __init__(self, **kwargs):
+        super().__init__("probe", automatically_declare_parameters_from_overrides=True, **kwargs)
+        self._reported = False
+        self._timer = self.create_timer(0.05, self._report)
+
+    def _report(self):
+        if self._reported:
+            return
+        self._reported = True
+        parameters = {}
+        for name in self._parameters:
+            parameter = self.get_parameter(name)
+            value = parameter.value
+            if not isinstance(value, (bool, int, float, str, type(None))):
+                value = list(value)
+            parameters[name] = [parameter.type_.name, value]
+        report = {
+            "full_name": self.get_fully_qualified_name(),
+            "chatter": self.resolve_topic_name("chatter"),
+            "log_level": int(self.get_logger().get_effective_level()),
+            "intra_process": self.uses_intra_process,
+            "parameters": parameters,
+        }
+        path = self.get_parameter("report").value
+        with open(path + ".tmp", "w") as stream:
+            json.dump(report, stream)
+        os.replace(path + ".tmp", path)
+'''
+
+
+# --- helpers ----------------------------------------------------------------------------------------------
+def cli(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess:
+    """Run ``ipc-component`` with ``args``; the result has .returncode, .stdout, .stderr and .seconds."""
+    assert IPC_COMPONENT, "the ipc-component console script is not installed next to this Python"
+    start = time.monotonic()
+    result = subprocess.run([IPC_COMPONENT, *args], capture_output=True, text=True, timeout=timeout,
+                            env=dict(os.environ))
+    result.seconds = time.monotonic() - start  # type: ignore[attr-defined]
+    return result
+
+
+def cli_parallel(*commands: tuple[str, ...], timeout: float = 90.0) -> list[subprocess.CompletedProcess]:
+    """Run several ``ipc-component`` commands at the same time (each waits for discovery on its own)."""
+    start = time.monotonic()
+    processes = [subprocess.Popen([IPC_COMPONENT, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True, env=dict(os.environ)) for args in commands]
+    results = []
+    for args, process in zip(commands, processes):
+        try:
+            stdout, stderr = process.communicate(timeout=max(1.0, timeout - (time.monotonic() - start)))
+        except subprocess.TimeoutExpired:
+            for other in processes:
+                if other.poll() is None:
+                    other.kill()
+                    other.wait()
+            raise
+        result = subprocess.CompletedProcess([IPC_COMPONENT, *args], process.returncode, stdout, stderr)
+        result.seconds = time.monotonic() - start  # type: ignore[attr-defined]
+        results.append(result)
+    return results
+
+
+def lines(*texts: str) -> str:
+    return "".join(f"{text}\n" for text in texts)
+
+
+def assert_ok(result: subprocess.CompletedProcess, stdout: str) -> None:
+    assert (result.returncode, result.stderr, result.stdout) == (0, "", stdout), result
+
+
+def assert_fails(result: subprocess.CompletedProcess, stderr: str, stdout: str = "") -> None:
+    assert (result.returncode, result.stderr, result.stdout) == (1, stderr, stdout), result
+
+
+def read_report(path: pathlib.Path, timeout: float = 10.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        assert time.monotonic() < deadline, f"the probe component never wrote {path}"
+        time.sleep(0.05)
+    return json.loads(path.read_text())
+
+
+# --- fixtures ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def probe_dir(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+    directory = tmp_path_factory.mktemp("cli_probe")
+    (directory / "cli_probe.py").write_text(PROBE_SOURCE)
+    return directory
+
+
+@pytest.fixture(scope="module")
+def ros_node() -> Iterator[Any]:
+    owns_context = not rclpy.ok()
+    if owns_context:
+        rclpy.init()
+    node = rclpy.create_node("_test_cli_helper")
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        if owns_context:
+            rclpy.try_shutdown()
+
+
+@pytest.fixture(scope="module")
+def containers(probe_dir: pathlib.Path, ros_node: Any) -> Iterator[dict[str, ContainerClient]]:
+    """``/ComponentManager`` and ``/other``, running until the module ends, with a client for each."""
+    with ContainerProcess("--allow-module-plugins", cwd=str(probe_dir)) as main, \
+            ContainerProcess(name="other") as other:
+        try:
+            clients = {MAIN: ContainerClient(ros_node, MAIN), OTHER: ContainerClient(ros_node, OTHER)}
+            for client in clients.values():
+                client.wait(timeout=30.0)
+            yield clients
+        finally:
+            for process in (main, other):
+                assert process.stop() == 0, process.output
+    assert not main.alive() and not other.alive()
+
+
+@pytest.fixture
+def clients(containers: dict[str, ContainerClient]) -> Iterator[dict[str, ContainerClient]]:
+    """The module's containers, emptied again after the test."""
+    yield containers
+    for client in containers.values():
+        listing = client.list()
+        for unique_id in listing.unique_ids:
+            assert client.unload(unique_id).success
+
+
+def load(client: ContainerClient, plugin: str, **kwargs: Any) -> tuple[int, str]:
+    response = client.load(plugin, **kwargs)
+    assert response.success, response.error_message
+    return response.unique_id, response.full_node_name
+
+
+# --- list -------------------------------------------------------------------------------------------------
+def test_list_shows_every_container_and_its_components(clients: dict[str, ContainerClient]) -> None:
+    talker = load(clients[MAIN], TALKER)
+    listener = load(clients[MAIN], LISTENER, namespace="/ns")
+    other_talker = load(clients[OTHER], TALKER, name="other_talker")
+    result = cli("list")
+    assert_ok(result, lines(
+        MAIN, f"  {talker[0]}  /talker", f"  {listener[0]}  /ns/listener",
+        OTHER, f"  {other_talker[0]}  /other_talker"))
+    assert result.seconds < BUDGET + SLACK
+
+
+def test_list_containers_only_and_empty_containers(clients: dict[str, ContainerClient]) -> None:
+    talker = load(clients[MAIN], TALKER)
+    everything, containers_only = cli_parallel(("list",), ("list", "--containers-only"))
+    assert_ok(everything, lines(MAIN, f"  {talker[0]}  /talker", OTHER))
+    assert_ok(containers_only, lines(MAIN, OTHER))
+
+
+def test_list_one_container(clients: dict[str, ContainerClient]) -> None:
+    load(clients[MAIN], TALKER)
+    first = load(clients[OTHER], TALKER)
+    second = load(clients[OTHER], LISTENER, name="heard")
+    by_other, only_other, empty_main = cli_parallel(
+        ("list", OTHER), ("list", OTHER, "--containers-only"), ("list", MAIN, "--containers-only"))
+    assert_ok(by_other, lines(f"{first[0]}  /talker", f"{second[0]}  /heard"))
+    assert_ok(only_other, "")
+    assert_ok(empty_main, "")
+
+
+def test_list_container_without_components_prints_nothing(clients: dict[str, ContainerClient]) -> None:
+    assert_ok(cli("list", OTHER), "")
+
+
+# --- unknown containers -------------------------------------------------------------------------------------
+def test_unknown_container_for_every_verb(clients: dict[str, ContainerClient]) -> None:
+    results = cli_parallel(
+        ("list", "/nowhere"), ("list", "/nowhere", "--containers-only"),
+        ("load", "/nowhere", "components", TALKER), ("unload", "/nowhere", "1"),
+        # the full name is required, as with ros2 component
+        ("list", "ComponentManager"))
+    for result, name in zip(results, ["/nowhere"] * 4 + ["ComponentManager"]):
+        assert_fails(result, lines(f"Unable to find container node '{name}'"))
+        assert result.seconds < BUDGET + SLACK, "waited for the container longer than the budget"
+    assert len(clients[MAIN].list().unique_ids) == 0
+
+
+def test_a_node_without_the_container_services_is_no_container(
+        clients: dict[str, ContainerClient]) -> None:
+    talker = load(clients[MAIN], TALKER, name="not_a_container")
+    listed, loaded = cli_parallel(("list",), ("load", "/not_a_container", "components", TALKER))
+    assert_ok(listed, lines(MAIN, f"  {talker[0]}  /not_a_container", OTHER))
+    assert_fails(loaded, lines("Unable to find container node '/not_a_container'"))
+
+
+# --- load -------------------------------------------------------------------------------------------------
+def test_load(clients: dict[str, ContainerClient]) -> None:
+    result = cli("load", MAIN, "components", TALKER)
+    (unique_id,) = clients[MAIN].list().unique_ids
+    assert_ok(result, lines(f"Loaded component {unique_id} into '{MAIN}' container node as '/talker'"))
+    assert list(clients[MAIN].list().full_node_names) == ["/talker"]
+
+
+def test_load_quiet_then_list(clients: dict[str, ContainerClient]) -> None:
+    result = cli("load", OTHER, "components", LISTENER, "-q")
+    (unique_id,) = clients[OTHER].list().unique_ids
+    assert_ok(result, lines(f"{unique_id}  /listener"))
+    assert_ok(cli("list", OTHER), lines(f"{unique_id}  /listener"))
+
+
+def test_load_options_reach_the_component(clients: dict[str, ContainerClient], tmp_path: pathlib.Path) -> None:
+    report = tmp_path / "report.json"
+    result = cli("load", MAIN, "cli_probe", PROBE, "-n", "probe_a", "--node-namespace", "/cli",
+                 "-r", "chatter:=/remapped/chatter", "--log-level", "debug",
+                 "-p", f"report:={report}", "-p", "rate:=2.5", "-p", "count:=3", "-p", "flag:=true",
+                 "-p", "label:=hello world", "-p", "ints:=[1, 2, 3]", "-p", "quoted:='42'",
+                 "-p", "url:=http://host:80/a:=b",
+                 "-e", "use_intra_process_comms:=true")
+    (unique_id,) = clients[MAIN].list().unique_ids
+    assert_ok(result, lines(
+        f"Loaded component {unique_id} into '{MAIN}' container node as '/cli/probe_a'"))
+    received = read_report(report)
+    assert received["full_name"] == "/cli/probe_a"
+    assert received["chatter"] == "/remapped/chatter"
+    assert received["log_level"] == 10
+    assert received["intra_process"] is True
+    parameters = received["parameters"]
+    assert parameters["rate"] == ["DOUBLE", 2.5]
+    assert parameters["count"] == ["INTEGER", 3]
+    assert parameters["flag"] == ["BOOL", True]
+    assert parameters["label"] == ["STRING", "hello world"]
+    assert parameters["ints"] == ["INTEGER_ARRAY", [1, 2, 3]]
+    assert parameters["quoted"] == ["STRING", "42"]
+    assert parameters["url"] == ["STRING", "http://host:80/a:=b"]  # split on the first := only
+    assert_ok(cli("list", MAIN), lines(f"{unique_id}  /cli/probe_a"))
+
+
+@pytest.mark.parametrize(("level", "expected"), [("40", 40), ("Fatal", 50), (None, 20)])
+def test_load_log_level_names_and_numbers(clients: dict[str, ContainerClient], tmp_path: pathlib.Path,
+                                          level: str | None, expected: int) -> None:
+    # Each case names its node differently: a logger's level outlives the component in the container.
+    name = f"probe_{expected}"
+    report = tmp_path / "report.json"
+    args = ["load", MAIN, "cli_probe", PROBE, "-q", "-n", name, "-p", f"report:={report}"]
+    if level is not None:
+        args += ["--log-level", level]
+    result = cli(*args)
+    (unique_id,) = clients[MAIN].list().unique_ids
+    assert_ok(result, lines(f"{unique_id}  /{name}"))
+    received = read_report(report)
+    assert received["log_level"] == expected
+    assert received["intra_process"] is False
+
+
+def test_load_unknown_package_and_plugin(clients: dict[str, ContainerClient]) -> None:
+    package, plugin = cli_parallel(("load", MAIN, "no_such_package", TALKER),
+                                   ("load", MAIN, "components", "components::NoSuchThing"))
+    assert_fails(package, lines("Failed to load component: Could not find requested resource in ament index"))
+    assert_fails(plugin, lines("Failed to load component: Failed to find class with the requested plugin name."))
+    assert len(clients[MAIN].list().unique_ids) == 0
+
+
+def test_load_extra_argument_must_be_a_boolean(clients: dict[str, ContainerClient]) -> None:
+    result = cli("load", MAIN, "components", TALKER, "-e", "use_intra_process_comms:=notabool")
+    assert_fails(result, lines(
+        "Failed to load component: Extra component argument 'use_intra_process_comms' must be a boolean"))
+    assert len(clients[MAIN].list().unique_ids) == 0
+
+
+def test_load_constructor_failure(clients: dict[str, ContainerClient]) -> None:
+    result = cli("load", OTHER, "components", TALKER, "-p", "rate:=-1.0")
+    assert_fails(result, lines("Failed to load component: Component constructor threw an exception: "
+                               "parameter 'rate' must be positive, got -1.0"))
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["-p", "foo"], "Malformed parameter 'foo': expected name:=value"),
+    (["-p", ":=3"], "Malformed parameter ':=3': expected name:=value"),
+    (["-e", "use_intra_process_comms"],
+     "Malformed extra argument 'use_intra_process_comms': expected name:=value"),
+    (["-r", "chatter"], "Malformed remap rule 'chatter': expected from:=to"),
+    (["-p", "big:=9223372036854775808"],
+     "Invalid parameter 'big:=9223372036854775808': integer out of the 64-bit signed range"),
+    (["-e", "big:=[1, -9223372036854775809]"],
+     "Invalid extra argument 'big:=[1, -9223372036854775809]': integer out of the 64-bit signed range"),
+    (["--log-level", "loud"], "Invalid log level 'loud': use DEBUG, INFO, WARN, ERROR or FATAL (any case), "
+                              "or 10, 20, 30, 40 or 50"),
+    (["--log-level", "15"], "Invalid log level '15': use DEBUG, INFO, WARN, ERROR or FATAL (any case), "
+                            "or 10, 20, 30, 40 or 50"),
+])
+def test_load_malformed_arguments_fail_before_contacting_anyone(args: list[str], message: str) -> None:
+    # No container fixture: these must fail at once even with no container on the graph.
+    result = cli("load", "/nowhere", "components", TALKER, *args)
+    assert_fails(result, lines(message))
+    assert result.seconds < BUDGET, "a malformed argument must not wait for discovery"
+
+
+# --- unload -----------------------------------------------------------------------------------------------
+def test_unload(clients: dict[str, ContainerClient]) -> None:
+    unique_id, _ = load(clients[MAIN], TALKER)
+    kept, _ = load(clients[MAIN], LISTENER)
+    assert_ok(cli("unload", MAIN, str(unique_id)),
+              lines(f"Unloaded component {unique_id} from '{MAIN}' container node"))
+    assert list(clients[MAIN].list().unique_ids) == [kept]
+
+
+def test_unload_several_and_quiet(clients: dict[str, ContainerClient]) -> None:
+    ids = [load(clients[OTHER], TALKER, name=f"t{i}")[0] for i in range(3)]
+    verbose, quiet = cli_parallel(("unload", OTHER, str(ids[0]), str(ids[1])),
+                                  ("unload", OTHER, str(ids[2]), "-q"))
+    assert_ok(verbose, lines(*(f"Unloaded component {uid} from '{OTHER}' container node" for uid in ids[:2])))
+    assert_ok(quiet, lines(str(ids[2])))
+    assert list(clients[OTHER].list().unique_ids) == []
+
+
+def test_unload_unknown_id(clients: dict[str, ContainerClient]) -> None:
+    assert_fails(cli("unload", MAIN, "4242"), lines(
+        f"Failed to unload component 4242 from '{MAIN}' container node",
+        "    No node found with unique_id: 4242"))
+
+
+def test_unload_stops_at_the_first_failure(clients: dict[str, ContainerClient]) -> None:
+    first, _ = load(clients[MAIN], TALKER)
+    second, _ = load(clients[MAIN], LISTENER)
+    result = cli("unload", MAIN, str(first), "4242", str(second))
+    assert_fails(result,
+                 lines(f"Failed to unload component 4242 from '{MAIN}' container node",
+                       "    No node found with unique_id: 4242"),
+                 stdout=lines(f"Unloaded component {first} from '{MAIN}' container node"))
+    assert list(clients[MAIN].list().unique_ids) == [second]
+
+
+def test_unload_invalid_id() -> None:
+    result = cli("unload", "/nowhere", "abc")
+    assert_fails(result, lines("Invalid component unique id 'abc': expected a non-negative integer"))
+    assert result.seconds < BUDGET
+
+
+# --- types ------------------------------------------------------------------------------------------------
+def registered_plugins() -> dict[str, list[str]]:
+    packages: dict[str, set[str]] = {}
+    for entry_point in entry_points(group="rclpy_components"):
+        packages.setdefault(entry_point.module.split(".")[0], set()).add(entry_point.name)
+    return {package: sorted(names) for package, names in sorted(packages.items())}
+
+
+def test_types() -> None:
+    plugins = registered_plugins()
+    assert {TALKER, LISTENER, "components::Recorder"} <= set(plugins["components"])
+    expected = "".join(lines(package, *(f"  {name}" for name in names)) for package, names in plugins.items())
+    assert_ok(cli("types"), expected)
+
+
+def test_types_of_one_package() -> None:
+    assert_ok(cli("types", "components"), lines(*registered_plugins()["components"]))
+
+
+def test_types_unknown_package() -> None:
+    assert_fails(cli("types", "no_such_package"), lines("Unable to find package 'no_such_package'"))
+
+
+# --- command line -----------------------------------------------------------------------------------------
+def test_usage_errors_are_argparse_errors() -> None:
+    for args in ([], ["frobnicate"], ["load", MAIN], ["unload", MAIN]):
+        result = cli(*args)
+        assert result.returncode == 2, result
+        assert result.stdout == ""
+        assert result.stderr.startswith("usage: ipc-component"), result
