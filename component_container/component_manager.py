@@ -109,9 +109,14 @@ class ComponentManager(Node):
             self._last_id += 1
             unique_id = self._last_id
         self.get_logger().info(f"Loading {request.package_name} {request.plugin_name} as id {unique_id}")
+        # __new__ then __init__ (what node_class(**kwargs) does) so that a constructor that raises after the
+        # rcl node exists can be cleaned up: rclcpp destroys the half-built node, here it would linger in the
+        # graph (publishers, parameter services) until the garbage collector happened to break its cycles.
+        node = node_class.__new__(node_class)
         try:
-            node = node_class(**kwargs)
+            node.__init__(**kwargs)
         except Exception as exc:  # a component's constructor may raise anything; report it, stay up
+            _destroy_partially_constructed(node)
             raise ComponentConstructionError(f"Component constructor threw an exception: {exc}") from exc
         if options.log_level is not None:
             node.get_logger().set_level(options.log_level)
@@ -149,3 +154,11 @@ class ComponentManager(Node):
 
 class ComponentConstructionError(Exception):
     """The component's constructor raised."""
+
+
+def _destroy_partially_constructed(node: Node) -> None:
+    """Destroy what a failed component constructor created; a node that never got an rcl handle is ignored."""
+    try:
+        node.destroy_node()
+    except Exception:  # noqa: BLE001 - __init__ failed before the node existed, or half-way through it
+        pass
