@@ -275,6 +275,18 @@ def run_types(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     return 0
 
 
+# --- bag info -------------------------------------------------------------------------------------------
+def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
+    # Reads files only, like `ros2 bag info`: no rclpy session.
+    from components.recorder.bag_info import BagInfoError, format_bag_info
+
+    try:
+        print(format_bag_info(args.bag_path), flush=True)
+    except BagInfoError as exc:
+        raise CliError(str(exc)) from exc
+    return 0
+
+
 # --- command line ---------------------------------------------------------------------------------------
 def _print_lines(lines: Sequence[str]) -> None:
     if lines:
@@ -350,6 +362,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("package_name", nargs="?", default=None,
                    help="Package name to look for registered components in")
     p.set_defaults(handler=run_types)
+
+    p = add("bag", help="Inspect rosbag2 bags (what `ros2 bag` offers)", description="Inspect rosbag2 bags.")
+    bag_verbs = p.add_subparsers(dest="bag_verb", title="commands")
+    bag_verbs.required = True
+    p = bag_verbs.add_parser("info", help="Print information about a bag (like `ros2 bag info`)",
+                             description="Print information about a bag (like `ros2 bag info`).")
+    p.add_argument("bag_path", help="Bag directory (with metadata.yaml)")
+    p.set_defaults(handler=run_bag_info)
     return parser
 
 

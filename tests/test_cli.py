@@ -405,3 +405,34 @@ def test_usage_errors_are_argparse_errors() -> None:
         assert result.returncode == 2, result
         assert result.stdout == ""
         assert result.stderr.startswith("usage: ipc-component"), result
+
+
+def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: pathlib.Path) -> None:
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from components.recorder.bag_writer import BagWriter
+    from components.recorder.metadata import TopicInfo
+
+    writer = BagWriter(tmp_path / "info_bag")
+    writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String"))
+    writer.add_topic(TopicInfo("/silent", "std_msgs/msg/String"))
+    for i in range(3):
+        writer.write("/chatter", serialize_message(String(data=str(i))), 1_700_000_000_000_000_000 + i * 500_000_000,
+                     1_700_000_000_000_000_000 + i * 500_000_000)
+    writer.close()
+    result = cli("bag", "info", str(tmp_path / "info_bag"))
+    assert result.returncode == 0, result.stderr
+    out = result.stdout.splitlines()
+    assert out[0] == "Files:             info_bag_0.mcap"
+    assert out[2] == "Storage id:        mcap"
+    assert out[4] == "Duration:          1.000000000s"
+    assert out[5].endswith("(1700000000.000000000)") and out[6].endswith("(1700000001.000000000)")
+    assert out[7] == "Messages:          3"
+    assert out[8] == ("Topic information: Topic: /chatter | Type: std_msgs/msg/String | Count: 3 | "
+                      "Serialization Format: cdr")
+    assert out[9] == ("                   Topic: /silent | Type: std_msgs/msg/String | Count: 0 | "
+                      "Serialization Format: cdr")
+    missing = cli("bag", "info", str(tmp_path / "nothing"))
+    assert missing.returncode == 1
+    assert "is not a bag: no metadata.yaml" in missing.stderr
