@@ -1,6 +1,6 @@
-"""The interface packages built from srv/: composition_interfaces must be the Jazzy types (RIHS01 hashes, in the
-installed type descriptions, computed from the sources and seen on the wire from a running container), and
-rosbag2_interfaces must import and work between two rclpy nodes.
+"""The interface packages built from srv/: composition_interfaces must be the Jazzy types (RIHS01 hashes in
+the installed type descriptions, computed from the sources and seen on the wire from a running container),
+and rosbag2_interfaces must import and work between two rclpy nodes.
 """
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def _installed_share_dirs() -> list[pathlib.Path]:
     return [c for c in candidates if (c / "composition_interfaces" / "srv").is_dir()]
 
 
-# --- composition_interfaces: type descriptions and hashes ----------------------------------------------------
+# --- composition_interfaces: type descriptions and hashes ---------------------------------------------------
 @pytest.mark.parametrize("service", sorted(SERVICE_HASHES))
 def test_installed_type_description_hashes(service: str) -> None:
     shares = _installed_share_dirs()
@@ -111,13 +111,14 @@ def test_python_types_have_the_jazzy_fields() -> None:
     assert LoadNode.Response.get_fields_and_field_types() == {
         "success": "boolean", "error_message": "string", "full_node_name": "string", "unique_id": "uint64"}
     assert UnloadNode.Request.get_fields_and_field_types() == {"unique_id": "uint64"}
-    assert UnloadNode.Response.get_fields_and_field_types() == {"success": "boolean", "error_message": "string"}
+    assert UnloadNode.Response.get_fields_and_field_types() == {
+        "success": "boolean", "error_message": "string"}
     assert ListNodes.Request.get_fields_and_field_types() == {}
     assert ListNodes.Response.get_fields_and_field_types() == {
         "full_node_names": "sequence<string>", "unique_ids": "sequence<uint64>"}
 
 
-# --- composition_interfaces on the wire ----------------------------------------------------------------------
+# --- composition_interfaces on the wire ---------------------------------------------------------------------
 def _endpoints(get_info: Any, topic: str, node_name: str, timeout: float = 10.0) -> list[Any]:
     deadline = time.monotonic() + timeout
     while True:
@@ -152,7 +153,7 @@ def test_wire_type_hashes_of_a_running_container() -> None:
     assert not container.alive()
 
 
-# --- rosbag2_interfaces --------------------------------------------------------------------------------------
+# --- rosbag2_interfaces -------------------------------------------------------------------------------------
 class _Pair:
     """Two rclpy nodes (server side, client side) in one fresh Context, spun on a background thread."""
 
