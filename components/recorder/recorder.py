@@ -92,7 +92,10 @@ class Recorder(ComponentNode):
         return uri
 
     def _start_session(self) -> RecordingSession:
-        session = RecordingSession(self._options, self._next_uri(), self.get_logger(), self._publish_split)
+        # Queue drops count per subscription since it was created; a session counts only its own.
+        baseline = {topic: getattr(sub, "dropped_count", 0) for topic, sub in self._topic_subscriptions.items()}
+        session = RecordingSession(self._options, self._next_uri(), self.get_logger(), self._publish_split,
+                                   queue_drops=functools.partial(self._queue_drops, baseline))
         for info in self._topics.values():
             session.add_topic(info)
         self._session = session
@@ -107,7 +110,7 @@ class Recorder(ComponentNode):
         if session is None:
             return None
         session.finish()
-        stats = self._with_queue_drops(session.stats())
+        stats = session.stats()
         self._finished_stats.append(stats)
         return stats
 
@@ -160,20 +163,16 @@ class Recorder(ComponentNode):
         session.offer(topic, message, received, info.get("source_timestamp") or received)
 
     # --- statistics ---------------------------------------------------------------------------------------
-    def _with_queue_drops(self, stats: dict[str, Any]) -> dict[str, Any]:
-        """Add the in-process queue drops (messages that never reached the intake) to a session's counts."""
-        for topic, subscription in self._topic_subscriptions.items():
-            lost = getattr(subscription, "dropped_count", 0)
-            entry = stats["topics"].setdefault(topic, {"received": 0, "written": 0, "dropped": 0})
-            entry["dropped"] += lost
-            entry["queue_dropped"] = lost
-        return stats
+    def _queue_drops(self, baseline: dict[str, int]) -> dict[str, int]:
+        """Messages the in-process queues dropped (they never reached the intake) since ``baseline``."""
+        return {topic: getattr(subscription, "dropped_count", 0) - baseline.get(topic, 0)
+                for topic, subscription in list(self._topic_subscriptions.items())}
 
     def stats(self) -> dict[str, Any]:
         """Live counts of the current bag plus the final counts of bags already closed."""
         session = self._session
         return {"recording": session is not None, "paused": self._paused,
-                "current": self._with_queue_drops(session.stats()) if session else None,
+                "current": session.stats() if session else None,
                 "finished": list(self._finished_stats)}
 
     # --- services -----------------------------------------------------------------------------------------

@@ -22,6 +22,8 @@ from components.recorder.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
 Serializer = Callable[[Any], bytes]
+#: Per topic, messages lost before the intake during this session (the subscriptions' queue overflows).
+QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
 
 
@@ -39,9 +41,10 @@ class RecordingSession:
 
     def __init__(self, options: RecordOptions, uri: str, logger: Any,
                  on_split: Callable[[str, str], None] | None = None,
-                 serialize: Serializer = serialize_message) -> None:
+                 serialize: Serializer = serialize_message, queue_drops: QueueDrops | None = None) -> None:
         self._logger = logger
         self._serialize = serialize
+        self._queue_drops = queue_drops
         self.writer = BagWriter(uri, options.storage_id, options.max_bagfile_size,
                                 options.max_bagfile_duration, options.storage_preset_profile,
                                 options.custom_data or None, on_split)
@@ -153,8 +156,9 @@ class RecordingSession:
     def stats(self) -> dict[str, Any]:
         """Live counts per topic, for the ``~/get_stats`` service and the closing log line."""
         written = self.writer.topic_message_counts
-        topics = sorted(set(written) | set(self.received))
-        dropped = self.cache.dropped + self.write_dropped
+        queue = Counter(self._queue_drops() if self._queue_drops else {})
+        topics = sorted(set(written) | set(self.received) | set(queue))
+        dropped = self.cache.dropped + self.write_dropped + queue
         return {
             "bag": str(self.writer.path),
             "current_file": str(self.writer.current_file or ""),
@@ -163,7 +167,7 @@ class RecordingSession:
             "error": self.error,
             "write_latency_ms": _percentiles(list(self._latencies)),
             "topics": {t: {"received": self.received[t], "written": written.get(t, 0),
-                           "dropped": dropped[t]} for t in topics},
+                           "dropped": dropped[t], "queue_dropped": queue[t]} for t in topics},
         }
 
     def summary(self) -> str:

@@ -6,7 +6,7 @@ with ``_``) only with ``include_hidden_topics``; topics without publishers only 
 ``include_unpublished_topics``. The recorder's own event topic is never recorded.
 
 QoS: reliable only if every publisher offers reliable, transient_local only if every publisher offers it,
-keep_last with depth 10; an entry in the ``qos_profile_overrides_path`` YAML file replaces this.
+keep_last with depth :data:`RECORDER_DEPTH`; an entry in the ``qos_profile_overrides_path`` YAML file replaces this.
 """
 from __future__ import annotations
 
@@ -25,7 +25,11 @@ from rclpy.qos import (
 
 from components.recorder.recorder_options import RecordOptions
 
-RECORDER_DEPTH = 10
+# rosbag2 uses 10. Here the subscription's queue is the only buffer between a publication and the intake
+# callback, which runs on the container's (Python) executor: at 200 Hz, 10 messages are 50 ms, and a busy
+# executor or a loaded machine stalls longer than that, losing messages long before the byte-bounded cache
+# (max_cache_size) is anywhere near full. In-process the queue holds references to messages that exist anyway.
+RECORDER_DEPTH = 100
 
 
 class TopicFilter:
