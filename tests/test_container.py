@@ -138,9 +138,12 @@ class ReadyContainerClient(ContainerClient):
 @pytest.fixture(scope="module", autouse=True)
 def ros() -> Iterator[None]:
     """The default context: ContainerClient and rclpy.spin_once use the global executor."""
-    rclpy.init()
+    owned = not rclpy.ok()
+    if owned:
+        rclpy.init()
     yield
-    rclpy.shutdown()
+    if owned:
+        rclpy.shutdown()
 
 
 @pytest.fixture()
