@@ -1,0 +1,1089 @@
+#!/usr/bin/env python3
+"""Recording benchmark: the zero-copy in-container recorder against DDS recording, on the same scenario.
+
+Usage: ``python benchmarks/record_bench.py [--quick] [--scenarios s1,s2,s3] [--json FILE|-] [--plot FILE]``
+(``--help`` lists every knob). One run measures, for each scenario, these modes one after the other:
+
+* ``ipc``: the drivers and ``components::Recorder`` in one container, every component loaded with
+  ``extra_arguments: {use_intra_process_comms: true}`` (the recorder gets the drivers' message objects by
+  reference and serializes them on its writer thread);
+* ``dds``: the same drivers (same start-up file) in one container and the same recorder code in a second
+  container process, loaded *without* intra-process, so every message crosses DDS as CDR
+  (the architecture of ``ros2 bag record`` on Humble);
+* ``drivers``: the drivers alone, no recorder (the sensors' own CPU cost);
+* ``ceiling``: a plain Python loop writing the same number of bytes, in the same message sizes and order, to
+  a file on the same filesystem as the bags (the write-speed limit of this machine in this run).
+
+Scenarios: S1 multi-camera rig (2x 1920x1080 rgb8 @ 30 Hz, LiDAR 131072 points @ 10 Hz, IMU @ 200 Hz, 10 s);
+S2 ramp (1080p 30 Hz cameras added one at a time, on top of the S1 LiDAR and IMU unless ``--s2-base cameras``,
+until a mode loses messages; largest lossless count per mode, cap 8); S3 ten IMU topics at 1 kHz each.
+
+Measurement protocol of a recorder mode
+---------------------------------------
+1. start the container process(es) from generated ``--load`` start-up files; the recorder records an
+   explicit topic list (``record.topics``) into ``<tmp>/<run>`` (MCAP by default, default 100 MiB cache);
+2. warm-up: poll ``~/get_stats`` until every expected topic has received messages, then
+   ``~/stop_recording`` (the warm-up bag is discarded) and ``~/start_recording`` (a fresh bag ``<run>_1``
+   with fresh latency samples), and wait ``--settle`` seconds;
+3. measured window ``[T0, T1]`` of ``--seconds``: /proc/<pid>/stat utime+stime of every process of the mode
+   at T0 and T1, ``~/get_stats`` at T1 (write_latency_ms p50/p99, pooled over all topics, over the session's
+   latest 20000 writes, i.e. the settle time plus the window);
+4. ``--drain`` more seconds of recording (so the window's last messages have recorded successors), then
+   ``~/stop_recording`` (flushes and finalizes); VmHWM of every process; SIGINT to every process (kill
+   after a timeout), always, in ``finally`` blocks;
+5. the bag is read back with rosbags (``rosbags.rosbag2.Reader``), never trusting the recorder's counters,
+   and deleted.
+
+Definitions
+-----------
+* window membership is by ``header.stamp`` (capture time, wall clock of this machine): T0 <= stamp <= T1;
+* **published** (per topic with a sequence number: Image and PointCloud2 ``data[0:8]``, Imu
+  ``orientation_covariance[1]``) = the driver's sequence span across the window: ``hi - lo - 1`` where ``lo``
+  is the last recorded sequence number stamped before T0 and ``hi`` the first one stamped after T1 (when none
+  was recorded after T1, ``hi`` is extrapolated at the nominal rate and the row is marked ``~``). Drivers
+  number only the messages they publish (frames a late driver skips at the source consume no number), so
+  this counts exactly the published messages, except that a lost message right next to T0 or T1 whose
+  stamp is unknown counts as inside the window (losses are overestimated, never hidden; zero loss is exact);
+* CameraInfo has no sequence number: its published count is its image topic's (one CameraInfo per image,
+  same stamp), its recorded count the CameraInfo messages stamped in the window;
+* **recorded** = distinct sequence numbers stamped in the window found in the bag (duplicates are reported);
+  **lost** = published - recorded; **pub%** = published / (nominal rate x window): below 100 % the drivers
+  themselves could not keep their rate (source skips, not counted as lost but a failure to sustain the load);
+* **MB/s** = serialized bytes of the window's recorded messages / window seconds (MB = 1e6 bytes,
+  GB = 1e9 bytes); **CPU s** = utime+stime over the window; **CPU s/GB** = that CPU / recorded GB;
+* **recorder CPU**: ``dds``: the recorder process; ``ipc``: ipc total minus drivers-only total for the same
+  scenario (they share one process, so it includes the intra-process delivery and any contention);
+* **peak RSS** = VmHWM of each process at the end of the run (after finalization), i.e. over its whole life;
+* a step of S2 is **lossless** when no topic lost a message *and* every topic published >= 97 % of nominal.
+
+Environment: ``ROS_DOMAIN_ID`` is set to a random 1..100 when unset and ``ROS_AUTOMATIC_DISCOVERY_RANGE`` to
+LOCALHOST before anything starts. Bags and the ceiling file go to a temporary directory under ``--output-dir``
+(default: the current directory), removed at the end.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import yaml
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+DEFAULT_CACHE = 100 * 1024 * 1024  # rosbag2's storage.max_cache_size default
+MB = 1e6
+GB = 1e9
+PUBLISH_RATE_OK = 0.97  # a driver that published less than this share of its nominal rate did not keep up
+
+CEILING_WORKER = textwrap.dedent("""
+    import json, os, sys, time
+    spec = json.load(open(sys.argv[1]))
+    sizes = spec["sizes"]
+    buffer = memoryview(os.urandom(max(sizes)))
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    with open(spec["path"], "wb") as out:
+        for size in sizes:
+            out.write(buffer[:size])
+    t1, cpu1 = time.perf_counter(), time.process_time()
+    fd = os.open(spec["path"], os.O_RDONLY)
+    os.fsync(fd)
+    os.close(fd)
+    t2 = time.perf_counter()
+    print(json.dumps({"seconds": t1 - t0, "cpu_s": cpu1 - cpu0, "fsync_s": t2 - t1, "bytes": sum(sizes)}))
+""")
+
+
+# ----------------------------------------------------------------------------------------------- scenarios
+@dataclass
+class TopicSpec:
+    name: str
+    type_name: str
+    kind: str  # image | camera_info | cloud | imu
+    rate: float
+    size: int = 0  # serialized CDR bytes of one message
+    image_topic: str = ""  # camera_info: its image topic
+
+
+@dataclass
+class Scenario:
+    key: str
+    title: str
+    seconds: float
+    cameras: int = 0
+    width: int = 1920
+    height: int = 1080
+    fps: float = 30.0
+    lidar_points: int = 0  # 0: no lidar
+    lidar_rate: float = 10.0
+    imus: int = 0
+    imu_rate: float = 200.0
+
+    def describe(self) -> str:
+        parts = []
+        if self.cameras:
+            parts.append(f"{self.cameras}x camera {self.width}x{self.height} rgb8 @ {self.fps:g} Hz")
+        if self.lidar_points:
+            parts.append(f"lidar {self.lidar_points} pts @ {self.lidar_rate:g} Hz")
+        if self.imus:
+            parts.append(f"{self.imus}x IMU @ {self.imu_rate:g} Hz")
+        return ", ".join(parts) + f"; {self.seconds:g} s window"
+
+    def components(self) -> list[dict[str, Any]]:
+        ipc = {"use_intra_process_comms": True}
+        out: list[dict[str, Any]] = []
+        for i in range(self.cameras):
+            out.append({"package": "components", "plugin": "components::CameraDriver", "name": f"cam{i}",
+                        "parameters": {"width": self.width, "height": self.height, "fps": float(self.fps),
+                                       "encoding": "rgb8", "frame_id": f"cam{i}"},
+                        "extra_arguments": dict(ipc)})
+        if self.lidar_points:
+            out.append({"package": "components", "plugin": "components::LidarDriver", "name": "lidar",
+                        "parameters": {"points_per_scan": self.lidar_points, "rate": float(self.lidar_rate)},
+                        "extra_arguments": dict(ipc)})
+        for i in range(self.imus):
+            out.append({"package": "components", "plugin": "components::ImuDriver", "name": f"imu{i}",
+                        "parameters": {"rate": float(self.imu_rate), "frame_id": f"imu{i}"},
+                        "extra_arguments": dict(ipc)})
+        return out
+
+    def topics(self) -> dict[str, TopicSpec]:
+        specs: list[TopicSpec] = []
+        for i in range(self.cameras):
+            specs.append(TopicSpec(f"/cam{i}/image_raw", "sensor_msgs/msg/Image", "image", self.fps))
+            specs.append(TopicSpec(f"/cam{i}/camera_info", "sensor_msgs/msg/CameraInfo", "camera_info", self.fps,
+                                   image_topic=f"/cam{i}/image_raw"))
+        if self.lidar_points:
+            specs.append(TopicSpec("/lidar/points", "sensor_msgs/msg/PointCloud2", "cloud", self.lidar_rate))
+        for i in range(self.imus):
+            specs.append(TopicSpec(f"/imu{i}/imu", "sensor_msgs/msg/Imu", "imu", self.imu_rate))
+        for spec in specs:
+            spec.size = serialized_size(self, spec)
+        return {spec.name: spec for spec in specs}
+
+
+_SIZE_CACHE: dict[tuple, int] = {}
+
+
+def serialized_size(scenario: Scenario, spec: TopicSpec) -> int:
+    """CDR size of one message of the topic, by serializing a sample like the driver's."""
+    frame_id = spec.name.split("/")[1]
+    key = (spec.kind, frame_id, scenario.width, scenario.height, scenario.lidar_points)
+    if key not in _SIZE_CACHE:
+        from rclpy.serialization import serialize_message
+        from sensor_msgs.msg import CameraInfo, Image, Imu, PointCloud2, PointField
+        from std_msgs.msg import Header
+        header = Header(frame_id=frame_id)
+        if spec.kind == "image":
+            msg: Any = Image(header=header, height=scenario.height, width=scenario.width, encoding="rgb8",
+                             step=scenario.width * 3)
+            msg.data = bytes(scenario.width * scenario.height * 3)
+        elif spec.kind == "camera_info":
+            msg = CameraInfo(header=header, height=scenario.height, width=scenario.width,
+                             distortion_model="plumb_bob", d=[0.0] * 5)
+        elif spec.kind == "cloud":
+            msg = PointCloud2(header=header, height=1, width=scenario.lidar_points, point_step=24,
+                              row_step=24 * scenario.lidar_points, is_dense=True,
+                              fields=[PointField(name=n, offset=o, datatype=7 if n != "ring" else 4, count=1)
+                                      for n, o in (("x", 0), ("y", 4), ("z", 8), ("intensity", 12),
+                                                   ("ring", 16), ("time", 20))])
+            msg.data = bytes(24 * scenario.lidar_points)
+        else:
+            msg = Imu(header=header)
+        _SIZE_CACHE[key] = len(serialize_message(msg))
+    return _SIZE_CACHE[key]
+
+
+def s1_scenario(args: argparse.Namespace) -> Scenario:
+    return Scenario("S1", "S1 multi-camera rig", args.seconds, cameras=args.cameras, width=args.width,
+                    height=args.height, fps=args.fps, lidar_points=args.lidar_points, lidar_rate=args.lidar_rate,
+                    imus=1, imu_rate=args.imu_rate)
+
+
+def s2_scenario(args: argparse.Namespace, cameras: int) -> Scenario:
+    rig = args.s2_base == "rig"
+    return Scenario("S2", f"S2 ramp, {cameras} camera(s)", args.s2_seconds, cameras=cameras, width=args.width,
+                    height=args.height, fps=args.fps, lidar_points=args.lidar_points if rig else 0,
+                    lidar_rate=args.lidar_rate, imus=1 if rig else 0, imu_rate=args.imu_rate)
+
+
+def s3_scenario(args: argparse.Namespace) -> Scenario:
+    return Scenario("S3", "S3 IMU storm", args.s3_seconds, imus=args.s3_imus, imu_rate=args.s3_rate)
+
+
+# ----------------------------------------------------------------------------------------------- processes
+def cpu_times(pid: int) -> tuple[float, float]:
+    """(utime, stime) of a process (all its threads), in seconds."""
+    with open(f"/proc/{pid}/stat") as stat:
+        fields = stat.read().rsplit(")", 1)[1].split()
+    return int(fields[11]) / CLK_TCK, int(fields[12]) / CLK_TCK
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a process (all its threads), in seconds."""
+    return sum(cpu_times(pid))
+
+
+def machine_busy_seconds() -> float:
+    """CPU time all CPUs of the machine spent busy (user, nice, system, irq, softirq, steal), in seconds."""
+    with open("/proc/stat") as stat:
+        values = [int(v) for v in stat.readline().split()[1:9]]
+    user, nice, system, _idle, _iowait, irq, softirq, steal = values
+    return (user + nice + system + irq + softirq + steal) / CLK_TCK
+
+
+def peak_rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+class Container:
+    """``python -m component_container`` as a subprocess, output to a log file, stopped by its pid."""
+
+    def __init__(self, label: str, node_name: str, load_files: list[Path], log_path: Path, executor: str,
+                 threads: int, cwd: Path) -> None:
+        self.label = label
+        self.node_name = node_name
+        self.log_path = log_path
+        command = [sys.executable, "-m", "component_container", "--executor", executor]
+        for path in load_files:
+            command += ["--load", str(path)]
+        command += ["--ros-args", "-r", f"__node:={node_name}"]
+        if executor == "multi":
+            command += ["-p", f"thread_num:={threads}"]
+        self._log = open(log_path, "w")
+        self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(cwd),
+                                        env=dict(os.environ))
+        self.pid = self.process.pid
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self, timeout: float = 30.0) -> Optional[int]:
+        """SIGINT, then SIGKILL after ``timeout``; returns the exit code."""
+        try:
+            if self.alive():
+                self.process.send_signal(signal.SIGINT)
+                try:
+                    self.process.wait(timeout=timeout)
+                except subprocess.TimeoutExpired:
+                    self.process.kill()
+                    self.process.wait(timeout=10)
+            return self.process.returncode
+        finally:
+            self._log.close()
+
+    def log_text(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+
+def source_skips(log: str) -> int:
+    """Frames the drivers skipped at the source, as far as their (throttled) warnings tell."""
+    total = 0
+    for line in log.splitlines():
+        if "cannot keep up" in line and "in total" in line:
+            try:
+                total += int(line.rsplit(",", 1)[1].split()[0])
+            except (IndexError, ValueError):
+                pass
+    return total
+
+
+# ----------------------------------------------------------------------------------------------- ROS client
+class RosClient:
+    """The benchmark's own node: Trigger calls to the recorder and the container's ListNodes."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        rclpy.init(args=["record_bench"])
+        self._rclpy = rclpy
+        self.node = rclpy.create_node(f"record_bench_{os.getpid()}")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown()
+
+    def trigger(self, service: str) -> Any:
+        from std_srvs.srv import Trigger
+        return self.node.create_client(Trigger, service)
+
+    def call(self, client: Any, request: Any = None, timeout: float = 60.0) -> Any:
+        if request is None:
+            request = client.srv_type.Request()
+        future = client.call_async(request)
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        if not future.done():
+            client.remove_pending_request(future)
+            raise TimeoutError(f"no reply from {client.srv_name} within {timeout:g} s")
+        return future.result()
+
+    def wait_for(self, client: Any, deadline: float, alive: Callable[[], bool]) -> None:
+        while not client.wait_for_service(timeout_sec=0.5):
+            if not alive():
+                raise RuntimeError(f"a container exited before {client.srv_name} appeared")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{client.srv_name} did not appear")
+
+    def destroy(self, client: Any) -> None:
+        self.node.destroy_client(client)
+
+
+# ----------------------------------------------------------------------------------------------- bag read-back
+def _seq_reader(spec: TopicSpec, scenario: Scenario) -> Callable[[bytes], Optional[int]]:
+    """Fast sequence-number extraction from CDR (checked against rosbags deserialization on first use)."""
+    if spec.kind == "image":
+        n = scenario.width * scenario.height * 3
+        def image(raw: bytes) -> int:  # data is the last field
+            assert struct.unpack_from("<I", raw, len(raw) - n - 4)[0] == n, "unexpected Image layout"
+            return int.from_bytes(raw[len(raw) - n:len(raw) - n + 8], "little")
+        return image
+    if spec.kind == "cloud":
+        n = 24 * scenario.lidar_points
+        def cloud(raw: bytes) -> int:  # data, then is_dense (1 byte)
+            assert struct.unpack_from("<I", raw, len(raw) - n - 5)[0] == n, "unexpected PointCloud2 layout"
+            return int.from_bytes(raw[len(raw) - n - 1:len(raw) - n + 7], "little")
+        return cloud
+    if spec.kind == "imu":
+        def imu(raw: bytes) -> int:  # header (stamp, frame_id), quaternion, orientation_covariance[0..8]
+            frame_len = struct.unpack_from("<I", raw, 4 + 8)[0]
+            offset = 8 + 4 + frame_len
+            offset = (offset + 7) // 8 * 8 + 32 + 8
+            return int(struct.unpack_from("<d", raw, 4 + offset)[0])
+        return imu
+    return lambda raw: None
+
+
+def _seq_by_rosbags(typestore: Any, raw: bytes, spec: TopicSpec) -> Optional[int]:
+    msg = typestore.deserialize_cdr(raw, spec.type_name)
+    if spec.kind in ("image", "cloud"):
+        return int.from_bytes(bytes(msg.data[:8]), "little")
+    if spec.kind == "imu":
+        return int(msg.orientation_covariance[1])
+    return None
+
+
+def read_bag(path: Path, scenario: Scenario, topics: dict[str, TopicSpec]) -> dict[str, Any]:
+    """Every message of the bag: per topic a list of (sequence or None, stamp ns, size)."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    readers = {name: _seq_reader(spec, scenario) for name, spec in topics.items()}
+    checked: set[str] = set()
+    records: dict[str, list[tuple[Optional[int], int, int]]] = {name: [] for name in topics}
+    unexpected = 0
+    with Reader(path) as reader:
+        for connection, _, raw in reader.messages():
+            spec = topics.get(connection.topic)
+            if spec is None:
+                unexpected += 1
+                continue
+            assert raw[1] == 1, "only little-endian CDR is expected"
+            sec, nanosec = struct.unpack_from("<iI", raw, 4)
+            seq = readers[spec.name](raw)
+            if spec.name not in checked:
+                expected = _seq_by_rosbags(typestore, raw, spec)
+                if expected != seq:
+                    raise AssertionError(f"{spec.name}: sequence parser says {seq}, rosbags says {expected}")
+                checked.add(spec.name)
+            records[spec.name].append((seq, sec * 1_000_000_000 + nanosec, len(raw)))
+        total = reader.message_count
+    return {"records": records, "unexpected": unexpected, "metadata_count": total}
+
+
+def window_counts(records: dict[str, list[tuple[Optional[int], int, int]]], topics: dict[str, TopicSpec],
+                  t0: int, t1: int) -> dict[str, dict[str, Any]]:
+    """published / recorded / lost per topic over the window (see the module docstring)."""
+    window_s = (t1 - t0) / 1e9
+    out: dict[str, dict[str, Any]] = {}
+    for name, spec in topics.items():
+        if spec.kind == "camera_info":
+            continue
+        recs = sorted(records.get(name, []))
+        in_window = [r for r in recs if t0 <= r[1] <= t1]
+        seqs = {r[0] for r in in_window}
+        before = [r[0] for r in recs if r[1] < t0]
+        after = [r[0] for r in recs if r[1] > t1]
+        estimated = False
+        if before:
+            lo = max(before)
+        elif in_window:
+            lo = min(seqs) - 1
+        else:
+            lo = None
+        if after:
+            hi = min(after)
+        elif recs:
+            last_seq, last_stamp = recs[-1][0], recs[-1][1]
+            hi = last_seq + 1 + max(0, round((t1 - last_stamp) / 1e9 * spec.rate))
+            estimated = True
+        else:
+            hi = None
+        if lo is None or hi is None:
+            published = round(window_s * spec.rate)
+            estimated = True
+        else:
+            published = max(0, hi - lo - 1)
+        out[name] = {"published": published, "recorded": len(seqs), "duplicates": len(in_window) - len(seqs),
+                     "bytes": sum(r[2] for r in in_window), "estimated": estimated,
+                     "nominal": window_s * spec.rate}
+    for name, spec in topics.items():
+        if spec.kind != "camera_info":
+            continue
+        image = out[spec.image_topic]
+        in_window = [r for r in records.get(name, []) if t0 <= r[1] <= t1]
+        stamps = {r[1] for r in in_window}
+        out[name] = {"published": image["published"], "recorded": len(stamps),
+                     "duplicates": len(in_window) - len(stamps), "bytes": sum(r[2] for r in in_window),
+                     "estimated": image["estimated"], "nominal": window_s * spec.rate}
+    for entry in out.values():
+        entry["lost"] = max(0, entry["published"] - entry["recorded"])
+        entry["pub_ratio"] = entry["published"] / entry["nominal"] if entry["nominal"] else float("nan")
+    return {name: out[name] for name in topics}
+
+
+# ----------------------------------------------------------------------------------------------- runs
+@dataclass
+class Bench:
+    args: argparse.Namespace
+    workdir: Path
+    ros: RosClient
+    counter: int = 0
+    log: Callable[[str], None] = print
+    drivers_cache: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def next_tag(self, scenario: Scenario, mode: str) -> str:
+        self.counter += 1
+        return f"{scenario.key.lower()}_{mode}_{self.counter}"
+
+    def write_yaml(self, name: str, components: list[dict[str, Any]]) -> Path:
+        path = self.workdir / f"{name}.yaml"
+        path.write_text(yaml.safe_dump({"components": components}, sort_keys=False))
+        return path
+
+
+def recorder_component(name: str, topics: list[str], uri: Path, args: argparse.Namespace,
+                       intra_process: bool) -> dict[str, Any]:
+    return {"package": "components", "plugin": "components::Recorder", "name": name,
+            "parameters": {"record": {"topics": topics},
+                           "storage": {"uri": str(uri), "storage_id": args.storage,
+                                       "max_cache_size": int(args.cache_mb * 1024 * 1024)}},
+            "extra_arguments": {"use_intra_process_comms": intra_process}}
+
+
+def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, Any]:
+    """``ipc`` or ``dds`` on one scenario; see the module docstring for the protocol."""
+    args = bench.args
+    tag = bench.next_tag(scenario, mode)
+    topics = scenario.topics()
+    uri = bench.workdir / tag
+    recorder_name = f"rec_{tag}"
+    drivers = scenario.components()
+    recorder = recorder_component(recorder_name, list(topics), uri, args, intra_process=(mode == "ipc"))
+    containers: list[Container] = []
+    clients: list[Any] = []
+    result: dict[str, Any] = {"mode": mode, "scenario": scenario.key, "cameras": scenario.cameras}
+    try:
+        if mode == "ipc":
+            files = [bench.write_yaml(f"{tag}_drivers", drivers), bench.write_yaml(f"{tag}_recorder", [recorder])]
+            containers.append(Container("ipc", f"bench_{tag}", files, bench.workdir / f"{tag}.log",
+                                        args.executor, args.threads, bench.workdir))
+            recorder_proc = containers[0]
+        else:
+            containers.append(Container("drivers", f"bench_{tag}_drivers",
+                                        [bench.write_yaml(f"{tag}_drivers", drivers)],
+                                        bench.workdir / f"{tag}_drivers.log", args.executor, args.threads,
+                                        bench.workdir))
+            containers.append(Container("recorder", f"bench_{tag}_recorder",
+                                        [bench.write_yaml(f"{tag}_recorder", [recorder])],
+                                        bench.workdir / f"{tag}_recorder.log", args.executor, args.threads,
+                                        bench.workdir))
+            recorder_proc = containers[1]
+        alive = lambda: all(c.alive() for c in containers)  # noqa: E731
+        get_stats = bench.ros.trigger(f"/{recorder_name}/get_stats")
+        stop = bench.ros.trigger(f"/{recorder_name}/stop_recording")
+        start = bench.ros.trigger(f"/{recorder_name}/start_recording")
+        clients += [get_stats, stop, start]
+        started = time.monotonic()
+        deadline = started + args.startup_timeout
+        for client in clients:
+            bench.ros.wait_for(client, deadline, alive)
+        while True:  # warm-up: every expected topic subscribed and flowing
+            stats = json.loads(bench.ros.call(get_stats).message)
+            current = (stats.get("current") or {}).get("topics", {})
+            missing = [t for t in topics if current.get(t, {}).get("received", 0) == 0]
+            if not missing:
+                break
+            if not alive():
+                raise RuntimeError("a container exited during warm-up")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"topics never reached the recorder: {', '.join(missing)}")
+            time.sleep(0.2)
+        result["warmup_s"] = time.monotonic() - started
+        reply = bench.ros.call(stop)
+        if not reply.success:
+            raise RuntimeError(f"stop_recording (warm-up bag) failed: {reply.message}")
+        reply = bench.ros.call(start)
+        if not reply.success:
+            raise RuntimeError(f"start_recording failed: {reply.message}")
+        time.sleep(args.settle)
+
+        t0 = time.time_ns()
+        cpu0 = {c.label: cpu_times(c.pid) for c in containers}
+        busy0 = machine_busy_seconds()
+        time.sleep(scenario.seconds)
+        t1 = time.time_ns()
+        cpu1 = {c.label: cpu_times(c.pid) for c in containers}
+        busy1 = machine_busy_seconds()
+        live = json.loads(bench.ros.call(get_stats).message)["current"]
+        time.sleep(args.drain)
+        final_reply = bench.ros.call(stop, timeout=120.0)
+        final = json.loads(final_reply.message) if final_reply.message.startswith("{") else {}
+        rss = {c.label: peak_rss_mb(c.pid) for c in containers}
+        if not alive():
+            raise RuntimeError("a container died during the measurement")
+    finally:
+        for client in clients:
+            bench.ros.destroy(client)
+        for container in reversed(containers):
+            container.stop()
+    logs = {c.label: c.log_text() for c in containers}
+    result["source_skips_logged"] = sum(source_skips(text) for text in logs.values())
+    bag = Path(f"{uri}_1")
+    try:
+        read = read_bag(bag, scenario, topics)
+    finally:
+        if not args.keep_bags:
+            shutil.rmtree(bag, ignore_errors=True)
+            shutil.rmtree(uri, ignore_errors=True)
+    counts = window_counts(read["records"], topics, t0, t1)
+    window_s = (t1 - t0) / 1e9
+    cpu = {label: sum(cpu1[label]) - sum(cpu0[label]) for label in cpu0}
+    result["cpu_sys_s"] = {label: cpu1[label][1] - cpu0[label][1] for label in cpu0}
+    result["background_cpu_s"] = max(0.0, busy1 - busy0 - sum(cpu.values()))
+    recorded_bytes = sum(c["bytes"] for c in counts.values())
+    bag_total = sum(len(v) for v in read["records"].values())
+    recorder_written = sum(t.get("written", 0) for t in final.get("topics", {}).values())
+    result.update({
+        "window_s": window_s, "topics": counts,
+        "published": sum(c["published"] for c in counts.values()),
+        "recorded": sum(c["recorded"] for c in counts.values()),
+        "lost": sum(c["lost"] for c in counts.values()),
+        "duplicates": sum(c["duplicates"] for c in counts.values()),
+        "min_pub_ratio": min(c["pub_ratio"] for c in counts.values()),
+        "recorded_bytes": recorded_bytes, "mb_per_s": recorded_bytes / MB / window_s,
+        "cpu_s": cpu, "total_cpu_s": sum(cpu.values()),
+        "recorder_cpu_s": cpu["recorder"] if mode == "dds" else None,
+        "peak_rss_mb": rss, "recorder_rss_mb": rss[recorder_proc.label],
+        "latency_ms": live.get("write_latency_ms"),
+        "recorder_counters": final.get("topics"), "recorder_error": final.get("error"),
+        "bag_messages": bag_total, "bag_metadata_messages": read["metadata_count"],
+        "bag_matches_recorder_written": bag_total == recorder_written,
+    })
+    result["lost_pct"] = 100.0 * result["lost"] / result["published"] if result["published"] else 0.0
+    result["total_cpu_s_per_gb"] = (result["total_cpu_s"] / (recorded_bytes / GB)) if recorded_bytes else None
+    result["lossless"] = (result["lost"] == 0 and result["min_pub_ratio"] >= PUBLISH_RATE_OK
+                          and not result["recorder_error"])
+    return result
+
+
+def run_drivers_only(bench: Bench, scenario: Scenario) -> dict[str, Any]:
+    """The drivers alone: CPU and RSS over a window of the same length."""
+    from composition_interfaces.srv import ListNodes
+    args = bench.args
+    tag = bench.next_tag(scenario, "drivers")
+    container = Container("drivers", f"bench_{tag}", [bench.write_yaml(f"{tag}_drivers", scenario.components())],
+                          bench.workdir / f"{tag}.log", args.executor, args.threads, bench.workdir)
+    client = bench.ros.node.create_client(ListNodes, f"/bench_{tag}/_container/list_nodes")
+    try:
+        deadline = time.monotonic() + args.startup_timeout
+        bench.ros.wait_for(client, deadline, container.alive)
+        names = bench.ros.call(client).full_node_names
+        if len(names) != len(scenario.components()):
+            raise RuntimeError(f"only {len(names)} of {len(scenario.components())} drivers loaded")
+        time.sleep(args.settle + 1.0)
+        t0 = time.time_ns()
+        cpu0 = cpu_times(container.pid)
+        busy0 = machine_busy_seconds()
+        time.sleep(scenario.seconds)
+        t1 = time.time_ns()
+        cpu1 = cpu_times(container.pid)
+        busy1 = machine_busy_seconds()
+        rss = peak_rss_mb(container.pid)
+        if not container.alive():
+            raise RuntimeError("the drivers container died during the measurement")
+    finally:
+        bench.ros.node.destroy_client(client)
+        container.stop()
+    cpu = sum(cpu1) - sum(cpu0)
+    return {"mode": "drivers", "scenario": scenario.key, "window_s": (t1 - t0) / 1e9, "total_cpu_s": cpu,
+            "cpu_s": {"drivers": cpu}, "cpu_sys_s": {"drivers": cpu1[1] - cpu0[1]}, "peak_rss_mb": {"drivers": rss},
+            "background_cpu_s": max(0.0, busy1 - busy0 - cpu),
+            "source_skips_logged": source_skips(container.log_text())}
+
+
+def run_ceiling(bench: Bench, scenario: Scenario) -> dict[str, Any]:
+    """Write the scenario's nominal bytes, message by message in due order, as fast as Python can."""
+    topics = scenario.topics()
+    events: list[tuple[float, int]] = []
+    for spec in topics.values():
+        count = round(spec.rate * scenario.seconds)
+        events += [(k / spec.rate, spec.size) for k in range(count)]
+    events.sort()
+    tag = bench.next_tag(scenario, "ceiling")
+    spec_path = bench.workdir / f"{tag}.json"
+    data_path = bench.workdir / f"{tag}.bin"
+    spec_path.write_text(json.dumps({"path": str(data_path), "sizes": [size for _, size in events]}))
+    try:
+        busy0 = machine_busy_seconds()
+        done = subprocess.run([sys.executable, "-c", CEILING_WORKER, str(spec_path)], capture_output=True,
+                              text=True, timeout=600)
+        busy1 = machine_busy_seconds()
+        if done.returncode != 0:
+            raise RuntimeError(f"ceiling writer failed: {done.stderr.strip()}")
+        out = json.loads(done.stdout)
+    finally:
+        data_path.unlink(missing_ok=True)
+        spec_path.unlink(missing_ok=True)
+    return {"mode": "ceiling", "scenario": scenario.key, "recorded_bytes": out["bytes"], "messages": len(events),
+            "write_s": out["seconds"], "mb_per_s": out["bytes"] / MB / out["seconds"],
+            "mb_per_s_with_fsync": out["bytes"] / MB / (out["seconds"] + out["fsync_s"]),
+            "total_cpu_s": out["cpu_s"], "total_cpu_s_per_gb": out["cpu_s"] / (out["bytes"] / GB),
+            # machine CPU during the writer's life (start-up and fsync included) not spent writing
+            "background_cpu_s": max(0.0, busy1 - busy0 - out["cpu_s"])}
+
+
+# ----------------------------------------------------------------------------------------------- reporting
+def fmt(value: Any, spec: str = ".1f", missing: str = "-") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return missing
+    return format(value, spec)
+
+
+def table(headers: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(headers)]
+    line = lambda cells: "  ".join(c.ljust(w) if i < 2 else c.rjust(w)  # noqa: E731
+                                   for i, (c, w) in enumerate(zip(cells, widths)))
+    return "\n".join([line(headers), line(["-" * w for w in widths]), *(line(r) for r in rows)])
+
+
+def apply_recorder_cpu(results: dict[str, Any]) -> None:
+    """ipc recorder CPU = ipc total - drivers-only total (same scenario)."""
+    ipc, drivers = results.get("ipc"), results.get("drivers")
+    if ipc and "error" not in ipc and drivers and "error" not in drivers:
+        scale = ipc["window_s"] / drivers["window_s"]
+        ipc["recorder_cpu_s"] = ipc["total_cpu_s"] - drivers["total_cpu_s"] * scale
+        ipc["recorder_cpu_note"] = "ipc total minus drivers-only total"
+    for mode in ("ipc", "dds"):
+        entry = results.get(mode)
+        if entry and "error" not in entry and entry.get("recorder_cpu_s") is not None:
+            if entry["recorded_bytes"]:
+                entry["recorder_cpu_s_per_gb"] = entry["recorder_cpu_s"] / (entry["recorded_bytes"] / GB)
+            if entry["recorded"]:
+                entry["recorder_cpu_us_per_msg"] = 1e6 * entry["recorder_cpu_s"] / entry["recorded"]
+
+
+def topic_table(results: dict[str, Any]) -> str:
+    rows = []
+    for mode in ("ipc", "dds"):
+        entry = results.get(mode)
+        if not entry or "error" in entry:
+            continue
+        for name, c in entry["topics"].items():
+            rows.append([mode, name, f"{c['published']}{'~' if c['estimated'] else ''}", str(c["recorded"]),
+                         str(c["lost"]), fmt(100.0 * c["lost"] / c["published"] if c["published"] else 0.0, ".2f"),
+                         fmt(100.0 * c["pub_ratio"], ".1f"), fmt(c["bytes"] / MB / entry["window_s"], ".1f")])
+    return table(["mode", "topic", "published", "recorded", "lost", "lost %", "pub %nom", "MB/s"], rows)
+
+
+def mode_table(results: dict[str, Any]) -> str:
+    rows = []
+    for mode in ("ipc", "dds", "drivers", "ceiling"):
+        e = results.get(mode)
+        if not e:
+            continue
+        if "error" in e:
+            rows.append([mode, "ERROR: " + e["error"][:60]] + [""] * 12)
+            continue
+        lat = e.get("latency_ms") or {}
+        rss = e.get("peak_rss_mb") or {}
+        rss_text = "/".join(f"{v:.0f}" for v in rss.values()) if rss else "-"
+        rows.append([
+            mode, str(e.get("published", "-")), str(e.get("recorded", "-")),
+            fmt(e.get("lost_pct"), ".2f"), fmt(e.get("mb_per_s"), ".1f"),
+            fmt(e.get("recorder_cpu_s"), ".2f"), fmt(e.get("total_cpu_s"), ".2f"),
+            fmt(sum(e["cpu_sys_s"].values()) if "cpu_sys_s" in e else e.get("cpu_sys_s"), ".2f"),
+            fmt(e.get("recorder_cpu_s_per_gb"), ".2f"), fmt(e.get("total_cpu_s_per_gb"), ".2f"), rss_text,
+            fmt(lat.get("p50"), ".1f"), fmt(lat.get("p99"), ".1f"), fmt(e.get("background_cpu_s"), ".1f")])
+    return table(["mode", "published", "recorded", "lost %", "MB/s", "rec CPU s", "tot CPU s", "sys s", "rec s/GB",
+                  "tot s/GB", "peak RSS MB", "lat p50 ms", "p99 ms", "other CPU s"], rows)
+
+
+def notes(results: dict[str, Any]) -> list[str]:
+    out = []
+    for mode in ("ipc", "dds"):
+        e = results.get(mode)
+        if not e or "error" in e:
+            continue
+        if e["min_pub_ratio"] < PUBLISH_RATE_OK:
+            out.append(f"{mode}: drivers published only {100 * e['min_pub_ratio']:.1f} % of nominal on the worst "
+                       f"topic (source skips logged: {e['source_skips_logged']})")
+        if e["duplicates"]:
+            out.append(f"{mode}: {e['duplicates']} duplicate messages in the bag")
+        if not e["bag_matches_recorder_written"]:
+            out.append(f"{mode}: bag holds {e['bag_messages']} messages but the recorder counted "
+                       f"{sum(t.get('written', 0) for t in (e['recorder_counters'] or {}).values())} written")
+        if e["recorder_error"]:
+            out.append(f"{mode}: recorder error: {e['recorder_error']}")
+    if results.get("ipc", {}).get("recorder_cpu_note"):
+        out.append("ipc rec CPU = ipc total - drivers-only total (drivers and recorder share one process)")
+    if results.get("ceiling"):
+        c = results["ceiling"]
+        out.append(f"ceiling: {c['recorded_bytes'] / MB:.0f} MB in {c['messages']} writes, {c['write_s']:.2f} s "
+                   f"({c['mb_per_s_with_fsync']:.0f} MB/s including a final fsync)")
+    return out
+
+
+def print_s1(s1: dict[str, Any], scenario: Scenario, args: argparse.Namespace) -> None:
+    print(f"\n== {scenario.title}: {scenario.describe()}; {args.storage}, cache {args.cache_mb:g} MiB, "
+          f"executor {args.executor}")
+    print(topic_table(s1))
+    print()
+    print(mode_table(s1))
+    for line in notes(s1):
+        print("  * " + line)
+
+
+def print_s2(s2: dict[str, Any]) -> None:
+    print(f"\n== S2 ramp: +1 camera per step, {s2['base']}, cap {s2['cap']}, {s2['seconds']:g} s windows")
+    rows = []
+    for step in s2["steps"]:
+        if "error" in step:
+            rows.append([step["mode"], str(step["cameras"]), "ERROR " + step["error"][:50], "", "", "", "", ""])
+            continue
+        rows.append([step["mode"], str(step["cameras"]), str(step["lost"]), fmt(step["lost_pct"], ".2f"),
+                     fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".1f"),
+                     fmt(step["total_cpu_s"], ".2f"), "yes" if step["lossless"] else "NO"])
+    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "tot CPU s", "lossless"], rows))
+    for mode, best in s2["largest_lossless"].items():
+        print(f"  largest lossless camera count, {mode}: {best}"
+              + ("" if s2["limit_reached"].get(mode) else f" (no loss up to the cap of {s2['cap']})"))
+    if s2.get("ceiling"):
+        c = s2["ceiling"]
+        print(f"  ceiling for the ipc overload step ({c['cameras']} cameras): {c['mb_per_s']:.0f} MB/s")
+
+
+def print_s3(s3: dict[str, Any], scenario: Scenario) -> None:
+    print(f"\n== {scenario.title}: {scenario.describe()}")
+    print(mode_table(s3))
+    for mode in ("ipc", "dds"):
+        e = s3.get(mode)
+        if e and "error" not in e:
+            print(f"  {mode}: recorder CPU per recorded message: {fmt(e.get('recorder_cpu_us_per_msg'), '.1f')} us "
+                  f"({e['recorded']} messages, lost {e['lost']})")
+    for line in notes(s3):
+        print("  * " + line)
+
+
+def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
+    targets: list[dict[str, Any]] = []
+
+    def add(name: str, ok: Optional[bool], detail: str) -> None:
+        targets.append({"target": name, "result": "N/A" if ok is None else ("PASS" if ok else "FAIL"),
+                        "detail": detail})
+
+    s1 = report.get("S1") or {}
+    ipc, dds = s1.get("ipc"), s1.get("dds")
+    good = lambda e: e is not None and "error" not in e  # noqa: E731
+    default_cfg = args.storage == "mcap" and args.cache_mb * 1024 * 1024 == DEFAULT_CACHE
+    if good(ipc):
+        ok = ipc["lost"] == 0 and ipc["min_pub_ratio"] >= PUBLISH_RATE_OK
+        add("S1 ipc zero loss (mcap, default cache)", ok if default_cfg else None,
+            f"lost {ipc['lost']} of {ipc['published']}, drivers at >= {100 * ipc['min_pub_ratio']:.1f} % of "
+            f"nominal" + ("" if default_cfg else " (not the default storage/cache: not evaluated)"))
+    else:
+        add("S1 ipc zero loss (mcap, default cache)", None, "not measured")
+    if good(ipc) and good(dds) and ipc.get("total_cpu_s_per_gb") and dds.get("total_cpu_s_per_gb"):
+        a, b = ipc["total_cpu_s_per_gb"], dds["total_cpu_s_per_gb"]
+        add("S1 ipc total CPU s/GB <= 1/2 of dds", a <= 0.5 * b, f"ipc {a:.2f} vs dds {b:.2f} s/GB (ratio {a / b:.2f})")
+    else:
+        add("S1 ipc total CPU s/GB <= 1/2 of dds", None, "not measured")
+    s2 = report.get("S2")
+    if s2 and "ipc" in s2["largest_lossless"] and "dds" in s2["largest_lossless"]:
+        a, b = s2["largest_lossless"]["ipc"], s2["largest_lossless"]["dds"]
+        capped = "" if s2["limit_reached"].get("ipc") else f" (ipc capped at {s2['cap']})"
+        add("S2 ipc lossless cameras >= 2x dds", a >= 2 * b, f"ipc {a} vs dds {b}{capped}")
+    else:
+        add("S2 ipc lossless cameras >= 2x dds", None, "not measured")
+    over = s2.get("ipc_overload") if s2 else None
+    if over and s2.get("ceiling"):
+        ratio = over["mb_per_s"] / s2["ceiling"]["mb_per_s"]
+        add("ipc MB/s >= 70% of ceiling past its lossless limit", ratio >= 0.7,
+            f"{over['mb_per_s']:.0f} MB/s at {over['cameras']} cameras vs ceiling {s2['ceiling']['mb_per_s']:.0f} "
+            f"MB/s ({100 * ratio:.0f} %)")
+    else:
+        add("ipc MB/s >= 70% of ceiling past its lossless limit", None,
+            "ipc was not driven past its lossless limit" if s2 else "not measured")
+    s3 = report.get("S3") or {}
+    e3 = s3.get("ipc")
+    if good(e3) and e3.get("recorder_cpu_us_per_msg") is not None:
+        ok = e3["lost"] == 0 and e3["min_pub_ratio"] >= PUBLISH_RATE_OK and e3["recorder_cpu_us_per_msg"] < 30.0
+        add("S3 ipc zero loss and recorder CPU < 30 us/msg", ok,
+            f"lost {e3['lost']} of {e3['published']}, drivers at >= {100 * e3['min_pub_ratio']:.1f} % of nominal, "
+            f"{e3['recorder_cpu_us_per_msg']:.1f} us/msg")
+    else:
+        add("S3 ipc zero loss and recorder CPU < 30 us/msg", None, "not measured")
+    if good(ipc):
+        limit = args.cache_mb * 1024 * 1024 / 2**20 + 300
+        add("S1 ipc container peak RSS < max_cache_size + 300 MB", ipc["recorder_rss_mb"] < limit,
+            f"{ipc['recorder_rss_mb']:.0f} MiB vs {limit:.0f} MiB")
+    else:
+        add("S1 ipc container peak RSS < max_cache_size + 300 MB", None, "not measured")
+    return targets
+
+
+def plot(report: dict[str, Any], path: Path) -> Optional[Path]:
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    panels = []
+    s1 = report.get("S1") or {}
+    modes = [m for m in ("ipc", "dds", "ceiling") if m in s1 and "error" not in s1[m]]
+    if modes:
+        panels.append(("S1 recorded MB/s", modes, [s1[m]["mb_per_s"] for m in modes]))
+        cpu_modes = [m for m in modes if s1[m].get("total_cpu_s_per_gb")]
+        panels.append(("S1 total CPU s per recorded GB", cpu_modes, [s1[m]["total_cpu_s_per_gb"] for m in cpu_modes]))
+    s3 = report.get("S3") or {}
+    s3_modes = [m for m in ("ipc", "dds") if m in s3 and s3[m].get("recorder_cpu_us_per_msg") is not None]
+    if s3_modes:
+        panels.append(("S3 recorder CPU us per message", s3_modes, [s3[m]["recorder_cpu_us_per_msg"] for m in s3_modes]))
+    s2 = report.get("S2")
+    count = len(panels) + (1 if s2 else 0)
+    if not count:
+        return None
+    fig, axes = plt.subplots(1, count, figsize=(4.5 * count, 4))
+    axes = [axes] if count == 1 else list(axes)
+    for ax, (title, labels, values) in zip(axes, panels):
+        ax.bar(labels, values, color=["tab:green", "tab:red", "tab:gray"][:len(labels)])
+        ax.set_title(title, fontsize=10)
+    if s2:
+        ax = axes[-1]
+        for mode, color in (("ipc", "tab:green"), ("dds", "tab:red")):
+            steps = [s for s in s2["steps"] if s["mode"] == mode and "error" not in s]
+            if steps:
+                ax.plot([s["cameras"] for s in steps], [s["mb_per_s"] for s in steps], "o-", color=color,
+                        label=f"{mode} MB/s")
+                lossy = [s for s in steps if not s["lossless"]]
+                ax.plot([s["cameras"] for s in lossy], [s["mb_per_s"] for s in lossy], "x", color="black",
+                        markersize=10)
+        if s2.get("ceiling"):
+            ax.axhline(s2["ceiling"]["mb_per_s"], color="tab:gray", linestyle="--", label="ceiling")
+        ax.set_xlabel("cameras (x = lossy step)")
+        ax.set_title("S2 ramp: recorded MB/s", fontsize=10)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------- main
+def git_state() -> dict[str, Any]:
+    """The commit measured and the files that differ from it (the container runs the working tree)."""
+    repo = Path(__file__).resolve().parent.parent
+    def git(*command: str) -> str:
+        try:
+            return subprocess.run(["git", *command], cwd=repo, capture_output=True, text=True, timeout=10).stdout
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    return {"commit": git("rev-parse", "--short", "HEAD").strip(),
+            "modified": [line[3:] for line in git("status", "--porcelain", "--untracked-files=no").splitlines()]}
+
+
+def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="smoke run: S1 only, 3 s window")
+    p.add_argument("--scenarios", default="s1,s2,s3", help="comma-separated subset of s1,s2,s3")
+    p.add_argument("--modes", default="ipc,dds,drivers,ceiling", help="S1/S3 modes to run (S2 always ipc,dds)")
+    p.add_argument("--seconds", type=float, default=10.0, help="S1 measured window")
+    p.add_argument("--cameras", type=int, default=2, help="S1 cameras")
+    p.add_argument("--width", type=int, default=1920)
+    p.add_argument("--height", type=int, default=1080)
+    p.add_argument("--fps", type=float, default=30.0)
+    p.add_argument("--lidar-points", type=int, default=131072)
+    p.add_argument("--lidar-rate", type=float, default=10.0)
+    p.add_argument("--imu-rate", type=float, default=200.0, help="S1 IMU rate")
+    p.add_argument("--s2-seconds", type=float, default=6.0, help="S2 window per step")
+    p.add_argument("--s2-max-cameras", type=int, default=8)
+    p.add_argument("--s2-base", choices=("rig", "cameras"), default="rig",
+                   help="rig: cameras on top of the S1 lidar and IMU; cameras: cameras only")
+    p.add_argument("--s3-seconds", type=float, default=10.0)
+    p.add_argument("--s3-imus", type=int, default=10)
+    p.add_argument("--s3-rate", type=float, default=1000.0)
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p.add_argument("--cache-mb", type=float, default=DEFAULT_CACHE / 2**20, help="storage.max_cache_size in MiB")
+    p.add_argument("--executor", choices=("single", "multi", "isolated"), default="single")
+    p.add_argument("--threads", type=int, default=2, help="thread_num for --executor multi")
+    p.add_argument("--settle", type=float, default=1.0, help="seconds between start_recording and the window")
+    p.add_argument("--drain", type=float, default=1.0, help="seconds recorded after the window")
+    p.add_argument("--startup-timeout", type=float, default=90.0)
+    p.add_argument("--output-dir", default=".", help="where the temporary bag directory is created")
+    p.add_argument("--keep-bags", action="store_true", help="do not delete the bags (debugging)")
+    p.add_argument("--json", metavar="FILE", help="also write the results as JSON ('-' for stdout)")
+    p.add_argument("--plot", metavar="FILE", default="record_bench.png",
+                   help="PNG plot (needs matplotlib: the 'plot' extra); '' to skip")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.scenarios = "s1"
+        args.seconds = min(args.seconds, 3.0)
+    args.scenario_set = {s.strip().lower() for s in args.scenarios.split(",") if s.strip()}
+    args.mode_set = {m.strip().lower() for m in args.modes.split(",") if m.strip()}
+    unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {"ipc", "dds", "drivers", "ceiling"})
+    if unknown:
+        p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
+    return args
+
+
+def guarded(bench: Bench, label: str, run: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    bench.log(f"[{time.strftime('%H:%M:%S')}] {label} ...")
+    started = time.monotonic()
+    try:
+        result = run()
+    except Exception as exc:  # noqa: BLE001 - one failed mode is reported, the others still run
+        bench.log(f"    FAILED: {type(exc).__name__}: {exc}")
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    summary = []
+    if "lost" in result:
+        summary.append(f"lost {result['lost']}/{result['published']}, pub>={100 * result['min_pub_ratio']:.0f}%nom")
+    if "mb_per_s" in result:
+        summary.append(f"{result['mb_per_s']:.0f} MB/s")
+    if "total_cpu_s" in result:
+        summary.append(f"cpu {result['total_cpu_s']:.1f} s")
+    bench.log(f"    done in {time.monotonic() - started:.0f} s: {', '.join(summary)}")
+    return result
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    args = parse_arguments(argv)
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    output_dir = Path(args.output_dir).resolve()
+    output_dir.mkdir(parents=True, exist_ok=True)
+    workdir = Path(tempfile.mkdtemp(prefix="record_bench_", dir=output_dir))
+    log = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
+    log(f"record_bench: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, bags in {workdir}, {os.cpu_count()} CPUs")
+    report: dict[str, Any] = {"config": {k: v for k, v in vars(args).items() if not k.endswith("_set")},
+                              "environment": {"ros_domain_id": os.environ["ROS_DOMAIN_ID"], "cpus": os.cpu_count(),
+                                              "python": sys.version.split()[0], "workdir": str(workdir),
+                                              "git": git_state(), "loadavg_start": os.getloadavg()}}
+    started = time.monotonic()
+    ros = RosClient()
+    bench = Bench(args, workdir, ros, log=log)
+    try:
+        if "s1" in args.scenario_set:
+            scenario = s1_scenario(args)
+            s1: dict[str, Any] = {}
+            for mode in ("ipc", "dds"):
+                if mode in args.mode_set:
+                    s1[mode] = guarded(bench, f"S1 {mode}", lambda: run_recorder_mode(bench, scenario, mode))
+            if "drivers" in args.mode_set:
+                s1["drivers"] = guarded(bench, "S1 drivers only", lambda: run_drivers_only(bench, scenario))
+            if "ceiling" in args.mode_set:
+                s1["ceiling"] = guarded(bench, "S1 ceiling", lambda: run_ceiling(bench, scenario))
+            apply_recorder_cpu(s1)
+            report["S1"] = s1
+        if "s2" in args.scenario_set:
+            s2: dict[str, Any] = {"base": "S1 lidar + IMU + cameras" if args.s2_base == "rig" else "cameras only",
+                                  "cap": args.s2_max_cameras, "seconds": args.s2_seconds, "steps": [],
+                                  "largest_lossless": {}, "limit_reached": {}}
+            for mode in ("ipc", "dds"):
+                best = 0
+                s2["limit_reached"][mode] = False
+                for cameras in range(1, args.s2_max_cameras + 1):
+                    scenario = s2_scenario(args, cameras)
+                    step = guarded(bench, f"S2 {mode} {cameras} camera(s)",
+                                   lambda: run_recorder_mode(bench, scenario, mode))
+                    step.update({"mode": mode, "cameras": cameras})
+                    s2["steps"].append(step)
+                    if "error" not in step and step["lossless"]:
+                        best = cameras
+                        continue
+                    s2["limit_reached"][mode] = True
+                    if mode == "ipc" and "error" not in step:
+                        s2["ipc_overload"] = {"cameras": cameras, "mb_per_s": step["mb_per_s"]}
+                        ceiling = guarded(bench, f"S2 ceiling {cameras} camera(s)",
+                                          lambda: run_ceiling(bench, scenario))
+                        if "error" not in ceiling:
+                            s2["ceiling"] = {**ceiling, "cameras": cameras}
+                    break
+                s2["largest_lossless"][mode] = best
+            report["S2"] = s2
+        if "s3" in args.scenario_set:
+            scenario = s3_scenario(args)
+            s3: dict[str, Any] = {}
+            for mode in ("ipc", "dds"):
+                if mode in args.mode_set:
+                    s3[mode] = guarded(bench, f"S3 {mode}", lambda: run_recorder_mode(bench, scenario, mode))
+            if "drivers" in args.mode_set or "ipc" in args.mode_set:
+                s3["drivers"] = guarded(bench, "S3 drivers only", lambda: run_drivers_only(bench, scenario))
+            apply_recorder_cpu(s3)
+            report["S3"] = s3
+    finally:
+        ros.close()
+        if not args.keep_bags:
+            shutil.rmtree(workdir, ignore_errors=True)
+    report["elapsed_s"] = time.monotonic() - started
+    report["environment"]["loadavg_end"] = os.getloadavg()
+
+    if "S1" in report:
+        print_s1(report["S1"], s1_scenario(args), args)
+    if "S2" in report:
+        print_s2(report["S2"])
+    if "S3" in report:
+        print_s3(report["S3"], s3_scenario(args))
+    report["targets"] = evaluate_targets(report, args)
+    print("\n== Targets")
+    for t in report["targets"]:
+        print(f"  {t['result']:4}  {t['target']}: {t['detail']}")
+    git = report["environment"]["git"]
+    print(f"\n(total run time {report['elapsed_s']:.0f} s; code at {git['commit']}"
+          + (f" + uncommitted changes in {', '.join(git['modified'])}" if git["modified"] else "")
+          + "; 'other CPU s' = machine CPU during the window not used by the mode's processes)")
+    if args.plot:
+        path = plot(report, Path(args.plot))
+        log(f"plot written to {path}" if path else "no plot: matplotlib is not installed (pip install '.[plot]')")
+    if args.json:
+        text = json.dumps(report, indent=2, default=str)
+        if args.json == "-":
+            print(text)
+        else:
+            Path(args.json).write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
