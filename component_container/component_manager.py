@@ -14,6 +14,7 @@ from typing import Any
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
@@ -35,6 +36,7 @@ class LoadedComponent:
     node: Node
     package_name: str
     plugin_name: str
+    logger_level_set: bool = False
 
 
 class ComponentManager(Node):
@@ -120,7 +122,8 @@ class ComponentManager(Node):
             raise ComponentConstructionError(f"Component constructor threw an exception: {exc}") from exc
         if options.log_level is not None:
             node.get_logger().set_level(options.log_level)
-        loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name)
+        loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name,
+                                 options.log_level is not None)
         with self._lock:
             self._components[unique_id] = loaded
         self._executor.add(node)
@@ -134,6 +137,8 @@ class ComponentManager(Node):
             return False
         self.get_logger().info(f"Unloading {loaded.node.get_fully_qualified_name()} (id {unique_id})")
         self._executor.remove(loaded.node)
+        if loaded.logger_level_set:  # logger levels outlive nodes: the next node of that name starts clean
+            loaded.node.get_logger().set_level(LoggingSeverity.UNSET)
         try:
             loaded.node.destroy_node()
         except Exception as exc:  # a failing destructor must not take the container down
