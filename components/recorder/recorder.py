@@ -21,6 +21,7 @@ import threading
 import time
 from typing import Any
 
+from rclpy.duration import Duration
 from rclpy.qos import QoSProfile
 from rosbag2_interfaces.msg import WriteSplitEvent
 from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
@@ -238,4 +239,12 @@ class Recorder(ComponentNode):
 
     def destroy_node(self) -> None:
         self.stop_recording()
+        # The bag's closing event was just published; a publisher destroyed at once can take it along with it
+        # before a (reliable) subscriber has it. Give them a moment to acknowledge it.
+        events = getattr(self, "_split_events", None)
+        if events is not None and self.context.ok():
+            try:
+                events.wait_for_all_acked(Duration(seconds=1.0))
+            except Exception:  # noqa: BLE001 - never let this keep the node from being destroyed
+                pass
         super().destroy_node()

@@ -45,12 +45,16 @@ class RecordingSession:
         self._logger = logger
         self._serialize = serialize
         self._queue_drops = queue_drops
+        self._last_log_time = 0
         self.writer = BagWriter(uri, options.storage_id, options.max_bagfile_size,
                                 options.max_bagfile_duration, options.storage_preset_profile,
                                 options.custom_data or None, on_split)
         self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
         self.received: Counter[str] = Counter()
         self.write_dropped: Counter[str] = Counter()
+        # Messages the writer accepted; after a storage failure the file may hold fewer (a buffered chunk that
+        # could not reach the disk), and the difference is lost too.
+        self.handed: Counter[str] = Counter()
         self.error: str | None = None
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
@@ -104,6 +108,7 @@ class RecordingSession:
                 self._snapshot_requested.clear()
             else:
                 batch = self.cache.take_all(timeout=0.2)
+            batch.sort(key=_log_time)  # stable: each topic keeps its order
             for index, message in enumerate(batch):
                 if not self._write(message):
                     for lost in batch[index:]:
@@ -116,8 +121,13 @@ class RecordingSession:
         payload = message.payload
         data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
         message.payload = None  # let the message object go as soon as it is serialized
+        # Log times ascend in the file: readers of unindexed MCAP files (fastwrite), rosbags among them, refuse
+        # files where they do not. A message that reached the intake after a newer one was written (another
+        # topic's queue was served first) is stamped with that newer time.
+        log_time = self._last_log_time = max(message.log_time_ns, self._last_log_time)
         try:
-            self.writer.write(message.topic, data, message.log_time_ns, message.publish_time_ns)
+            self.writer.write(message.topic, data, log_time, message.publish_time_ns)
+            self.handed[message.topic] += 1
             self._latencies.append(time.time_ns() - message.log_time_ns)
         except BagWriteError as exc:
             self._fail(exc)
@@ -158,7 +168,9 @@ class RecordingSession:
         written = self.writer.topic_message_counts
         queue = Counter(self._queue_drops() if self._queue_drops else {})
         topics = sorted(set(written) | set(self.received) | set(queue))
-        dropped = self.cache.dropped + self.write_dropped + queue
+        # Only a failure loses accepted messages (the writer thread has stopped then, so the counts are still).
+        lost_in_storage = Counter({t: n - written.get(t, 0) for t, n in self.handed.items()} if self.error else {})
+        dropped = self.cache.dropped + self.write_dropped + queue + lost_in_storage
         return {
             "bag": str(self.writer.path),
             "current_file": str(self.writer.current_file or ""),
@@ -178,3 +190,7 @@ class RecordingSession:
             lines.append(f"  {topic}: received {counts['received']}, written {counts['written']}, "
                          f"dropped {counts['dropped']}")
         return "\n".join(lines)
+
+
+def _log_time(message: CachedMessage) -> int:
+    return message.log_time_ns

@@ -1,0 +1,1036 @@
+"""``components::Recorder`` as users run it: real container processes, real Fast DDS, real bag files.
+
+One container ("the rig", started once per module) runs the camera, IMU and lidar drivers with intra-process
+communication; each test loads a recorder next to them (``use_intra_process_comms``), drives it through its
+services from a plain rclpy node in the test process, unloads it while the drivers keep running, and reads the
+bag back with two independent readers: ``rosbags`` (mcap and sqlite3, decoded with the Jazzy typestore) and,
+for MCAP, ``mcap`` + ``mcap_ros2``. A second container without intra-process communication publishes topics
+that reach the recorder through DDS as raw CDR bytes.
+
+What the drivers publish is known exactly: their sequence numbers (first 8 bytes of Image/PointCloud2 data,
+``orientation_covariance[1]`` of Imu) and, for images and clouds, every byte of ``data``, which the tests
+rebuild with the drivers' own ``make_image`` / ``make_cloud`` / ``make_imu`` on reference driver instances that
+live in a private context on another ROS domain (never spun, invisible to the recorder).
+
+Every container is stopped (by pid) and every tmpfs unmounted by the fixture or test that created it.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import pytest
+import rclpy
+import yaml
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from rosbag2_interfaces.msg import WriteSplitEvent
+from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+from sensor_msgs.msg import Imu
+from std_srvs.srv import Trigger
+
+from components.camera_driver import CameraDriver
+from components.imu_driver import ImuDriver
+from components.lidar_driver import LidarDriver
+
+from container_process import ContainerClient
+
+REPO = Path(__file__).resolve().parents[1]
+IPC = {"use_intra_process_comms": True}
+NOT_INFRASTRUCTURE = "^/(rosout|parameter_events|events/.*)$"
+
+CAMERA = {"width": 320, "height": 240, "fps": 30.0}
+IMU = {"rate": 200.0}
+LIDAR = {"points_per_scan": 4096, "rings": 16, "rate": 10.0}
+EXT_IMU = {"rate": 100.0}
+EXT_CAMERA = {"width": 160, "height": 120, "fps": 10.0}
+HD_CAMERA = {"width": 1920, "height": 1080, "fps": 8.0}
+
+RIG_TOPICS = ["/camera/image_raw", "/camera/camera_info", "/imu/imu", "/lidar/points"]
+EXT_TOPICS = ["/ext_imu/imu", "/ext_camera/image_raw", "/ext_camera/camera_info"]
+SEQUENCED = {"sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Imu"}
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+# --- containers -------------------------------------------------------------------------------------------
+class Container:
+    """``python -m component_container`` with its log in a file (readable while it runs); stopped by pid.
+
+    ``fsize_limit`` starts it through a wrapper that sets RLIMIT_FSIZE (and ignores SIGXFSZ), so that writes
+    beyond that size fail with EFBIG: a full disk for this process only.
+    """
+
+    def __init__(self, name: str, log_dir: Path, *args: str, fsize_limit: int | None = None) -> None:
+        self.name = f"/{name}"
+        self.log_path = log_dir / f"{name}.log"
+        argv = ["component_container", *args, "--ros-args", "-r", f"__node:={name}"]
+        if fsize_limit is None:
+            command = [sys.executable, "-m", *argv]
+        else:
+            command = [sys.executable, "-c",
+                       "import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+                       f"resource.setrlimit(resource.RLIMIT_FSIZE, ({fsize_limit}, {fsize_limit})); "
+                       f"sys.argv = {argv!r}; runpy.run_module('component_container', run_name='__main__')"]
+        self._log = open(self.log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed in stop()
+        self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(REPO),
+                                        env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def log(self) -> str:
+        return self.log_path.read_text(encoding="utf-8", errors="replace")
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
+        """Signal the container by pid and wait; kill it if it does not exit in time. Returns the exit code."""
+        try:
+            if self.alive():
+                self.process.send_signal(sig)
+                try:
+                    self.process.wait(timeout=timeout)
+                except subprocess.TimeoutExpired:
+                    self.process.kill()
+                    self.process.wait()
+                    raise AssertionError(f"container {self.name} ({self.pid}) ignored signal {sig} for "
+                                         f"{timeout} s:\n{self.log()[-3000:]}") from None
+            return self.process.returncode
+        finally:
+            self._log.close()
+
+    def kill(self) -> None:
+        if self.alive():
+            self.process.kill()
+            self.process.wait()
+        self._log.close()
+
+
+def call(node: Node, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
+    """Call a service from ``node`` and return the response (AssertionError if it does not answer)."""
+    client = node.create_client(srv_type, name)
+    try:
+        assert client.wait_for_service(timeout_sec=timeout), f"service {name} did not appear"
+        future = client.call_async(request if request is not None else srv_type.Request())
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        try:
+            executor.spin_until_future_complete(future, timeout_sec=timeout)
+        finally:
+            executor.remove_node(node)
+            executor.shutdown()
+        assert future.done(), f"no reply from {name} within {timeout} s"
+        return future.result()
+    finally:
+        node.destroy_client(client)
+
+
+def spin_for(node: Node, seconds: float, until: Callable[[], bool] | None = None) -> bool:
+    """Spin ``node`` for ``seconds`` or until ``until()`` holds; returns whether it does (True without one)."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    deadline = time.monotonic() + seconds
+    try:
+        while time.monotonic() < deadline:
+            if until is not None and until():
+                return True
+            executor.spin_once(timeout_sec=0.02)
+    finally:
+        executor.remove_node(node)
+        executor.shutdown()
+    return until() if until is not None else True
+
+
+def wait_until(predicate: Callable[[], Any], timeout: float, interval: float = 0.05) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        result = predicate()
+        if result or time.monotonic() > deadline:
+            return result
+        time.sleep(interval)
+
+
+class Recorder:
+    """A recorder component loaded into a container, with its services."""
+
+    def __init__(self, rig: "Rig", name: str, unique_id: int, uri: Path, loaded_ns: int) -> None:
+        self.rig, self.name, self.unique_id, self.uri = rig, name, unique_id, uri
+        self.loaded_ns = loaded_ns  # just before the load request
+        self.unloaded_ns: int | None = None
+
+    def service(self, srv_type: Any, service: str, request: Any = None) -> Any:
+        return call(self.rig.probe, srv_type, f"/{self.name}/{service}", request)
+
+    def trigger(self, service: str) -> Trigger.Response:
+        return self.service(Trigger, service)
+
+    def stats(self) -> dict[str, Any]:
+        response = self.trigger("get_stats")
+        assert response.success
+        return json.loads(response.message)
+
+    def is_paused(self) -> bool:
+        return self.service(IsPaused, "is_paused").paused
+
+    def unload(self) -> None:
+        response = self.rig.client.unload(self.unique_id)
+        assert response.success, response.error_message
+        self.unloaded_ns = time.time_ns()
+        self.rig.loaded.remove(self)
+
+
+class Rig:
+    """A container with drivers, a ContainerClient and the probe node the test process talks through."""
+
+    def __init__(self, container: Container, probe: Node) -> None:
+        self.container = container
+        self.probe = probe
+        self.client = ContainerClient(probe, container.name)
+        self.client.wait()
+        self.drivers: dict[str, int] = {}
+        self.loaded: list[Recorder] = []
+
+    def load_driver(self, plugin: str, name: str, parameters: dict[str, Any], ipc: bool = True) -> int:
+        response = self.client.load(plugin, name=name, parameters=parameters, extra=IPC if ipc else None)
+        assert response.success, response.error_message
+        self.drivers[name] = response.unique_id
+        return response.unique_id
+
+    def unload_driver(self, name: str) -> None:
+        assert self.client.unload(self.drivers.pop(name)).success
+
+    def try_load_recorder(self, name: str, parameters: dict[str, Any]) -> Any:
+        return self.client.load("components::Recorder", name=name, parameters=parameters, extra=IPC)
+
+    def record(self, name: str, uri: Path, **parameters: Any) -> Recorder:
+        """Load a recorder writing to ``uri`` with ``parameters`` (defaults: the rig's sensor topics)."""
+        if not any(key in parameters for key in ("bag_name", "bag_file", "bag_prefix", "uri")):
+            parameters.setdefault("storage.uri", str(uri))
+        if not any(key in parameters for key in ("record.topics", "record.all_topics", "record_all",
+                                                  "topics", "topic_names", "record.regex")):
+            parameters["record.topics"] = RIG_TOPICS
+        loaded_ns = time.time_ns()
+        response = self.try_load_recorder(name, parameters)
+        assert response.success, response.error_message
+        assert response.full_node_name == f"/{name}"
+        recorder = Recorder(self, name, response.unique_id, uri, loaded_ns)
+        self.loaded.append(recorder)
+        return recorder
+
+    def listed(self) -> set[str]:
+        return set(self.client.list().full_node_names)
+
+    def cleanup(self) -> None:
+        """Unload recorders a failed test left behind, so the next test starts from the plain rig."""
+        for recorder in list(self.loaded):
+            with contextlib.suppress(Exception):
+                recorder.unload()
+        self.loaded.clear()
+
+
+def start_rig(name: str, log_dir: Path, probe: Node, *, prefix: str = "", fsize_limit: int | None = None) -> Rig:
+    """A container with camera, IMU and lidar (node names ``<prefix>camera`` ...: one domain, unique names)."""
+    container = Container(name, log_dir, fsize_limit=fsize_limit)
+    try:
+        rig = Rig(container, probe)
+        rig.load_driver("components::CameraDriver", f"{prefix}camera", CAMERA)
+        rig.load_driver("components::ImuDriver", f"{prefix}imu", IMU)
+        rig.load_driver("components::LidarDriver", f"{prefix}lidar", LIDAR)
+    except BaseException:
+        container.kill()
+        raise
+    return rig
+
+
+# --- reference drivers: what the drivers publish, rebuilt by their own code -----------------------------------
+class References:
+    """Driver instances in a private context on another domain, used only for make_image & co."""
+
+    def __init__(self) -> None:
+        self.context = Context()
+        own = int(os.environ.get("ROS_DOMAIN_ID", "0"))
+        rclpy.init(context=self.context, domain_id=101 + own % 100)  # never the test session's domain
+        self._drivers: dict[tuple, Any] = {}
+
+    def driver(self, cls: type, **params: Any) -> Any:
+        key = (cls, tuple(sorted(params.items())))
+        if key not in self._drivers:
+            overrides = [Parameter(k, value=v) for k, v in params.items()]
+            self._drivers[key] = cls(f"reference_{len(self._drivers)}", context=self.context,
+                                     parameter_overrides=overrides)
+        return self._drivers[key]
+
+    def close(self) -> None:
+        for driver in self._drivers.values():
+            driver.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+# --- reading bags back ----------------------------------------------------------------------------------------
+@dataclass
+class Msg:
+    """One message as a reader returned it."""
+
+    topic: str
+    type: str
+    log_time: int
+    publish_time: int | None
+    size: int
+    msg: Any
+
+    @property
+    def stamp(self) -> int:
+        return self.msg.header.stamp.sec * 1_000_000_000 + self.msg.header.stamp.nanosec
+
+    @property
+    def seq(self) -> int:
+        if self.type == "sensor_msgs/msg/Imu":
+            return int(self.msg.orientation_covariance[1])
+        return int.from_bytes(bytes(self.msg.data[:8]), "little")
+
+    def key(self) -> tuple:
+        """What both readers must agree on."""
+        m = self.msg
+        if self.type == "sensor_msgs/msg/Image":
+            body: tuple = (m.height, m.width, m.encoding, m.step, m.is_bigendian, bytes(m.data))
+        elif self.type == "sensor_msgs/msg/PointCloud2":
+            body = (m.height, m.width, m.point_step, m.row_step, m.is_dense,
+                    tuple((f.name, f.offset, f.datatype, f.count) for f in m.fields), bytes(m.data))
+        elif self.type == "sensor_msgs/msg/Imu":
+            body = (tuple(m.orientation_covariance), m.angular_velocity.z, m.linear_acceleration.z)
+        elif self.type == "sensor_msgs/msg/CameraInfo":
+            body = (m.height, m.width, m.distortion_model, tuple(m.k))
+        else:
+            body = ()
+        header = (self.stamp, m.header.frame_id) if hasattr(m, "header") else ()
+        return (self.topic, self.log_time, self.size, header, body)
+
+
+def load_metadata(bag: Path) -> dict[str, Any]:
+    return yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+
+
+def read_rosbags(bag: Path) -> list[Msg]:
+    out = []
+    with Reader(bag) as reader:
+        for connection, timestamp, raw in reader.messages():
+            msg = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+            out.append(Msg(connection.topic, connection.msgtype, timestamp, None, len(raw), msg))
+    return out
+
+
+def read_mcap_file(path: Path) -> list[tuple[Msg, int, int]]:
+    """(message, channel id, mcap sequence) in file order."""
+    out = []
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            out.append((Msg(channel.topic, schema.name, message.log_time, message.publish_time,
+                            len(message.data), decoded), channel.id, message.sequence))
+    return out
+
+
+@dataclass
+class Bag:
+    path: Path
+    meta: dict[str, Any]
+    messages: list[Msg]                                 # rosbags' reading, in log time order
+    files: dict[str, list[Msg]] = field(default_factory=dict)  # mcap's reading per file, in file order
+
+    def topic(self, name: str) -> list[Msg]:
+        return [m for m in self.messages if m.topic == name]
+
+    def seqs(self, name: str) -> list[int]:
+        return [m.seq for m in self.topic(name)]
+
+    def counts(self) -> dict[str, int]:
+        return {t["topic_metadata"]["name"]: t["message_count"] for t in self.meta["topics_with_message_count"]}
+
+
+def verify_bag(bag: Path, storage: str = "mcap", *, window: tuple[int, int] | None = None) -> Bag:
+    """Read ``bag`` with every reader and check it is whole and consistent: counts, times, files."""
+    meta = load_metadata(bag)
+    assert meta["version"] == 9
+    assert meta["storage_identifier"] == storage
+    assert meta["ros_distro"] == "jazzy"
+    extension = ".mcap" if storage == "mcap" else ".db3"
+    assert meta["relative_file_paths"] == [f["path"] for f in meta["files"]]
+    for index, name in enumerate(meta["relative_file_paths"]):
+        assert name == f"{bag.name}_{index}{extension}"
+        assert (bag / name).is_file()
+    on_disk = sorted(p.name for p in bag.iterdir() if p.name != "metadata.yaml")
+    assert on_disk == sorted(meta["relative_file_paths"]), "files on disk that metadata.yaml does not list"
+
+    messages = read_rosbags(bag)
+    for m in messages:
+        assert m.topic in {t["topic_metadata"]["name"] for t in meta["topics_with_message_count"]}
+    counts = defaultdict(int)
+    for m in messages:
+        counts[m.topic] += 1
+    result = Bag(bag, meta, sorted(messages, key=lambda m: (m.log_time, m.topic)))
+    assert {t: c for t, c in result.counts().items() if c} == dict(counts)
+    assert meta["message_count"] == len(messages) == sum(f["message_count"] for f in meta["files"])
+    if messages:
+        first, last = min(m.log_time for m in messages), max(m.log_time for m in messages)
+        assert meta["starting_time"]["nanoseconds_since_epoch"] == first
+        assert meta["duration"]["nanoseconds"] == last - first
+        if window is not None:
+            assert window[0] <= first and last <= window[1], "log times outside the recording window"
+
+    if storage == "mcap":
+        from_mcap: list[Msg] = []
+        for info in meta["files"]:
+            rows = read_mcap_file(bag / info["path"])
+            assert len(rows) == info["message_count"]
+            if rows:
+                times = [m.log_time for m, _, _ in rows]
+                assert info["starting_time"]["nanoseconds_since_epoch"] == min(times)
+                assert info["duration"]["nanoseconds"] == max(times) - min(times)
+            last_sequence: dict[int, int] = {}
+            times = [m.log_time for m, _, _ in rows]
+            assert times == sorted(times), f"{info['path']}: log times do not ascend in file order"
+            for m, channel, sequence in rows:
+                if sequence:  # 0, or increasing per channel
+                    assert sequence > last_sequence.get(channel, 0)
+                    last_sequence[channel] = sequence
+                assert m.publish_time <= m.log_time, f"{m.topic}: publish time after log time"
+                if m.type in SEQUENCED:
+                    assert m.stamp <= m.publish_time, f"{m.topic}: header stamp after publish time"
+            result.files[info["path"]] = [m for m, _, _ in rows]
+            from_mcap.extend(m for m, _, _ in rows)
+        # The two independent readers agree on every message, byte for byte where it matters.
+        assert sorted(m.key() for m in from_mcap) == sorted(m.key() for m in messages)
+    return result
+
+
+def assert_contiguous(seqs: list[int], what: str) -> None:
+    assert seqs, f"{what}: no messages"
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), \
+        f"{what}: gaps or reordering: {missing(seqs)} missing"
+
+
+def closing_stats(container: Container, uri: Path) -> dict[str, dict[str, int]]:
+    """The per-topic counts of the recorder's closing log line for the bag at ``uri``."""
+    pattern = re.compile(rf"Bag {re.escape(str(uri))} closed: [^\n]*\n((?:  /[^\n]*\n)*)")
+    found = wait_until(lambda: pattern.findall(container.log()), 5.0)
+    assert found, f"no closing summary for {uri} in the container log:\n{container.log()[-3000:]}"
+    stats = {}
+    for line in found[-1].splitlines():
+        topic, received, written, dropped = re.fullmatch(
+            r"  (\S+): received (\d+), written (\d+), dropped (\d+)", line).groups()
+        stats[topic] = {"received": int(received), "written": int(written), "dropped": int(dropped)}
+    return stats
+
+
+def assert_complete(bag: "Bag", topic: str, stats: dict[str, dict[str, int]]) -> None:
+    """Everything the recorder took in on ``topic`` is in the bag, in order, and any gap in the sequence
+    numbers is one the recorder itself reports as dropped before its intake (none at these rates unless the
+    machine stalls the container for longer than the subscription queue lasts)."""
+    counts = stats[topic]
+    messages = bag.topic(topic)
+    assert counts["received"] == counts["written"] == len(messages) > 0, (topic, counts, len(messages))
+    if messages[0].type not in SEQUENCED:
+        return
+    seqs = bag.seqs(topic)
+    assert seqs == sorted(set(seqs)), f"{topic}: duplicates or reordering"
+    lost = missing(seqs, limit=None)
+    assert len(lost) <= counts["dropped"], f"{topic}: {lost[:20]} missing, {counts['dropped']} reported dropped"
+
+
+def missing(seqs: list[int], limit: int | None = 20) -> list[int]:
+    return sorted(set(range(min(seqs), max(seqs) + 1)) - set(seqs))[:limit]
+
+
+def runs(seqs: list[int]) -> list[tuple[int, int]]:
+    """Maximal runs of consecutive numbers as (first, last)."""
+    out: list[tuple[int, int]] = []
+    for s in seqs:
+        if out and s == out[-1][1] + 1:
+            out[-1] = (out[-1][0], s)
+        else:
+            out.append((s, s))
+    return out
+
+
+def check_driver_content(bag: Bag, refs: References, prefix: str = "", camera: dict = CAMERA,
+                         lidar: dict | None = LIDAR, imu: dict | None = IMU) -> None:
+    """Every recorded image/cloud/IMU message is exactly what the driver built for that sequence number."""
+    cam = refs.driver(CameraDriver, **camera)
+    images = bag.topic(f"/{prefix}camera/image_raw")
+    assert images
+    for m in images:
+        expected = cam.make_image(m.seq, m.stamp)
+        assert m.size == len(serialize_message(expected))
+        assert (m.msg.height, m.msg.width, m.msg.encoding, m.msg.step) == \
+            (expected.height, expected.width, expected.encoding, expected.step)
+        assert m.msg.header.frame_id == "camera"
+        assert bytes(m.msg.data) == expected.data.tobytes(), f"image {m.seq}: data differs from the driver's"
+    stamps = {m.stamp for m in images}
+    infos = bag.topic(f"/{prefix}camera/camera_info")
+    matched = sum(1 for m in infos if m.stamp in stamps)
+    assert matched >= len(infos) - 2, "camera_info stamps do not match image stamps"
+    if lidar is not None:
+        lid = refs.driver(LidarDriver, **lidar)
+        clouds = bag.topic(f"/{prefix}lidar/points")
+        assert clouds
+        for m in clouds:
+            expected = lid.make_cloud(m.seq, m.stamp)
+            assert m.size == len(serialize_message(expected))
+            assert bytes(m.msg.data) == expected.data.tobytes(), f"cloud {m.seq}: data differs"
+            assert [f.name for f in m.msg.fields] == [f.name for f in expected.fields]
+    if imu is not None:
+        ref = refs.driver(ImuDriver, **imu)
+        samples = bag.topic(f"/{prefix}imu/imu")
+        assert samples
+        for m in samples:
+            expected = ref.make_imu(m.seq, m.stamp)
+            assert list(m.msg.orientation_covariance) == list(expected.orientation_covariance)
+            assert (m.msg.angular_velocity.z, m.msg.linear_acceleration.z) == \
+                (expected.angular_velocity.z, expected.linear_acceleration.z)
+
+
+# --- fixtures -------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def probe() -> Iterator[Node]:
+    rclpy.init()
+    node = Node("recorder_test_probe")
+    yield node
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+@pytest.fixture(scope="module")
+def log_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("container_logs")
+
+
+@pytest.fixture(scope="module")
+def refs() -> Iterator[References]:
+    references = References()
+    yield references
+    references.close()
+
+
+@pytest.fixture(scope="module")
+def external(log_dir: Path, probe: Node) -> Iterator[Rig]:
+    """A second container without intra-process communication: its topics reach recorders over DDS only."""
+    container = Container("recorder_test_external", log_dir)
+    try:
+        rig = Rig(container, probe)
+        rig.load_driver("components::ImuDriver", "ext_imu", EXT_IMU, ipc=False)
+        rig.load_driver("components::CameraDriver", "ext_camera", EXT_CAMERA, ipc=False)
+        yield rig
+    finally:
+        container.kill()
+
+
+@pytest.fixture(scope="module")
+def rig_module(log_dir: Path, probe: Node) -> Iterator[Rig]:
+    rig = start_rig("recorder_test_rig", log_dir, probe)
+    try:
+        yield rig
+    finally:
+        rig.cleanup()
+        assert rig.container.stop() == 0, rig.container.log()[-3000:]
+
+
+@pytest.fixture()
+def rig(rig_module: Rig) -> Iterator[Rig]:
+    """The shared rig; after each test it must still be alive with its drivers, and no recorder left."""
+    yield rig_module
+    rig_module.cleanup()
+    assert rig_module.container.alive(), rig_module.container.log()[-3000:]
+    assert {"/camera", "/imu", "/lidar"} <= rig_module.listed()
+
+
+@pytest.fixture()
+def split_events(probe: Node) -> Iterator[list[WriteSplitEvent]]:
+    events: list[WriteSplitEvent] = []
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    subscription = probe.create_subscription(WriteSplitEvent, "/events/write_split", events.append, qos)
+    yield events
+    probe.destroy_subscription(subscription)
+
+
+# --- the recording itself ---------------------------------------------------------------------------------------
+def test_records_intra_process_and_dds_topics_into_one_bag(rig: Rig, external: Rig, refs: References,
+                                                           tmp_path: Path) -> None:
+    uri = tmp_path / "rig_bag"
+    recorder = rig.record("recorder_main", uri, **{"record.all_topics": True,
+                                                  "record.exclude_regex": NOT_INFRASTRUCTURE})
+    # Topics of the other process are found by graph discovery, which may take a moment.
+    assert wait_until(lambda: set(RIG_TOPICS + EXT_TOPICS) <= set(recorder.stats()["current"]["topics"]), 10.0)
+    time.sleep(3.0)
+    recorder.unload()
+    assert {"/camera", "/imu", "/lidar"} <= rig.listed() and "/recorder_main" not in rig.listed()
+    assert rig.container.alive()
+
+    bag = verify_bag(uri, window=(recorder.loaded_ns, recorder.unloaded_ns))
+    assert set(bag.counts()) == set(RIG_TOPICS) | set(EXT_TOPICS)
+    types = {t["topic_metadata"]["name"]: t["topic_metadata"] for t in bag.meta["topics_with_message_count"]}
+    assert types["/camera/image_raw"]["type"] == "sensor_msgs/msg/Image"
+    assert types["/imu/imu"]["type_description_hash"].startswith("RIHS01_")
+    assert types["/lidar/points"]["offered_qos_profiles"][0]["reliability"] == "reliable"
+
+    # Moderate rates: nothing lost on any topic, in-process or over DDS.
+    stats = closing_stats(rig.container, uri)
+    assert set(stats) == set(RIG_TOPICS) | set(EXT_TOPICS)
+    for topic in RIG_TOPICS:
+        assert_complete(bag, topic, stats)
+    for topic in EXT_TOPICS:
+        assert stats[topic]["received"] == stats[topic]["written"] == bag.counts()[topic]
+    for topic in ("/ext_imu/imu", "/ext_camera/image_raw"):
+        assert_contiguous(bag.seqs(topic), topic)
+    for topic, rate in (("/camera/image_raw", 30), ("/imu/imu", 200), ("/lidar/points", 10),
+                        ("/ext_imu/imu", 100), ("/ext_camera/image_raw", 10)):
+        count = len(bag.seqs(topic))
+        assert count >= 0.5 * 3.0 * rate, f"{topic}: only {count} messages in 3 s at {rate} Hz"
+    check_driver_content(bag, refs)
+    check_driver_content(bag, refs, "ext_", camera=EXT_CAMERA, lidar=None, imu=EXT_IMU)
+
+    # In-process messages carry the delivery time as both stamps (unless the recorder had to move the log time
+    # up to keep the file in time order); DDS ones the writer's source timestamp, strictly before reception:
+    # the two paths really were the two paths.
+    mcap_messages = [m for rows in bag.files.values() for m in rows]
+    local = [m for m in mcap_messages if m.topic in RIG_TOPICS]
+    assert sum(m.publish_time == m.log_time for m in local) >= 0.8 * len(local), "not delivered in-process"
+    assert all(m.publish_time < m.log_time for m in mcap_messages if m.topic in EXT_TOPICS), "not over DDS"
+
+    # The drivers kept running after the recorder was unloaded.
+    last_imu = max(bag.seqs("/imu/imu"))
+    later: list[int] = []
+    subscription = rig.probe.create_subscription(
+        Imu, "/imu/imu", lambda msg: later.append(int(msg.orientation_covariance[1])), 50)
+    try:
+        assert spin_for(rig.probe, 10.0, lambda: len(later) >= 5), "the IMU driver stopped with the recorder"
+    finally:
+        rig.probe.destroy_subscription(subscription)
+    assert min(later) > last_imu
+
+
+def test_full_hd_camera_at_moderate_rate(rig: Rig, refs: References, tmp_path: Path) -> None:
+    rig.load_driver("components::CameraDriver", "hd_camera", HD_CAMERA)
+    try:
+        uri = tmp_path / "hd"
+        recorder = rig.record("recorder_hd", uri,
+                              **{"record.topics": ["/hd_camera/image_raw", "/hd_camera/camera_info"]})
+        time.sleep(2.5)
+        stop = recorder.trigger("stop_recording")
+        recorder.unload()
+    finally:
+        rig.unload_driver("hd_camera")
+    assert stop.success, stop.message
+    stats = json.loads(stop.message)
+    bag = verify_bag(uri)
+    seqs = bag.seqs("/hd_camera/image_raw")
+    assert_contiguous(seqs, "1080p images")
+    assert len(seqs) >= 0.6 * 2.5 * HD_CAMERA["fps"]
+    assert stats["topics"]["/hd_camera/image_raw"] == {"received": len(seqs), "written": len(seqs),
+                                                       "dropped": 0, "queue_dropped": 0}
+    assert stats["error"] is None and stats["bytes_written"] == (uri / "hd_0.mcap").stat().st_size
+    cam = refs.driver(CameraDriver, **HD_CAMERA)
+    for m in bag.topic("/hd_camera/image_raw"):
+        assert (m.msg.width, m.msg.height, len(m.msg.data)) == (1920, 1080, 1920 * 1080 * 3)
+        assert bytes(m.msg.data) == cam.make_image(m.seq, m.stamp).data.tobytes()
+
+
+# --- services -------------------------------------------------------------------------------------------------
+def test_stop_and_start_recording_make_a_second_bag(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "session"
+    recorder = rig.record("recorder_stopstart", uri, **{"record.topics": ["/imu/imu", "/camera/image_raw"]})
+    time.sleep(1.0)
+    stop = recorder.trigger("stop_recording")
+    assert stop.success, stop.message
+    first_stats = json.loads(stop.message)
+    assert first_stats["bag"] == str(uri) and first_stats["error"] is None
+    first = verify_bag(uri)  # finalized while the recorder is still loaded
+    again = recorder.trigger("stop_recording")
+    assert not again.success and "not recording" in again.message
+    stats = recorder.stats()
+    assert stats["recording"] is False and len(stats["finished"]) == 1
+
+    time.sleep(0.5)
+    start = recorder.trigger("start_recording")
+    assert start.success, start.message
+    second_uri = tmp_path / "session_1"
+    assert str(second_uri) in start.message
+    assert recorder.trigger("start_recording").success is False
+    time.sleep(1.0)
+    recorder.unload()
+    second = verify_bag(second_uri)
+    assert first.meta["relative_file_paths"] == ["session_0.mcap"]
+    assert second.meta["relative_file_paths"] == ["session_1_0.mcap"]
+    second_stats = closing_stats(rig.container, second_uri)
+    for topic in ("/imu/imu", "/camera/image_raw"):
+        assert_complete(first, topic, first_stats["topics"])
+        assert_complete(second, topic, second_stats)
+        assert min(second.seqs(topic)) > max(first.seqs(topic)) + 1  # the stopped half second is in neither
+    assert first.messages[-1].log_time < second.messages[0].log_time
+
+
+def test_pause_resume_toggle(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "paused"
+    recorder = rig.record("recorder_pause", uri, **{"record.start_paused": True,
+                                                    "record.topics": ["/imu/imu", "/camera/image_raw"]})
+    time.sleep(0.5)
+    assert recorder.is_paused() is True
+    assert all(t["written"] == 0 for t in recorder.stats()["current"]["topics"].values())
+    resume_sent = time.time_ns()
+    recorder.service(Resume, "resume")
+    assert recorder.is_paused() is False
+    time.sleep(1.0)
+    recorder.service(Pause, "pause")
+    paused_at = time.time_ns()
+    assert recorder.is_paused() is True
+    recorder.service(Pause, "pause")  # pausing twice is harmless
+    time.sleep(1.0)
+    toggle_sent = time.time_ns()
+    recorder.service(TogglePaused, "toggle_paused")
+    assert recorder.is_paused() is False
+    time.sleep(1.0)
+    recorder.service(TogglePaused, "toggle_paused")
+    assert recorder.is_paused() is True
+    recorder.unload()
+
+    bag = verify_bag(uri)
+    for m in bag.messages:
+        assert m.log_time >= resume_sent, "recorded while start_paused"
+        assert not paused_at < m.log_time < toggle_sent, f"{m.topic} {m.seq} recorded while paused"
+    stats = closing_stats(rig.container, uri)
+    for topic, rate in (("/imu/imu", 200), ("/camera/image_raw", 30)):
+        seqs = bag.seqs(topic)
+        assert stats[topic]["received"] == stats[topic]["written"] == len(seqs)
+        before = [s for m, s in zip(bag.topic(topic), seqs) if m.log_time <= paused_at]
+        after = [s for m, s in zip(bag.topic(topic), seqs) if m.log_time >= toggle_sent]
+        assert len(before) + len(after) == len(seqs)
+        assert len(before) >= 0.5 * rate and len(after) >= 0.5 * rate, (len(before), len(after))
+        # Each recorded stretch is whole (up to what the recorder reports dropped before its intake) ...
+        assert len(missing(before, None)) + len(missing(after, None)) <= stats[topic]["dropped"], runs(seqs)
+        # ... and the pause skipped about as many messages as the driver published meanwhile.
+        gap = after[0] - before[-1] - 1
+        expected = (toggle_sent - paused_at) / 1e9 * rate
+        assert 0.5 * expected <= gap <= 1.5 * expected + 10, f"{topic}: {gap} messages skipped, not ~{expected}"
+
+
+def test_split_bagfile_service_and_events(rig: Rig, split_events: list[WriteSplitEvent], tmp_path: Path) -> None:
+    uri = tmp_path / "split"
+    recorder = rig.record("recorder_split", uri, **{"record.topics": ["/imu/imu", "/camera/image_raw"]})
+    assert spin_for(rig.probe, 10.0, lambda: any(
+        p.node_name == "recorder_split" for p in rig.probe.get_publishers_info_by_topic("/events/write_split")))
+    time.sleep(0.7)
+    recorder.service(SplitBagfile, "split_bagfile")
+    time.sleep(0.7)
+    recorder.service(SplitBagfile, "split_bagfile")
+    time.sleep(0.7)
+    recorder.unload()
+    spin_for(rig.probe, 5.0, lambda: len([e for e in split_events if e.node_name == "/recorder_split"]) >= 3)
+
+    bag = verify_bag(uri)
+    names = [f"split_{i}.mcap" for i in range(3)]
+    assert bag.meta["relative_file_paths"] == names
+    assert all(info["message_count"] > 0 for info in bag.meta["files"])
+    stats = closing_stats(rig.container, uri)
+    for topic in ("/imu/imu", "/camera/image_raw"):
+        assert_complete(bag, topic, stats)  # nothing lost at the splits
+        per_file = [[m.seq for m in bag.files[name] if m.topic == topic] for name in names]
+        assert all(per_file) and per_file[0][-1] < per_file[1][0] and per_file[1][-1] < per_file[2][0]
+    events = [(e.closed_file, e.opened_file) for e in split_events if e.node_name == "/recorder_split"]
+    paths = [str(uri / name) for name in names]
+    assert events == [(paths[0], paths[1]), (paths[1], paths[2]), (paths[2], "")]
+
+
+def test_max_bagfile_size_splits(rig: Rig, split_events: list[WriteSplitEvent], tmp_path: Path) -> None:
+    uri = tmp_path / "sized"
+    limit = 1_000_000
+    recorder = rig.record("recorder_sized", uri, **{"record.topics": ["/camera/image_raw", "/imu/imu"],
+                                                    "storage.max_bagfile_size": limit})
+    time.sleep(1.5)
+    recorder.unload()
+    bag = verify_bag(uri)
+    files = bag.meta["relative_file_paths"]
+    assert len(files) >= 4, f"~10 MB with a 1 MB limit gave only {files}"
+    frame = CAMERA["width"] * CAMERA["height"] * 3
+    for name in files[:-1]:
+        size = (uri / name).stat().st_size
+        assert limit <= size <= limit + 2 * frame + 200_000, f"{name}: {size} bytes for a {limit} byte limit"
+    stats = closing_stats(rig.container, uri)
+    assert_complete(bag, "/camera/image_raw", stats)
+    assert_complete(bag, "/imu/imu", stats)
+    spin_for(rig.probe, 3.0, lambda: any(e.node_name == "/recorder_sized" and not e.opened_file
+                                          for e in split_events))
+    events = [(Path(e.closed_file).name, Path(e.opened_file).name if e.opened_file else "")
+              for e in split_events if e.node_name == "/recorder_sized"]
+    assert events == list(zip(files, [*files[1:], ""]))
+
+
+def test_get_stats_live_counts(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "stats"
+    recorder = rig.record("recorder_stats", uri)
+    time.sleep(0.6)
+    first = recorder.stats()
+    time.sleep(0.6)
+    second = recorder.stats()
+    assert first["recording"] and not first["paused"] and first["current"]["error"] is None
+    assert first["current"]["bag"] == str(uri)
+    assert first["current"]["current_file"] == str(uri / "stats_0.mcap")
+    assert set(first["current"]["topics"]) == set(RIG_TOPICS)
+    for topic in RIG_TOPICS:
+        before, after = first["current"]["topics"][topic], second["current"]["topics"][topic]
+        assert after["received"] > before["received"] > 0
+        assert before["written"] <= before["received"] and after["dropped"] == after["queue_dropped"]
+    assert second["current"]["bytes_written"] > first["current"]["bytes_written"] > 0
+    imu_growth = second["current"]["topics"]["/imu/imu"]["received"] - first["current"]["topics"]["/imu/imu"]["received"]
+    assert 0.3 * 0.6 * IMU["rate"] <= imu_growth <= 2 * 0.6 * IMU["rate"]
+    assert recorder.service(Snapshot, "snapshot").success is False  # not in snapshot mode
+
+    stop = recorder.trigger("stop_recording")
+    final = recorder.stats()
+    assert final["recording"] is False and final["current"] is None
+    bag = verify_bag(uri)
+    finished = final["finished"][0]["topics"]
+    assert json.loads(stop.message)["topics"] == finished
+    assert {t: c["written"] for t, c in finished.items()} == bag.counts()
+    for topic in RIG_TOPICS:
+        assert_complete(bag, topic, finished)
+    recorder.unload()
+
+
+def test_snapshot_mode_writes_the_ring(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "snap"
+    cache = 3_000_000
+    recorder = rig.record("recorder_snap", uri, **{"record.topics": ["/camera/image_raw", "/imu/imu"],
+                                                   "storage.snapshot_mode": True,
+                                                   "storage.max_cache_size": cache})
+    time.sleep(1.5)
+    before = recorder.stats()["current"]["topics"]
+    assert before["/camera/image_raw"]["received"] > 20
+    assert all(t["written"] == 0 for t in before.values()), "snapshot mode wrote before a snapshot"
+    snapshot_sent = time.time_ns()
+    assert recorder.service(Snapshot, "snapshot").success is True
+    snapshot_done = time.time_ns()
+    assert wait_until(lambda: recorder.stats()["current"]["topics"]["/camera/image_raw"]["written"] > 0, 5.0)
+    time.sleep(0.5)  # more arrives in the ring; without another snapshot it is never written
+    recorder.unload()
+    bag = verify_bag(uri)
+    images = bag.topic("/camera/image_raw")
+    frame = CAMERA["width"] * CAMERA["height"] * 3
+    assert 3 <= len(images) <= cache // frame, f"{len(images)} images from a {cache} byte ring"
+    stats = closing_stats(rig.container, uri)
+    for topic in ("/camera/image_raw", "/imu/imu"):  # the ring holds the newest messages, none missing
+        assert len(missing(bag.seqs(topic), None)) <= stats[topic]["dropped"], runs(bag.seqs(topic))
+    assert all(m.log_time <= snapshot_done for m in bag.messages), "written after the snapshot"
+    assert images[-1].log_time >= snapshot_sent - 200_000_000, "the ring lost its newest images"
+
+
+# --- storage options ------------------------------------------------------------------------------------------
+def test_sqlite3_storage(rig: Rig, refs: References, tmp_path: Path) -> None:
+    uri = tmp_path / "db"
+    recorder = rig.record("recorder_sqlite", uri, **{"storage.storage_id": "sqlite3"})
+    time.sleep(1.5)
+    recorder.unload()
+    bag = verify_bag(uri, "sqlite3", window=(recorder.loaded_ns, recorder.unloaded_ns))
+    assert bag.meta["relative_file_paths"] == ["db_0.db3"]
+    assert not list(uri.glob("*-wal")) and not list(uri.glob("*-journal"))
+    stats = closing_stats(rig.container, uri)
+    for topic in ("/camera/image_raw", "/imu/imu", "/lidar/points"):
+        assert_complete(bag, topic, stats)
+    check_driver_content(bag, refs)
+
+
+@pytest.mark.parametrize("preset", ["zstd_fast", "fastwrite"])
+def test_mcap_storage_presets(rig: Rig, refs: References, tmp_path: Path, preset: str) -> None:
+    uri = tmp_path / preset
+    recorder = rig.record(f"recorder_{preset}", uri, **{"storage.storage_preset_profile": preset})
+    time.sleep(1.2)
+    recorder.unload()
+    bag = verify_bag(uri)
+    stats = closing_stats(rig.container, uri)
+    for topic in ("/camera/image_raw", "/imu/imu", "/lidar/points"):
+        assert_complete(bag, topic, stats)
+    check_driver_content(bag, refs)
+    with open(uri / f"{preset}_0.mcap", "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    if preset == "zstd_fast":
+        assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        raw = sum(c.uncompressed_size for c in summary.chunk_indexes)
+        assert sum(c.compressed_size for c in summary.chunk_indexes) < raw
+    else:
+        assert not summary.chunk_indexes
+
+
+# --- stopping the container -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_container_signal_finalizes_the_bag(probe: Node, log_dir: Path, tmp_path: Path, sig: int) -> None:
+    name = f"recorder_test_{sig.name.lower()}"
+    container = Container(name, log_dir)
+    imu, camera = f"/{sig.name.lower()}_imu/imu", f"/{sig.name.lower()}_camera/image_raw"  # the rig has /imu
+    try:
+        rig = Rig(container, probe)
+        rig.load_driver("components::ImuDriver", f"{sig.name.lower()}_imu", IMU)
+        rig.load_driver("components::CameraDriver", f"{sig.name.lower()}_camera", CAMERA)
+        uri = tmp_path / "signalled"
+        rig.record("recorder", uri, **{"record.topics": [imu, camera]})
+        time.sleep(1.5)
+        code = container.stop(sig)
+    finally:
+        container.kill()
+    log = container.log()
+    assert code == 0, log[-3000:]
+    assert "Shutting down: unloading all components" in log
+    bag = verify_bag(uri)
+    stats = closing_stats(container, uri)
+    assert_complete(bag, imu, stats)
+    assert_complete(bag, camera, stats)
+    assert len(bag.seqs(imu)) >= 0.5 * 1.5 * IMU["rate"]
+
+
+# --- failures ---------------------------------------------------------------------------------------------------
+def test_existing_uri_is_refused(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "taken"
+    uri.mkdir()
+    (uri / "keep.txt").write_text("mine")
+    response = rig.try_load_recorder("recorder_taken", {"storage.uri": str(uri), "record.topics": RIG_TOPICS})
+    assert response.success is False
+    assert str(uri) in response.error_message and "already exists" in response.error_message
+    assert sorted(p.name for p in uri.iterdir()) == ["keep.txt"] and (uri / "keep.txt").read_text() == "mine"
+    assert "/recorder_taken" not in rig.listed()
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "proc"])
+def test_unwritable_uri_is_refused(rig: Rig, tmp_path: Path, where: str) -> None:
+    if where == "under_a_file":
+        (tmp_path / "plain_file").write_text("")
+        uri = tmp_path / "plain_file" / "bag"
+    else:
+        uri = Path("/proc") / f"recorder_test_bag_{os.getpid()}"
+    response = rig.try_load_recorder("recorder_unwritable", {"storage.uri": str(uri), "record.topics": RIG_TOPICS})
+    assert response.success is False
+    assert "cannot create bag directory" in response.error_message and str(uri) in response.error_message
+    assert not uri.exists()
+    assert "/recorder_unwritable" not in rig.listed()
+
+
+@contextlib.contextmanager
+def small_filesystem(directory: Path, size: int) -> Iterator[bool]:
+    """A tmpfs of ``size`` bytes at ``directory`` if this process may mount one (yields True), else False."""
+    directory.mkdir()
+    if os.environ.get("RECORDER_TEST_NO_TMPFS") or os.geteuid() != 0:
+        yield False
+        return
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(directory)],
+                             capture_output=True).returncode == 0
+    try:
+        yield mounted
+    finally:
+        if mounted:
+            if subprocess.run(["umount", str(directory)], capture_output=True).returncode != 0:
+                subprocess.run(["umount", "-l", str(directory)], capture_output=True)
+
+
+def test_disk_full_stops_recording_cleanly(probe: Node, rig: Rig, log_dir: Path, tmp_path: Path) -> None:
+    size = 3 * 1024 * 1024
+    with small_filesystem(tmp_path / "small", size) as mounted, contextlib.ExitStack() as stack:
+        prefix = ""
+        if mounted:
+            target = rig
+        else:  # no tmpfs here: a container whose files may not grow beyond the size
+            prefix = "fsize_"
+            target = start_rig("recorder_test_fsize", log_dir, probe, prefix=prefix, fsize_limit=size)
+            stack.callback(target.container.kill)
+        topics = [f"/{prefix}{topic[1:]}" for topic in RIG_TOPICS]
+        drivers = {f"/{prefix}{name}" for name in ("camera", "imu", "lidar")}
+        imu = f"/{prefix}imu/imu"
+        uri = tmp_path / "small" / "full"
+        recorder = target.record("recorder_full", uri, **{"record.topics": topics})
+        error = wait_until(lambda: recorder.stats()["current"]["error"], 15.0, interval=0.2)
+        assert error, "the recorder never noticed the full disk"
+        assert re.search(r"No space left on device|File too large", error), error
+        log = wait_until(lambda: "stopped:" in target.container.log() and target.container.log(), 5.0)
+        assert log and re.search(rf"\[recorder_full\]: Recording to {re.escape(str(uri))} stopped: .*"
+                                 r"(No space left on device|File too large)", log), target.container.log()[-3000:]
+        # The container and the drivers carry on; the recorder keeps counting what it can no longer write.
+        received = recorder.stats()["current"]["topics"][imu]["received"]
+        time.sleep(0.5)
+        after = recorder.stats()
+        assert after["current"]["topics"][imu]["received"] > received
+        assert after["current"]["topics"][imu]["dropped"] > 0
+        assert target.container.alive() and drivers | {"/recorder_full"} <= target.listed()
+        recorder.unload()
+        assert target.container.alive() and drivers <= target.listed()
+
+        bag = verify_bag(uri, window=(recorder.loaded_ns, recorder.unloaded_ns))
+        assert bag.meta["message_count"] > 0
+        written = sum((uri / name).stat().st_size for name in bag.meta["relative_file_paths"])
+        assert written <= size
+        assert re.search(rf"Bag {re.escape(str(uri))} closed: \d+ messages, \d+ bytes, error: ",
+                         target.container.log())
+        stats = closing_stats(target.container, uri)
+        for topic in topics:
+            # Written up to the failure: a whole prefix; everything else is counted as dropped.
+            assert stats[topic]["written"] == len(bag.topic(topic))
+            assert stats[topic]["received"] + after["current"]["topics"][topic]["queue_dropped"] <= \
+                stats[topic]["written"] + stats[topic]["dropped"]
+            if bag.topic(topic) and topic != f"/{prefix}camera/camera_info":
+                seqs = bag.seqs(topic)
+                queue_dropped = after["current"]["topics"][topic]["queue_dropped"]
+                assert len(missing(seqs, None)) <= queue_dropped, f"{topic}: {missing(seqs)} missing"
+        if not mounted:
+            assert target.container.stop() == 0
+
+
+# --- parameters -----------------------------------------------------------------------------------------------
+def test_parameter_aliases(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "aliased"
+    recorder = rig.record("recorder_aliases", uri, **{
+        "record_all": True, "exclude": r"^/(rosout|parameter_events|events/.*|camera/.*|lidar/.*|ext_.*)$",
+        "bag_name": str(uri), "storage_id": "sqlite3", "max_bag_duration": 0.5})
+    time.sleep(1.6)
+    recorder.unload()
+    bag = verify_bag(uri, "sqlite3")
+    assert set(bag.counts()) == {"/imu/imu"}
+    assert len(bag.meta["relative_file_paths"]) >= 3, "max_bag_duration 0.5 s did not split 1.6 s"
+    assert_complete(bag, "/imu/imu", closing_stats(rig.container, uri))
+    for info in bag.meta["files"][:-1]:
+        assert info["duration"]["nanoseconds"] <= 0.5e9
+
+
+@pytest.mark.parametrize("parameters, expected", [
+    ({"bag_name": "{uri}", "storage.uri": "{uri}_other"}, "'bag_name' is an alias of 'storage.uri'"),
+    ({"storage.storage_id": "foo"}, "parameter 'storage.storage_id' must be one of mcap, sqlite3, got 'foo'"),
+    ({"storage_id": "foo"}, "parameter 'storage.storage_id' must be one of mcap, sqlite3, got 'foo'"),
+    ({"storage.max_cache_size": 0}, "parameter 'storage.max_cache_size' must be positive"),
+    ({"storage.storage_preset_profile": "turbo"}, "storage_preset_profile 'turbo'"),
+], ids=["alias_and_name", "storage_id", "storage_id_alias", "cache_size", "preset"])
+def test_bad_parameters_are_refused(rig: Rig, tmp_path: Path, parameters: dict[str, Any], expected: str) -> None:
+    uri = tmp_path / "never"
+    parameters = {k: v.format(uri=uri) if isinstance(v, str) else v for k, v in parameters.items()}
+    parameters.setdefault("storage.uri", str(uri))
+    parameters["record.topics"] = RIG_TOPICS
+    response = rig.try_load_recorder("recorder_bad", parameters)
+    assert response.success is False
+    assert expected in response.error_message, response.error_message
+    assert not uri.exists() and not Path(f"{uri}_other").exists()
+    assert "/recorder_bad" not in rig.listed()
