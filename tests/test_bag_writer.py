@@ -9,6 +9,7 @@ import json
 import os
 import re
 import sqlite3
+import struct
 import subprocess
 import sys
 import textwrap
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+import zstandard
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.duration import Infinite
@@ -39,6 +41,7 @@ from std_msgs.msg import String
 
 from components.recorder import message_definitions
 from components.recorder.bag_writer import BagExistsError, BagWriteError, BagWriter
+from components.recorder.cdr_fast import SerializedBuffers
 from components.recorder.mcap_storage import DEFAULT_CHUNK_SIZE
 from components.recorder.message_definitions import (
     MessageDefinitionNotFoundError,
@@ -434,6 +437,103 @@ def test_writes_bytearray_and_memoryview(tmp_path: Path) -> None:
             written = write_messages(writer, [("/points", 0)], wrap=bytearray)
             written += write_messages(writer, [("/points", 1)], start=T0 + 1, wrap=memoryview)
         assert sorted(read_rosbags(bag)) == sorted((w.topic, w.log_time, w.fields) for w in written)
+
+
+def mcap_layout(path: Path) -> tuple[int, int]:
+    """Check every chunk against its message indexes and the summary's chunk index, record by record.
+
+    Returns the number of chunks and of messages found in them.
+    """
+    raw = path.read_bytes()
+    with open(path, "rb") as file:
+        summary = make_reader(file).get_summary()
+    assert summary is not None and summary.statistics is not None
+    chunk_indexes = {index.chunk_start_offset: index for index in summary.chunk_indexes}
+    position, chunks, messages = 8, 0, 0
+    while True:
+        opcode, length = struct.unpack_from("<BQ", raw, position)
+        if opcode == 0x0F:  # data end
+            break
+        end = position + 9 + length
+        if opcode != 0x06:  # not a chunk
+            position = end
+            continue
+        start_ns, end_ns, size, _crc, name_length = struct.unpack_from("<QQQII", raw, position + 9)
+        compression = raw[position + 41:position + 41 + name_length].decode()
+        (compressed_size,) = struct.unpack_from("<Q", raw, position + 41 + name_length)
+        body = raw[position + 49 + name_length:end]
+        assert len(body) == compressed_size
+        records = body if not compression else zstandard.ZstdDecompressor().decompress(body, max_output_size=size)
+        assert len(records) == size
+        found = {}  # offset in the chunk -> (channel, log time)
+        offset = 0
+        while offset < size:
+            record_opcode, record_length = struct.unpack_from("<BQ", records, offset)
+            assert record_opcode in (0x03, 0x04, 0x05)  # schema, channel, message
+            if record_opcode == 0x05:
+                channel_id, _sequence, log_time = struct.unpack_from("<HIQ", records, offset + 9)
+                found[offset] = (channel_id, log_time)
+            offset += 9 + record_length
+        assert offset == size and found
+        assert (start_ns, end_ns) == (min(t for _, t in found.values()), max(t for _, t in found.values()))
+        index = chunk_indexes.pop(position)
+        assert (index.chunk_length, index.uncompressed_size, index.compressed_size, index.compression) == \
+            (end - position, size, compressed_size, compression)
+        # The message indexes follow the chunk and list every message in it exactly once.
+        indexed = {}
+        index_position = end
+        while raw[index_position] == 0x07:
+            (index_length,) = struct.unpack_from("<Q", raw, index_position + 1)
+            channel_id, entries_length = struct.unpack_from("<HI", raw, index_position + 9)
+            assert index.message_index_offsets[channel_id] == index_position
+            for n in range(entries_length // 16):
+                log_time, message_offset = struct.unpack_from("<QQ", raw, index_position + 15 + 16 * n)
+                indexed[message_offset] = (channel_id, log_time)
+            index_position += 9 + index_length
+        assert indexed == found
+        assert index.message_index_length == index_position - end
+        assert len(index.message_index_offsets) == len({channel for channel, _ in found.values()})
+        chunks += 1
+        messages += len(found)
+        position = index_position
+    assert not chunk_indexes  # every chunk index names a chunk
+    return chunks, messages
+
+
+@pytest.mark.parametrize("preset", ["", "zstd_fast", "zstd_small", "fastwrite"])
+def test_chunks_indexes_and_buffers(tmp_path: Path, preset: str) -> None:
+    """Messages of every size and buffer kind, including ones that fill a chunk alone or with others
+    (written in place, from the caller's buffers); the caller may reuse its buffers after write()."""
+    bag = tmp_path / "bag"
+    sizes = [10, 5_000, DEFAULT_CHUNK_SIZE - 100, 300_000, 3 * DEFAULT_CHUNK_SIZE, 64 * 1024, 1, 700_000,
+             DEFAULT_CHUNK_SIZE + 1, 0, 2_000_000, 17]
+    expected = []
+    with BagWriter(bag, storage_preset_profile=preset) as writer:
+        writer.add_topic(topic_info("/chatter"))
+        writer.add_topic(topic_info("/points"))
+        for n, size in enumerate(sizes):
+            payload = bytearray(np.random.default_rng(n).integers(0, 256, size, dtype=np.uint8).tobytes())
+            topic = "/points" if n % 2 else "/chatter"
+            expected.append((topic, T0 + n, bytes(payload)))
+            if n % 3 == 0:
+                data: Any = payload
+            elif n % 3 == 1:
+                data = memoryview(payload)
+            else:
+                data = SerializedBuffers((bytes(payload[:7]), memoryview(payload)[7:size - 3],
+                                          memoryview(payload)[size - 3:] if size >= 10 else b""))
+            writer.write(topic, data, T0 + n, T0 + n)
+            payload[:] = bytes(size)  # reused by the caller: what was written must not change
+    path = bag / "bag_0.mcap"
+    with open(path, "rb") as file:
+        read = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(file).iter_messages()]
+    assert read == expected
+    with Reader(bag) as reader:
+        assert [(c.topic, t, bytes(r)) for c, t, r in reader.messages()] == expected
+    if preset == "fastwrite":
+        return
+    chunks, messages = mcap_layout(path)
+    assert messages == len(sizes) and (2 if preset == "zstd_small" else 5) <= chunks < len(sizes)
 
 
 # --- splitting --------------------------------------------------------------------------------

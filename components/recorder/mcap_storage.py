@@ -1,8 +1,19 @@
 """One ``.mcap`` storage file laid out as rosbag2_storage_mcap writes it.
 
-Records go through ``mcap.writer.Writer`` (profile ``ros2``; schemas ``ros2msg``/``ros2idl``;
-channels with ``offered_qos_profiles`` and ``topic_type_hash`` metadata; a ``rosbag2`` metadata
-record at open and at close; a full summary with statistics, chunk and message indexes).
+Profile ``ros2``; schemas ``ros2msg``/``ros2idl``; channels with ``offered_qos_profiles`` and
+``topic_type_hash`` metadata; a ``rosbag2`` metadata record at open and at close; chunks (holding the
+schema and channel records registered since the previous chunk, then the messages) each followed by
+its message indexes; a full summary with schemas, channels, statistics, chunk and metadata indexes.
+
+The records are built here rather than by ``mcap.writer.Writer`` because that writer copies every
+message three times before the kernel does (into the chunk's ``BytesIO``, out of it, into the chunk
+record's ``BytesIO``), which made the recorder drop camera frames. Here a chunk is a list of buffers:
+small records are copied once into a ``bytearray``, and a big message whose arrival completes the
+chunk is written straight from the caller's buffers (a ``memoryview`` of the image's pixels from
+:mod:`.cdr_fast`), so the only copy of its payload is the kernel's. The layout, indexes and summary
+are the same as the Python writer's. Chunk CRCs stay zero, as ``enable_crcs=False`` wrote them (and
+rosbag2's ``fastwrite``/``zstd_fast`` presets): zlib's crc32 of one 1080p frame takes 2-3 ms here,
+longer than writing the frame.
 
 An MCAP file without its summary cannot be opened by ``rosbags`` (ros2/rosbag2#1079, #2003), and
 the disk filling up is exactly when the summary fails to be written. So when a write fails, this
@@ -19,7 +30,7 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 import lz4.frame
 import zstandard
@@ -39,11 +50,11 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 
 from .metadata import ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
-__all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "McapStorage"]
+__all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "McapStorage", "MessageBuffers"]
 
 #: rosbag2_storage_mcap's (libmcap's) default chunk size.
 DEFAULT_CHUNK_SIZE = 786_432
@@ -57,6 +68,29 @@ _MAGIC = b"\x89MCAP0\r\n"
 _UNCHUNKED_BUFFER = 1 << 20
 # How often a repair may shorten the file further when the summary does not fit.
 _REPAIR_ATTEMPTS = 32
+# A buffer of a chunk-completing message at least this big is written from where it is, not copied.
+_WRITE_IN_PLACE = 64 * 1024
+
+# opcode, record length, channel id, sequence, log time, publish time: the 31 bytes before the data
+_MESSAGE_HEADER = struct.Struct("<BQHIQQ")
+_MESSAGE_HEADER_FIELDS = 22
+# opcode, record length, start, end, uncompressed size, uncompressed CRC, compression name length
+_CHUNK_HEADER = struct.Struct("<BQQQQII")
+_U64 = struct.Struct("<Q")
+# opcode, record length, channel id, byte length of the (log time, offset) entries that follow
+_MESSAGE_INDEX_HEADER = struct.Struct("<BQHI")
+_INDEX_ENTRY = struct.Struct("<QQ")
+_COMPRESSION_NAMES = {CompressionType.NONE: "", CompressionType.LZ4: "lz4", CompressionType.ZSTD: "zstd"}
+
+_Buffer = bytes | bytearray | memoryview
+
+
+class MessageBuffers(Protocol):
+    """A serialized message in consecutive pieces (:class:`.cdr_fast.SerializedBuffers`)."""
+
+    buffers: tuple[_Buffer, ...]
+
+    def __len__(self) -> int: ...
 
 
 @dataclass(frozen=True)
@@ -66,8 +100,8 @@ class _Options:
     use_chunking: bool = True
 
 
-#: rosbag2's storage presets. The Python writer cannot choose a zstd level, so both zstd presets
-#: use zstd's default level; ``zstd_small`` keeps rosbag2's larger (better compressing) chunks.
+#: rosbag2's storage presets. Both zstd presets use zstd's default level (3) as the Python writer
+#: did; ``zstd_small`` keeps rosbag2's larger (better compressing) chunks.
 #: ``fastwrite`` writes no chunks and so no message indexes, but still a summary.
 MCAP_PRESETS: dict[str, _Options] = {
     "": _Options(),
@@ -78,11 +112,22 @@ MCAP_PRESETS: dict[str, _Options] = {
 }
 
 
+def _nbytes(buffer: _Buffer) -> int:
+    return buffer.nbytes if isinstance(buffer, memoryview) else len(buffer)
+
+
+def _record(record: McapRecord) -> bytes:
+    builder = RecordBuilder()
+    record.write(builder)
+    return builder.end()
+
+
 class McapStorage:
     """Writes one MCAP file; single-threaded (the bag writer serializes access).
 
-    ``data`` of :meth:`write` may be ``bytes``, ``bytearray`` or ``memoryview``: it is copied once,
-    into the chunk (or record) buffer, and not referenced afterwards.
+    ``data`` of :meth:`write` may be ``bytes``, ``bytearray``, ``memoryview`` or
+    :class:`MessageBuffers`; it is not referenced after :meth:`write` returns (it is either copied
+    into the open chunk or written to the file before that).
     """
 
     storage_id = "mcap"
@@ -102,34 +147,38 @@ class McapStorage:
         self.error: OSError | None = None
         #: False only if the file could not be given a summary (then readers cannot open it).
         self.readable = True
+        self._chunked = options.use_chunking
+        self._chunk_size = options.chunk_size
+        self._compression = _COMPRESSION_NAMES[options.compression]
         buffering = io.DEFAULT_BUFFER_SIZE if options.use_chunking else _UNCHUNKED_BUFFER
         self._file: BinaryIO = open(path, "xb", buffering=buffering)  # noqa: SIM115
-        self._writer = Writer(
-            self._file,
-            chunk_size=options.chunk_size,
-            compression=options.compression,
-            use_chunking=options.use_chunking,
-            # rosbag2 skips chunk CRCs (a tenth of the write time for large images); the Python
-            # writer can only switch all CRCs together.
-            enable_crcs=False,
-        )
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[str, int] = {}
         self._topics_by_channel: dict[int, str] = {}
         self._sequences: dict[int, int] = {}
-        # Copies of the registered records: a repair writes them into the new summary.
+        # The registered records, repeated in the summary (also by a repair).
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
         self._counts: dict[str, int] = {}
         self._first_ns: int | None = None
         self._last_ns: int | None = None
-        # Bytes of messages held in the unfinished chunk (not yet in the file).
-        self._pending = 0
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        # The open chunk: written parts, the records being copied, its uncompressed length, the
+        # message index entries per channel and the time range of its messages.
+        self._chunk_parts: list[_Buffer] = []
+        self._chunk_records = bytearray()
+        self._chunk_length = 0
+        self._chunk_entries: dict[int, bytearray] = {}
+        self._chunk_messages = 0
+        self._chunk_start_ns = 0
+        self._chunk_end_ns = 0
         self._info: FileInfo | None = None
         try:
-            self._writer.start(profile=PROFILE, library=LIBRARY)
+            self._file.write(_MAGIC)
+            self._file.write(_header_record())
             if serialized_metadata:
-                self._writer.add_metadata(_METADATA_NAME, {_METADATA_KEY: serialized_metadata})
+                self._write_metadata(serialized_metadata)
         except OSError as error:
             self._fail(error)
             raise
@@ -137,56 +186,75 @@ class McapStorage:
     @property
     def size(self) -> int:
         """Bytes in the file plus the unfinished chunk: what the file will hold once it is flushed."""
-        return self._file.tell() + self._pending if not self._file.closed else self.path.stat().st_size
+        return self._file.tell() + self._chunk_length if not self._file.closed else self.path.stat().st_size
 
     def add_topic(self, topic: TopicInfo, definition: tuple[str, str]) -> None:
         """Register the topic's channel, and its type's schema once, with rosbag2's metadata.
 
         ``definition`` is ``(encoding, text)`` from :func:`.message_definitions.message_definition`.
+        In a chunked file the records go into the open chunk (as libmcap and the Python writer do).
         """
         self._require_open()
         if topic.name in self._channel_ids:
             return
-        try:
-            schema_id = self._schema_ids.get(topic.type)
-            if schema_id is None:
-                encoding, text = definition
-                data = text.encode()
-                schema_id = self._writer.register_schema(topic.type, encoding, data)
-                self._schema_ids[topic.type] = schema_id
-                self._schemas.append(Schema(id=schema_id, data=data, encoding=encoding, name=topic.type))
-            metadata = {
-                "offered_qos_profiles": serialize_qos_profiles(topic.offered_qos_profiles),
-                "topic_type_hash": topic.type_description_hash,
-            }
-            channel_id = self._writer.register_channel(
-                topic.name, topic.serialization_format, schema_id, metadata
-            )
-        except OSError as error:
-            self._fail(error)
-            raise
-        self._channels.append(Channel(
-            id=channel_id, topic=topic.name, message_encoding=topic.serialization_format,
-            schema_id=schema_id, metadata=metadata,
-        ))
+        records = b""
+        schema_id = self._schema_ids.get(topic.type)
+        schema: Schema | None = None
+        if schema_id is None:
+            encoding, text = definition
+            schema_id = len(self._schemas) + 1
+            schema = Schema(id=schema_id, data=text.encode(), encoding=encoding, name=topic.type)
+            records += _record(schema)
+        metadata = {
+            "offered_qos_profiles": serialize_qos_profiles(topic.offered_qos_profiles),
+            "topic_type_hash": topic.type_description_hash,
+        }
+        channel_id = len(self._channels) + 1
+        channel = Channel(id=channel_id, topic=topic.name, message_encoding=topic.serialization_format,
+                          schema_id=schema_id, metadata=metadata)
+        records += _record(channel)
+        if self._chunked:
+            self._chunk_records += records
+            self._chunk_length += len(records)
+        else:
+            try:
+                self._file.write(records)
+            except OSError as error:
+                self._fail(error)
+                raise
+        if schema is not None:
+            self._schema_ids[topic.type] = schema_id
+            self._schemas.append(schema)
+        self._channels.append(channel)
         self._channel_ids[topic.name] = channel_id
         self._topics_by_channel[channel_id] = topic.name
         self._sequences[channel_id] = 0
         self._counts[topic.name] = 0
 
     def write(
-        self, topic: str, data: bytes | bytearray | memoryview, log_time_ns: int, publish_time_ns: int
+        self, topic: str, data: bytes | bytearray | memoryview | MessageBuffers, log_time_ns: int,
+        publish_time_ns: int,
     ) -> None:
         """Append one message; raises ``OSError`` when the file cannot grow (see :meth:`close`)."""
         self._require_open()
         channel_id = self._channel_ids[topic]
         sequence = self._sequences[channel_id]
-        position = self._file.tell()
+        parts: tuple[_Buffer, ...]
+        if isinstance(data, (bytes, bytearray, memoryview)):
+            parts = (data,)
+        else:  # MessageBuffers, or any other object with the buffer protocol (array, numpy)
+            buffers = getattr(data, "buffers", None)
+            parts = tuple(buffers) if buffers is not None else (memoryview(data),)
+        size = sum(_nbytes(part) for part in parts)
+        header = _MESSAGE_HEADER.pack(Opcode.MESSAGE, _MESSAGE_HEADER_FIELDS + size, channel_id, sequence,
+                                      log_time_ns, publish_time_ns)
         try:
-            self._writer.add_message(
-                channel_id=channel_id, log_time=log_time_ns, data=data,  # type: ignore[arg-type]
-                publish_time=publish_time_ns, sequence=sequence,
-            )
+            if self._chunked:
+                self._add_to_chunk(channel_id, log_time_ns, header, parts, size)
+            else:
+                self._file.write(header)
+                for part in parts:
+                    self._file.write(part)
         except OSError as error:
             self._fail(error)
             raise
@@ -196,11 +264,9 @@ class McapStorage:
             self._first_ns = log_time_ns
         if self._last_ns is None or log_time_ns > self._last_ns:
             self._last_ns = log_time_ns
-        # A chunk (with this message in it) went to the file, or the message is still buffered.
-        self._pending = 0 if self._file.tell() != position else self._pending + len(data) + 31
 
     def close(self, serialized_metadata: str = "") -> FileInfo:
-        """Finish the file (closing metadata record, summary, footer) and describe what it holds.
+        """Finish the file (last chunk, closing metadata record, summary, footer) and describe it.
 
         Never raises for I/O errors: after one (here or in an earlier call) the file is repaired to
         hold every complete record and the returned counts cover exactly those; :attr:`error` tells
@@ -210,9 +276,12 @@ class McapStorage:
             return self._info
         if self.error is None:
             try:
-                if serialized_metadata:
-                    self._writer.add_metadata(_METADATA_NAME, {_METADATA_KEY: serialized_metadata})
-                self._writer.finish()
+                self._finish_chunk()
+                counts = {self._channel_ids[topic]: count for topic, count in self._counts.items() if count}
+                self._file.write(_tail(
+                    self._file.tell(), self._schemas, self._channels, serialized_metadata, counts,
+                    self._first_ns, self._last_ns, self._chunk_indexes, self._metadata_indexes,
+                ))
                 self._file.close()
             except OSError as error:
                 self._fail(error)
@@ -221,6 +290,90 @@ class McapStorage:
         else:
             self._info = self._repair(serialized_metadata)
         return self._info
+
+    # --- records ----------------------------------------------------------------------------------
+
+    def _write_metadata(self, serialized_metadata: str) -> None:
+        record = _record(Metadata(name=_METADATA_NAME, metadata={_METADATA_KEY: serialized_metadata}))
+        self._metadata_indexes.append(MetadataIndex(self._file.tell(), len(record), _METADATA_NAME))
+        self._file.write(record)
+
+    def _add_to_chunk(
+        self, channel_id: int, log_time_ns: int, header: bytes, parts: tuple[_Buffer, ...], size: int
+    ) -> None:
+        """Put one message into the open chunk, and write the chunk if it is now full.
+
+        Until the chunk is written its content is copied (the caller's buffers may change after
+        :meth:`write`); a message that fills the chunk is written from the caller's buffers.
+        """
+        if self._chunk_messages == 0:
+            self._chunk_start_ns = self._chunk_end_ns = log_time_ns
+        else:
+            self._chunk_start_ns = min(self._chunk_start_ns, log_time_ns)
+            self._chunk_end_ns = max(self._chunk_end_ns, log_time_ns)
+        entries = self._chunk_entries.get(channel_id)
+        if entries is None:
+            entries = self._chunk_entries[channel_id] = bytearray()
+        entries += _INDEX_ENTRY.pack(log_time_ns, self._chunk_length)
+        self._chunk_messages += 1
+        self._chunk_length += len(header) + size
+        records = self._chunk_records
+        records += header
+        if self._chunk_length <= self._chunk_size:
+            for part in parts:
+                records += part
+            return
+        for part in parts:
+            if _nbytes(part) < _WRITE_IN_PLACE:
+                records += part
+            else:
+                self._chunk_parts += (records, part)
+                records = self._chunk_records = bytearray()
+        self._finish_chunk()
+
+    def _finish_chunk(self) -> None:
+        """Write the open chunk (if it holds a message) and its message indexes; forget it."""
+        if self._chunk_messages == 0:
+            return
+        try:
+            parts = self._chunk_parts
+            if self._chunk_records:
+                parts.append(self._chunk_records)
+            length = self._chunk_length
+            compression = self._compression
+            if compression:
+                parts = [_compress(compression, parts, length)]
+            compressed_size = sum(_nbytes(part) for part in parts)
+            name = compression.encode()
+            head = _CHUNK_HEADER.pack(
+                Opcode.CHUNK, 8 + 8 + 8 + 4 + 4 + len(name) + 8 + compressed_size,
+                self._chunk_start_ns, self._chunk_end_ns, length, 0, len(name),
+            ) + name + _U64.pack(compressed_size)
+            start = self._file.tell()
+            self._file.write(head)
+            for part in parts:
+                self._file.write(part)
+            indexes = bytearray()
+            offsets: dict[int, int] = {}
+            index_start = start + len(head) + compressed_size
+            for channel_id, entries in self._chunk_entries.items():
+                offsets[channel_id] = index_start + len(indexes)
+                indexes += _MESSAGE_INDEX_HEADER.pack(Opcode.MESSAGE_INDEX, 6 + len(entries), channel_id,
+                                                      len(entries))
+                indexes += entries
+            self._file.write(indexes)
+            self._chunk_indexes.append(ChunkIndex(
+                message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
+                chunk_start_offset=start, chunk_length=len(head) + compressed_size,
+                message_index_offsets=offsets, message_index_length=len(indexes), compression=compression,
+                compressed_size=compressed_size, uncompressed_size=length,
+            ))
+        finally:  # also after a failure: the parts may reference the caller's buffers
+            self._chunk_parts = []
+            self._chunk_records = bytearray()
+            self._chunk_length = 0
+            self._chunk_entries = {}
+            self._chunk_messages = 0
 
     def _require_open(self) -> None:
         if self._info is not None:
@@ -246,6 +399,16 @@ class McapStorage:
             return FileInfo(self.path.name)
         counts = {self._topics_by_channel[channel]: count for channel, count in result.counts.items()}
         return FileInfo.from_log_times(self.path.name, result.first_ns, result.last_ns, counts)
+
+
+def _compress(compression: str, parts: list[_Buffer], size: int) -> bytes:
+    """The chunk's records compressed as one frame (zstd level 3 / lz4 frame, like the Python writer)."""
+    if compression == "zstd":
+        compressor = zstandard.ZstdCompressor().compressobj(size=size)
+        return b"".join([*(compressor.compress(part) for part in parts), compressor.flush()])
+    if compression == "lz4":
+        return bytes(lz4.frame.compress(b"".join(parts)))
+    raise ValueError(f"unknown chunk compression {compression!r}")
 
 
 # --- repair after a failed write -------------------------------------------------------------
@@ -289,7 +452,12 @@ def _repair_file(
                     base, head = kept[-1].end - len(kept[-1].rewrite), kept[-1].rewrite
                 else:
                     base, head = start, b""
-                tail = head + _tail(kept, base + len(head), schemas, channels, metadata)
+                result = _summarize(kept)
+                tail = head + _tail(
+                    base + len(head), schemas, channels, metadata, result.counts, result.first_ns,
+                    result.last_ns, [unit.chunk_index for unit in kept if unit.chunk_index is not None],
+                    [unit.metadata_index for unit in kept if unit.metadata_index is not None],
+                )
                 try:
                     file.truncate(base)
                     file.seek(base)
@@ -451,11 +619,13 @@ def _summarize(units: list[_Unit]) -> _RepairResult:
 
 
 def _tail(
-    units: list[_Unit], position: int, schemas: list[Schema], channels: list[Channel], metadata: str
+    position: int, schemas: list[Schema], channels: list[Channel], metadata: str, counts: dict[int, int],
+    first_ns: int | None, last_ns: int | None, chunk_indexes: list[ChunkIndex],
+    metadata_indexes: list[MetadataIndex],
 ) -> bytes:
-    """Closing metadata, data end, summary, footer and magic for a file cut at ``position``."""
+    """Closing metadata, data end, summary, footer and magic for a file that ends at ``position``."""
     data = RecordBuilder()
-    metadata_indexes = [unit.metadata_index for unit in units if unit.metadata_index is not None]
+    metadata_indexes = list(metadata_indexes)
     if metadata:
         record = Metadata(name=_METADATA_NAME, metadata={_METADATA_KEY: metadata})
         record.write(data)
@@ -471,14 +641,12 @@ def _tail(
             record.write(summary)
         offsets.append(SummaryOffset(opcode, summary_start + begin, summary.count - begin))
 
-    result = _summarize(units)
-    chunk_indexes = [unit.chunk_index for unit in units if unit.chunk_index is not None]
     group(Opcode.SCHEMA, schemas)
     group(Opcode.CHANNEL, channels)
     group(Opcode.STATISTICS, [Statistics(
-        attachment_count=0, channel_count=len(channels), channel_message_counts=result.counts,
-        chunk_count=len(chunk_indexes), message_count=sum(result.counts.values()),
-        message_end_time=result.last_ns or 0, message_start_time=result.first_ns or 0,
+        attachment_count=0, channel_count=len(channels), channel_message_counts=counts,
+        chunk_count=len(chunk_indexes), message_count=sum(counts.values()),
+        message_end_time=last_ns or 0, message_start_time=first_ns or 0,
         metadata_count=len(metadata_indexes), schema_count=len(schemas),
     )])
     group(Opcode.CHUNK_INDEX, chunk_indexes)

@@ -1,0 +1,188 @@
+"""A copy-free CDR serializer for the recorder's big sensor messages.
+
+The recorder's writer thread turns intra-process message objects into CDR before they go to the bag.
+``rclpy.serialization.serialize_message`` copies a message's ``data`` buffer three times (Python
+object to C struct, C struct to the CDR buffer, CDR buffer to ``bytes``), which for 1080p images at
+60 Hz is a large share of the recorder's CPU on a small machine. For the few types whose size is all in
+one ``uint8[]`` payload (``sensor_msgs/msg/Image``, ``PointCloud2`` and ``CompressedImage``) this
+module writes the small fields itself and returns the payload as a ``memoryview`` of ``msg.data``:
+:class:`SerializedBuffers` (prefix bytes, the view, suffix bytes). The MCAP storage writes those
+buffers to the file one after the other, so the payload is copied only by the kernel; anything else
+that needs one buffer gets it from ``bytes(buffers)`` (one copy).
+
+The encoding is what rmw_fastrtps_cpp produces: XCDR1 little endian with the encapsulation header
+``00 01 00 00``, primitives aligned to their size relative to the end of that header, strings as a
+``uint32`` length that counts the terminating NUL, the UTF-8 bytes and the NUL, sequences as a
+``uint32`` element count and the elements. Alignment padding is written as zeros (Fast-CDR leaves it
+uninitialized, so rclpy's bytes differ from these only there). Every other message type, and messages
+whose ``data`` is not a byte buffer, go to ``serialize_message``.
+"""
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
+from std_msgs.msg import Header
+
+__all__ = ["CDR_LE_HEADER", "MIN_BUFFERS_SIZE", "SerializedBuffers", "serialize"]
+
+#: Encapsulation header of little-endian plain CDR (what rmw_fastrtps_cpp and rosbag2 write).
+CDR_LE_HEADER = b"\x00\x01\x00\x00"
+#: Payloads at least this large stay views (:class:`SerializedBuffers`); smaller messages are joined
+#: into ``bytes``, where one small copy costs less than the extra objects a consumer handles.
+MIN_BUFFERS_SIZE = 64 * 1024
+
+_STAMP = struct.Struct("<iI")
+_U32 = struct.Struct("<I")
+_U32_PAIR = struct.Struct("<II")
+_PADDING = (b"", b"\x00\x00\x00", b"\x00\x00", b"\x00")
+
+Buffer = bytes | bytearray | memoryview
+
+
+class SerializedBuffers:
+    """One serialized message held as consecutive buffers, the big one a view of the message's data.
+
+    Joining them (``bytes(buffers)``) gives exactly the CDR message. The views keep the message's
+    ``data`` array alive and unresizable while this object lives; the recorder drops it as soon as the
+    storage has written it. ``len()`` is the serialized size in bytes.
+    """
+
+    __slots__ = ("buffers", "nbytes")
+
+    def __init__(self, buffers: tuple[Buffer, ...]) -> None:
+        self.buffers = buffers
+        self.nbytes = sum(len(buffer) for buffer in buffers)
+
+    def __len__(self) -> int:
+        return self.nbytes
+
+    def __iter__(self) -> Iterator[Buffer]:
+        return iter(self.buffers)
+
+    def __bytes__(self) -> bytes:
+        return b"".join(self.buffers)
+
+    def __repr__(self) -> str:
+        return f"SerializedBuffers({self.nbytes} bytes in {len(self.buffers)} buffers)"
+
+
+def _align4(buffer: bytearray) -> None:
+    """Pad with zeros to a multiple of 4 (relative to the 4-byte encapsulation header, also aligned)."""
+    buffer += _PADDING[len(buffer) & 3]
+
+
+def _string(buffer: bytearray, value: str) -> None:
+    """A CDR string. Like rosidl's C conversion (strlen of the UTF-8 bytes) it ends at the first NUL."""
+    raw = value.encode()
+    nul = raw.find(b"\x00")
+    if nul >= 0:
+        raw = raw[:nul]
+    _align4(buffer)
+    buffer += _U32.pack(len(raw) + 1)
+    buffer += raw
+    buffer += b"\x00"
+
+
+def _header(buffer: bytearray, header: Header) -> None:
+    """``std_msgs/Header`` at the start of the body (offset 0, so the stamp needs no padding)."""
+    stamp = header.stamp
+    buffer += _STAMP.pack(stamp.sec, stamp.nanosec)
+    _string(buffer, header.frame_id)
+
+
+def _payload(data: Any) -> memoryview | None:
+    """``data`` as a flat view of bytes, or ``None`` if it is not a contiguous byte buffer."""
+    try:
+        view = memoryview(data)
+    except TypeError:
+        return None
+    if not view.c_contiguous:
+        return None
+    return view if view.format == "B" and view.ndim == 1 else view.cast("B")
+
+
+def _finish(prefix: bytearray, data: memoryview, suffix: bytes) -> bytes | SerializedBuffers:
+    """Prefix (ending with the sequence length), payload, suffix: as views if the payload is big."""
+    if len(data) >= MIN_BUFFERS_SIZE:
+        return SerializedBuffers((bytes(prefix), data, suffix) if suffix else (bytes(prefix), data))
+    prefix += data
+    prefix += suffix
+    return bytes(prefix)
+
+
+def _image(msg: Image) -> bytes | SerializedBuffers | None:
+    data = _payload(msg.data)
+    if data is None:
+        return None
+    buffer = bytearray(CDR_LE_HEADER)
+    _header(buffer, msg.header)
+    _align4(buffer)
+    buffer += _U32_PAIR.pack(msg.height, msg.width)
+    _string(buffer, msg.encoding)
+    buffer.append(msg.is_bigendian)
+    _align4(buffer)
+    buffer += _U32_PAIR.pack(msg.step, len(data))
+    return _finish(buffer, data, b"")
+
+
+def _point_cloud2(msg: PointCloud2) -> bytes | SerializedBuffers | None:
+    data = _payload(msg.data)
+    if data is None:
+        return None
+    buffer = bytearray(CDR_LE_HEADER)
+    _header(buffer, msg.header)
+    _align4(buffer)
+    fields = msg.fields
+    buffer += _U32_PAIR.pack(msg.height, msg.width)
+    buffer += _U32.pack(len(fields))
+    for field in fields:  # sensor_msgs/PointField: string name, uint32 offset, uint8 datatype, uint32 count
+        _string(buffer, field.name)
+        _align4(buffer)
+        buffer += _U32.pack(field.offset)
+        buffer.append(field.datatype)
+        _align4(buffer)
+        buffer += _U32.pack(field.count)
+    buffer.append(1 if msg.is_bigendian else 0)
+    _align4(buffer)
+    buffer += _U32_PAIR.pack(msg.point_step, msg.row_step)
+    buffer += _U32.pack(len(data))
+    return _finish(buffer, data, b"\x01" if msg.is_dense else b"\x00")
+
+
+def _compressed_image(msg: CompressedImage) -> bytes | SerializedBuffers | None:
+    data = _payload(msg.data)
+    if data is None:
+        return None
+    buffer = bytearray(CDR_LE_HEADER)
+    _header(buffer, msg.header)
+    _string(buffer, msg.format)
+    _align4(buffer)
+    buffer += _U32.pack(len(data))
+    return _finish(buffer, data, b"")
+
+
+# Exact types only: a subclass may add fields these encoders would not write.
+_ENCODERS: dict[type, Callable[[Any], bytes | SerializedBuffers | None]] = {
+    Image: _image,
+    PointCloud2: _point_cloud2,
+    CompressedImage: _compressed_image,
+}
+
+
+def serialize(msg: Any) -> bytes | SerializedBuffers:
+    """The CDR serialization of ``msg``, as ``serialize_message`` would produce it (padding zeroed).
+
+    Image, PointCloud2 and CompressedImage messages with a payload of at least
+    :data:`MIN_BUFFERS_SIZE` bytes come back as :class:`SerializedBuffers` that reference
+    ``msg.data``; everything else as ``bytes``.
+    """
+    encoder = _ENCODERS.get(type(msg))
+    if encoder is not None:
+        result = encoder(msg)
+        if result is not None:
+            return result
+    return serialize_message(msg)
