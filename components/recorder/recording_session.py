@@ -14,8 +14,7 @@ import time
 from collections import Counter, deque
 from typing import Any, Callable
 
-from rclpy.serialization import serialize_message
-
+from components.recorder import cdr_fast
 from components.recorder.bag_writer import BagWriteError, BagWriter
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.metadata import TopicInfo
@@ -41,7 +40,7 @@ class RecordingSession:
 
     def __init__(self, options: RecordOptions, uri: str, logger: Any,
                  on_split: Callable[[str, str], None] | None = None,
-                 serialize: Serializer = serialize_message, queue_drops: QueueDrops | None = None) -> None:
+                 serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None) -> None:
         self._logger = logger
         self._serialize = serialize
         self._queue_drops = queue_drops
