@@ -709,23 +709,33 @@ def run_ceiling(bench: Bench, scenario: Scenario) -> dict[str, Any]:
     spec_path = bench.workdir / f"{tag}.json"
     data_path = bench.workdir / f"{tag}.bin"
     spec_path.write_text(json.dumps({"path": str(data_path), "sizes": [size for _, size in events]}))
+    runs = []
     try:
-        busy0 = machine_busy_seconds()
-        done = subprocess.run([sys.executable, "-c", CEILING_WORKER, str(spec_path)], capture_output=True,
-                              text=True, timeout=600)
-        busy1 = machine_busy_seconds()
-        if done.returncode != 0:
-            raise RuntimeError(f"ceiling writer failed: {done.stderr.strip()}")
-        out = json.loads(done.stdout)
+        for _ in range(max(1, bench.args.ceiling_repeats)):
+            busy0 = machine_busy_seconds()
+            done = subprocess.run([sys.executable, "-c", CEILING_WORKER, str(spec_path)], capture_output=True,
+                                  text=True, timeout=600)
+            busy1 = machine_busy_seconds()
+            data_path.unlink(missing_ok=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"ceiling writer failed: {done.stderr.strip()}")
+            out = json.loads(done.stdout)
+            # machine CPU during the writer's life (start-up, fsync, kernel writeback included) not spent writing
+            out["background_cpu_s"] = max(0.0, busy1 - busy0 - out["cpu_s"])
+            runs.append(out)
     finally:
         data_path.unlink(missing_ok=True)
         spec_path.unlink(missing_ok=True)
+    # the median run: single runs vary several-fold with the page cache's state (a write right after a big
+    # unlink reuses free pages at memcpy speed; a cold one reclaims or waits for writeback)
+    out = sorted(runs, key=lambda r: r["seconds"])[len(runs) // 2]
     return {"mode": "ceiling", "scenario": scenario.key, "recorded_bytes": out["bytes"], "messages": len(events),
-            "write_s": out["seconds"], "mb_per_s": out["bytes"] / MB / out["seconds"],
+            "write_s": out["seconds"], "window_s": out["seconds"] + out["fsync_s"],
+            "mb_per_s": out["bytes"] / MB / out["seconds"],
             "mb_per_s_with_fsync": out["bytes"] / MB / (out["seconds"] + out["fsync_s"]),
             "total_cpu_s": out["cpu_s"], "total_cpu_s_per_gb": out["cpu_s"] / (out["bytes"] / GB),
-            # machine CPU during the writer's life (start-up and fsync included) not spent writing
-            "background_cpu_s": max(0.0, busy1 - busy0 - out["cpu_s"])}
+            "background_cpu_s": out["background_cpu_s"],
+            "all_runs_mb_per_s": [r["bytes"] / MB / r["seconds"] for r in runs]}
 
 
 # ----------------------------------------------------------------------------------------------- reporting
@@ -833,11 +843,16 @@ def notes(results: dict[str, Any]) -> list[str]:
         e = results.get(mode)
         if e and "error" not in e and (e.get("background_cpu_s") or 0) > 0.1 * e.get("window_s", 10) * (os.cpu_count() or 1):
             out.append(f"{mode}: other processes used {e['background_cpu_s']:.1f} CPU s during the window "
-                       "(a busy machine: numbers are perturbed)")
+                       "(a busy machine: numbers are perturbed)"
+                       + (" - includes the kernel writing the ceiling's own file back" if mode == "ceiling" else ""))
+        if e and e.get("attempts", 1) > 1:
+            out.append(f"{mode}: run {e['attempts']} times because other processes perturbed it; the least "
+                       "perturbed run is shown")
     if results.get("ceiling"):
         c = results["ceiling"]
         out.append(f"ceiling: {c['recorded_bytes'] / MB:.0f} MB in {c['messages']} writes, {c['write_s']:.2f} s "
-                   f"({c['mb_per_s_with_fsync']:.0f} MB/s including a final fsync)")
+                   f"({c['mb_per_s_with_fsync']:.0f} MB/s including a final fsync); median of "
+                   + ", ".join(f"{v:.0f}" for v in c["all_runs_mb_per_s"]) + " MB/s")
     return out
 
 
@@ -881,7 +896,8 @@ def print_s2(s2: dict[str, Any]) -> None:
               + ("" if s2["limit_reached"].get(mode) else f" (no loss up to the cap of {s2['cap']})"))
     if s2.get("ceiling"):
         c = s2["ceiling"]
-        print(f"  ceiling for the ipc overload step ({c['cameras']} cameras): {c['mb_per_s']:.0f} MB/s")
+        print(f"  ceiling for the ipc overload step ({c['cameras']} cameras): {c['mb_per_s']:.0f} MB/s (median of "
+              + ", ".join(f"{v:.0f}" for v in c["all_runs_mb_per_s"]) + ")")
 
 
 def print_s3(s3: dict[str, Any], scenario: Scenario) -> None:
@@ -1051,6 +1067,11 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p.add_argument("--quiet-wait", type=float, default=15.0,
                    help="before each mode, wait up to this long for other processes to go quiet (0: never)")
     p.add_argument("--quiet-cpu", type=float, default=0.3, help="'quiet': other processes use at most this many CPUs")
+    p.add_argument("--retries", type=int, default=1,
+                   help="repeat a run during which other processes used more than --retry-cpu CPUs on average "
+                        "this many times; the least perturbed run is reported")
+    p.add_argument("--retry-cpu", type=float, default=0.5)
+    p.add_argument("--ceiling-repeats", type=int, default=3, help="ceiling runs per scenario; the median counts")
     p.add_argument("--output-dir", default=".", help="where the temporary bag directory is created")
     p.add_argument("--keep-bags", action="store_true", help="do not delete the bags (debugging)")
     p.add_argument("--json", metavar="FILE", help="also write the results as JSON ('-' for stdout)")
@@ -1080,27 +1101,51 @@ def wait_for_quiet(bench: Bench) -> tuple[float, float]:
             return waited, load
 
 
-def guarded(bench: Bench, label: str, run: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-    waited, load = wait_for_quiet(bench) if bench.args.quiet_wait > 0 else (0.0, float("nan"))
-    bench.log(f"[{time.strftime('%H:%M:%S')}] {label} ..."
-              + (f" (waited {waited:.0f} s for other processes; machine load now {load:.2f} CPUs)"
-                 if waited > 1.5 else ""))
-    started = time.monotonic()
-    try:
-        result = run()
-        result["quiet_wait_s"], result["load_before_cpus"] = waited, load
-    except Exception as exc:  # noqa: BLE001 - one failed mode is reported, the others still run
-        bench.log(f"    FAILED: {type(exc).__name__}: {exc}")
-        return {"error": f"{type(exc).__name__}: {exc}"}
-    summary = []
-    if "lost" in result:
-        summary.append(f"lost {result['lost']}/{result['published']}, pub>={100 * result['min_pub_ratio']:.0f}%nom")
-    if "mb_per_s" in result:
-        summary.append(f"{result['mb_per_s']:.0f} MB/s")
-    if "total_cpu_s" in result:
-        summary.append(f"cpu {result['total_cpu_s']:.1f} s")
-    bench.log(f"    done in {time.monotonic() - started:.0f} s: {', '.join(summary)}")
-    return result
+def perturbed(result: dict[str, Any], args: argparse.Namespace) -> bool:
+    """Other processes used more than --retry-cpu CPUs on average during the window."""
+    window = result.get("window_s") or 0.0
+    return window > 0 and (result.get("background_cpu_s") or 0.0) / window > args.retry_cpu
+
+
+def guarded(bench: Bench, label: str, run: Callable[[], dict[str, Any]], retry: bool = True) -> dict[str, Any]:
+    """Run one mode; a run perturbed by other processes is repeated (--retries) and the least perturbed kept."""
+    attempts: list[dict[str, Any]] = []
+    for attempt in range(1 + (bench.args.retries if retry else 0)):
+        waited, load = wait_for_quiet(bench) if bench.args.quiet_wait > 0 else (0.0, float("nan"))
+        bench.log(f"[{time.strftime('%H:%M:%S')}] {label}{' (repeat: the last run was perturbed)' if attempt else ''}"
+                  " ..." + (f" (waited {waited:.0f} s for other processes; machine load now {load:.2f} CPUs)"
+                            if waited > 1.5 else ""))
+        started = time.monotonic()
+        try:
+            result = run()
+            result["quiet_wait_s"], result["load_before_cpus"] = waited, load
+        except Exception as exc:  # noqa: BLE001 - one failed mode is reported, the others still run
+            bench.log(f"    FAILED: {type(exc).__name__}: {exc}")
+            result = {"error": f"{type(exc).__name__}: {exc}"}
+            if attempts:
+                break
+            return result
+        summary = []
+        if "lost" in result:
+            summary.append(f"lost {result['lost']}/{result['published']}, "
+                           f"pub>={100 * result['min_pub_ratio']:.0f}%nom")
+        if "mb_per_s" in result:
+            summary.append(f"{result['mb_per_s']:.0f} MB/s")
+        if "total_cpu_s" in result:
+            summary.append(f"cpu {result['total_cpu_s']:.1f} s")
+        if "background_cpu_s" in result:
+            summary.append(f"other processes {result['background_cpu_s']:.1f} CPU s")
+        bench.log(f"    done in {time.monotonic() - started:.0f} s: {', '.join(summary)}")
+        attempts.append(result)
+        if not perturbed(result, bench.args):
+            break
+    best = min(attempts, key=lambda r: r.get("background_cpu_s") or 0.0)
+    best["attempts"] = len(attempts)
+    if len(attempts) > 1:
+        best["other_attempts"] = [{k: r.get(k) for k in ("lost", "published", "mb_per_s", "total_cpu_s",
+                                                          "background_cpu_s", "lossless")}
+                                  for r in attempts if r is not best]
+    return best
 
 
 def main(argv: Optional[list[str]] = None) -> int:
@@ -1129,7 +1174,7 @@ def main(argv: Optional[list[str]] = None) -> int:
             if "drivers" in args.mode_set:
                 s1["drivers"] = guarded(bench, "S1 drivers only", lambda: run_drivers_only(bench, scenario))
             if "ceiling" in args.mode_set:
-                s1["ceiling"] = guarded(bench, "S1 ceiling", lambda: run_ceiling(bench, scenario))
+                s1["ceiling"] = guarded(bench, "S1 ceiling", lambda: run_ceiling(bench, scenario), retry=False)
             apply_recorder_cpu(s1)
             report["S1"] = s1
         if "s2" in args.scenario_set:
@@ -1152,7 +1197,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                     if mode == "ipc" and "error" not in step:
                         s2["ipc_overload"] = {"cameras": cameras, "mb_per_s": step["mb_per_s"]}
                         ceiling = guarded(bench, f"S2 ceiling {cameras} camera(s)",
-                                          lambda: run_ceiling(bench, scenario))
+                                          lambda: run_ceiling(bench, scenario), retry=False)
                         if "error" not in ceiling:
                             s2["ceiling"] = {**ceiling, "cameras": cameras}
                     break
