@@ -17,6 +17,7 @@ Every container is stopped (by pid) and every tmpfs unmounted by the fixture or 
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import os
 import re
@@ -553,6 +554,7 @@ def probe() -> Iterator[Node]:
     node = Node("recorder_test_probe")
     yield node
     node.destroy_node()
+    gc.collect()  # executors made for service calls go while their context is valid (no noise from __del__)
     rclpy.shutdown()
 
 
