@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import NoReturn, Protocol
 
 from .mcap_storage import McapStorage
+from .cdr_fast import CdrData
 from .message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
 from .metadata import BagMetadata, FileInfo, TopicInfo
 from .sqlite_storage import SqliteStorage
@@ -56,7 +57,7 @@ class _Storage(Protocol):
     def add_topic(self, topic: TopicInfo, definition: tuple[str, str]) -> None: ...
 
     def write(
-        self, topic: str, data: bytes | bytearray | memoryview, log_time_ns: int, publish_time_ns: int
+        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int
     ) -> None: ...
 
     def close(self, serialized_metadata: str = "") -> FileInfo: ...
@@ -238,7 +239,7 @@ class BagWriter:
             self._file_counts[info.name] = 0
 
     def write(
-        self, topic: str, data: bytes | bytearray | memoryview, log_time_ns: int, publish_time_ns: int
+        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int
     ) -> None:
         """Write one CDR-serialized message (with its 4-byte encapsulation header).
 

@@ -27,7 +27,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import Header
 
-__all__ = ["CDR_LE_HEADER", "MIN_BUFFERS_SIZE", "SerializedBuffers", "serialize"]
+__all__ = ["CDR_LE_HEADER", "MIN_BUFFERS_SIZE", "CdrData", "SerializedBuffers", "serialize"]
 
 #: Encapsulation header of little-endian plain CDR (what rmw_fastrtps_cpp and rosbag2 write).
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
@@ -103,6 +103,10 @@ def _payload(data: Any) -> memoryview | None:
     if not view.c_contiguous:
         return None
     return view if view.format == "B" and view.ndim == 1 else view.cast("B")
+
+
+#: What the storages accept as one serialized message.
+CdrData = bytes | bytearray | memoryview | SerializedBuffers
 
 
 def _finish(prefix: bytearray, data: memoryview, suffix: bytes) -> bytes | SerializedBuffers:

@@ -15,12 +15,13 @@ from collections import Counter, deque
 from typing import Any, Callable
 
 from components.recorder import cdr_fast
+from components.recorder.cdr_fast import CdrData
 from components.recorder.bag_writer import BagWriteError, BagWriter
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
-Serializer = Callable[[Any], bytes]
+Serializer = Callable[[Any], CdrData]
 #: Per topic, messages lost before the intake during this session (the subscriptions' queue overflows).
 QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
@@ -45,6 +46,7 @@ class RecordingSession:
         self._serialize = serialize
         self._queue_drops = queue_drops
         self._last_log_time = 0
+        self._monotonic_log_times = options.storage_preset_profile == "fastwrite"
         self.writer = BagWriter(uri, options.storage_id, options.max_bagfile_size,
                                 options.max_bagfile_duration, options.storage_preset_profile,
                                 options.custom_data or None, on_split)
@@ -120,10 +122,12 @@ class RecordingSession:
         payload = message.payload
         data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
         message.payload = None  # let the message object go as soon as it is serialized
-        # Log times ascend in the file: readers of unindexed MCAP files (fastwrite), rosbags among them, refuse
-        # files where they do not. A message that reached the intake after a newer one was written (another
-        # topic's queue was served first) is stamped with that newer time.
-        log_time = self._last_log_time = max(message.log_time_ns, self._last_log_time)
+        # Unindexed MCAP files (fastwrite) must have ascending log times: their readers, rosbags among them,
+        # refuse files where they do not. There, a message that reached the intake after a newer one was
+        # written (another topic's queue was served first) is stamped with that newer time.
+        log_time = message.log_time_ns
+        if self._monotonic_log_times:
+            log_time = self._last_log_time = max(log_time, self._last_log_time)
         try:
             self.writer.write(message.topic, data, log_time, message.publish_time_ns)
             self.handed[message.topic] += 1

@@ -13,6 +13,7 @@ import errno
 import sqlite3
 from pathlib import Path
 
+from .cdr_fast import CdrData
 from .message_definitions import MessageDefinitionNotFoundError, type_hash
 from .metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
@@ -161,7 +162,7 @@ class SqliteStorage:
         self._counts[topic.name] = 0
 
     def write(
-        self, topic: str, data: bytes | bytearray | memoryview, log_time_ns: int, publish_time_ns: int
+        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int
     ) -> None:
         """Queue one message (only the log time is stored); commits when the batch is full."""
         del publish_time_ns
