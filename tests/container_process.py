@@ -67,10 +67,28 @@ class ContainerClient:
         self._list = node.create_client(ListNodes, f"{container}/_container/list_nodes")
 
     def wait(self, timeout: float = 20.0) -> None:
+        """Wait until the three services are discovered *and* replies come back.
+
+        ``wait_for_service`` returns once this side has matched the service's endpoints; the container may
+        not have matched this client's reply reader yet, and Fast DDS then drops the reply ("failed to send
+        response (timeout)") and the caller waits forever, the race launch_ros and ``ros2 component`` users
+        hit too. So each service is called with a harmless request until it answers once: ListNodes,
+        UnloadNode of id 0 (never allocated) and a LoadNode of an empty package name (refused before an id
+        is allocated).
+        """
         deadline = time.monotonic() + timeout
         for client in (self._load, self._unload, self._list):
             if not client.wait_for_service(timeout_sec=max(0.1, deadline - time.monotonic())):
                 raise AssertionError(f"service {client.srv_name} did not appear within {timeout} s")
+        for client, request in ((self._list, ListNodes.Request()), (self._unload, UnloadNode.Request()),
+                                (self._load, LoadNode.Request())):
+            while True:
+                try:
+                    self._call(client, request, timeout=1.0)
+                    break
+                except AssertionError:
+                    if time.monotonic() > deadline:
+                        raise
 
     def _call(self, client: Any, request: Any, timeout: float = 20.0) -> Any:
         future = client.call_async(request)

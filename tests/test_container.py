@@ -17,7 +17,6 @@ from typing import Any, Callable, Iterator
 
 import pytest
 import rclpy
-from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rcl_interfaces.msg import Log, ParameterType
 from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
@@ -110,30 +109,6 @@ def listing(client: ContainerClient) -> list[tuple[int, str]]:
     return list(zip(response.unique_ids, response.full_node_names))
 
 
-class ReadyContainerClient(ContainerClient):
-    """ContainerClient whose ``wait`` also makes sure replies can come back.
-
-    ``wait_for_service`` returns once this side has matched the service's endpoints; the container may not
-    have matched this client's reply reader yet, and Fast DDS then drops the reply ("failed to send response
-    (timeout)") and the caller waits forever, the race launch_ros and ``ros2 component`` users hit too. So
-    each service is called with a harmless request until it answers once: ListNodes, UnloadNode of id 0 (never
-    allocated) and a LoadNode of an empty package name (refused before an id is allocated).
-    """
-
-    def wait(self, timeout: float = 20.0) -> None:
-        super().wait(timeout)
-        deadline = time.monotonic() + timeout
-        for client, request in ((self._list, ListNodes.Request()), (self._unload, UnloadNode.Request()),
-                                (self._load, LoadNode.Request())):
-            while True:
-                try:
-                    self._call(client, request, timeout=1.0)
-                    break
-                except AssertionError:
-                    if time.monotonic() > deadline:
-                        raise
-
-
 # --- fixtures ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module", autouse=True)
 def ros() -> Iterator[None]:
@@ -164,7 +139,7 @@ class Containers:
               wait: bool = True) -> tuple[ContainerProcess, ContainerClient]:
         process = ContainerProcess(*args, cwd=str(REPO))
         self.started.append(process)
-        client = ReadyContainerClient(self.probe, container)
+        client = ContainerClient(self.probe, container)
         if wait:
             try:
                 client.wait()
@@ -328,7 +303,7 @@ def error_container(ros: None) -> Iterator[tuple[ContainerProcess, ContainerClie
     # a name of its own: it runs alongside the other tests' /ComponentManager containers
     process = ContainerProcess("--allow-module-plugins", name="error_container", cwd=str(REPO))
     with process:
-        client = ReadyContainerClient(node, "/error_container")
+        client = ContainerClient(node, "/error_container")
         client.wait()
         loaded = client.load(TALKER, name="survivor", remaps=["chatter:=survivor_chatter"])
         assert loaded.success and loaded.unique_id == 1

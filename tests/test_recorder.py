@@ -33,7 +33,6 @@ from typing import Any, Callable, Iterator
 import pytest
 import rclpy
 import yaml
-from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.context import Context
@@ -218,31 +217,13 @@ class Recorder:
         self.destroy_clients()
 
 
-class ReadyContainerClient(ContainerClient):
-    """A ContainerClient whose ``wait`` also makes sure replies come back (the race described at Recorder):
-    each service is called with a harmless request until it answers once, as tests/test_container.py does."""
-
-    def wait(self, timeout: float = 20.0) -> None:
-        super().wait(timeout)
-        deadline = time.monotonic() + timeout
-        for client, request in ((self._list, ListNodes.Request()), (self._unload, UnloadNode.Request()),
-                                (self._load, LoadNode.Request())):  # id 0 / empty package: refused, no effect
-            while True:
-                try:
-                    self._call(client, request, timeout=1.0)
-                    break
-                except AssertionError:
-                    if time.monotonic() > deadline:
-                        raise
-
-
 class Rig:
     """A container with drivers, a ContainerClient and the probe node the test process talks through."""
 
     def __init__(self, container: Container, probe: Node) -> None:
         self.container = container
         self.probe = probe
-        self.client = ReadyContainerClient(probe, container.name)
+        self.client = ContainerClient(probe, container.name)
         self.client.wait()
         self.drivers: dict[str, int] = {}
         self.loaded: list[Recorder] = []
