@@ -81,6 +81,27 @@ class RosSession:
         if not found:
             raise CliError(f"Unable to find container node '{container}'")
 
+    def ensure_replies(self, container: str, deadline: float) -> None:
+        """Make sure the container can answer this process before sending a request that must not be lost.
+
+        A service is "ready" once this side has matched it; the container may not have discovered this
+        process's reply readers yet, and Fast DDS then drops the reply. A harmless ListNodes call, repeated
+        until it is answered, waits out that discovery (at most until ``deadline``; then the real call
+        goes ahead and its own timeout applies).
+        """
+        from composition_interfaces.srv import ListNodes
+
+        client = self.node.create_client(ListNodes, f"{container}/_container/list_nodes")
+        try:
+            while time.monotonic() < deadline and client.wait_for_service(timeout_sec=0.1):
+                try:
+                    self.call(client, ListNodes.Request(), container, timeout=min(1.0, deadline - time.monotonic()))
+                    return
+                except CliError:
+                    continue
+        finally:
+            self.node.destroy_client(client)
+
     def call(self, client: Any, request: Any, container: str, timeout: float = CALL_TIMEOUT) -> Any:
         """Call a service and wait for the reply, at most ``timeout`` s; CliError text is the reason."""
         future = client.call_async(request)
@@ -206,6 +227,7 @@ def run_load(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         client = ros.node.create_client(LoadNode, f"{container}/_container/load_node")
         if not client.wait_for_service(timeout_sec=SERVICE_WAIT):
             raise CliError(f"No 'load_node' service found for '{container}' container")
+        ros.ensure_replies(container, time.monotonic() + BUDGET)
         try:
             response = ros.call(client, request, container)
         except CliError as exc:
@@ -242,6 +264,7 @@ def run_unload(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         client = ros.node.create_client(UnloadNode, f"{container}/_container/unload_node")
         if not client.wait_for_service(timeout_sec=SERVICE_WAIT):
             raise CliError(f"No 'unload_node' service found for '{container}' container")
+        ros.ensure_replies(container, time.monotonic() + BUDGET)
         for uid in unique_ids:
             try:
                 response = ros.call(client, UnloadNode.Request(unique_id=uid), container)
