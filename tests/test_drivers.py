@@ -30,7 +30,6 @@ from components.imu_driver import ImuDriver
 from components.lidar_driver import POINT_DTYPE, LidarDriver
 
 SPIN_SECONDS = 1.5
-RATE_TOLERANCE = 0.15
 
 
 class Ros:
@@ -116,22 +115,18 @@ def seq_from_data(msg: Any) -> int:
     return int.from_bytes(bytes(msg.data[:8]), "little")
 
 
-def check_sequence_and_timing(msgs: list[Any], seq_of: Callable[[Any], int], rate: float) -> None:
+def check_sequence_and_stamps(msgs: list[Any], seq_of: Callable[[Any], int]) -> None:
     assert len(msgs) >= 5, f"only {len(msgs)} messages received"
     seqs = [seq_of(m) for m in msgs]
     assert seqs == list(range(len(seqs))), f"sequence not 0, 1, 2 ... without gaps: {seqs[:20]} ..."
     stamps = [stamp_ns(m) for m in msgs]
     assert all(b > a for a, b in zip(stamps, stamps[1:])), "header.stamp not strictly increasing"
-    measured = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
-    assert abs(measured - rate) <= RATE_TOLERANCE * rate, f"average rate {measured:.1f} Hz, requested {rate} Hz"
+    # The rate itself is checked deterministically with a fake clock (test_rate_loop_catches_up_and_caps_bursts);
+    # wall-clock rates of a shared CI machine are not asserted.
 
 
-def check_published_count(driver: Any, elapsed: float, received: int) -> None:
-    expected = driver.rate * elapsed
-    assert abs(driver.published_count - expected) <= RATE_TOLERANCE * expected + 1, \
-        f"published_count {driver.published_count} after {elapsed:.2f} s at {driver.rate} Hz"
+def check_published_count(driver: Any, received: int) -> None:
     assert driver.published_count == received, "reliable: every published message should arrive"
-    assert driver.skipped_count == 0
 
 
 # ---------------------------------------------------------------------------------------------- camera
@@ -140,11 +135,11 @@ def test_camera_publishes_images_and_camera_info(ros):
     assert camera.rate == 30.0 and camera.width == 320 and camera.encoding == "rgb8"
     images = ros.listen(Image, topic_of(camera, "~/image_raw"))
     infos = ros.listen(CameraInfo, topic_of(camera, "~/camera_info"))
-    elapsed = ros.spin(camera)
+    ros.spin(camera)
 
     msgs = [m for _, m in images]
-    check_sequence_and_timing(msgs, seq_from_data, 30.0)
-    check_published_count(camera, elapsed, len(msgs))
+    check_sequence_and_stamps(msgs, seq_from_data)
+    check_published_count(camera, len(msgs))
     for msg in msgs:
         assert (msg.width, msg.height, msg.encoding, msg.step) == (320, 240, "rgb8", 960)
         assert len(msg.data) == 960 * 240
@@ -203,11 +198,11 @@ def test_camera_frames_are_fresh_objects(ros):
 def test_lidar_publishes_point_clouds(ros):
     lidar = ros.driver(LidarDriver, "lidar", points_per_scan=4096, rings=16, rate=20.0)
     clouds = ros.listen(PointCloud2, topic_of(lidar, "~/points"))
-    elapsed = ros.spin(lidar)
+    ros.spin(lidar)
 
     msgs = [m for _, m in clouds]
-    check_sequence_and_timing(msgs, seq_from_data, 20.0)
-    check_published_count(lidar, elapsed, len(msgs))
+    check_sequence_and_stamps(msgs, seq_from_data)
+    check_published_count(lidar, len(msgs))
     expected_fields = [("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
                        ("intensity", 12, PointField.FLOAT32), ("ring", 16, PointField.UINT16),
                        ("time", 20, PointField.FLOAT32)]
@@ -242,11 +237,11 @@ def test_lidar_large_scan(ros):
 def test_imu_publishes_at_1khz(ros):
     imu = ros.driver(ImuDriver, "imu", rate=1000.0)
     received = ros.listen(Imu, topic_of(imu, "~/imu"))
-    elapsed = ros.spin(imu)
+    ros.spin(imu)
 
     msgs = [m for _, m in received]
-    check_sequence_and_timing(msgs, lambda m: int(m.orientation_covariance[1]), 1000.0)
-    check_published_count(imu, elapsed, len(msgs))
+    check_sequence_and_stamps(msgs, lambda m: int(m.orientation_covariance[1]))
+    check_published_count(imu, len(msgs))
     for msg in msgs:
         assert msg.header.frame_id == "imu"
         assert msg.orientation_covariance[0] == -1.0
@@ -261,7 +256,7 @@ def test_imu_default_rate(ros):
     imu = ros.driver(ImuDriver, "imu")
     received = ros.listen(Imu, topic_of(imu, "~/imu"))
     ros.spin(imu, seconds=1.0)
-    check_sequence_and_timing([m for _, m in received], lambda m: int(m.orientation_covariance[1]), 200.0)
+    check_sequence_and_stamps([m for _, m in received], lambda m: int(m.orientation_covariance[1]))
 
 
 # ---------------------------------------------------------------------------------------------- shared
