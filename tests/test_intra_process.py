@@ -86,6 +86,7 @@ def test_external_subscriber_gets_everything_and_local_one_no_duplicates(context
     deadline = time.monotonic() + 10
     while publisher.get_subscription_count() < 2 and time.monotonic() < deadline:
         time.sleep(0.05)  # the local DDS reader and the external one
+    spin_until(outside_exec, lambda: False, timeout=0.5)  # let the reader side finish matching too
     published = [String(data=f"m{i}") for i in range(50)]
     for msg in published:
         publisher.publish(msg)
