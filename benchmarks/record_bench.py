@@ -13,9 +13,12 @@ Usage: ``python benchmarks/record_bench.py [--quick] [--scenarios s1,s2,s3] [--j
 * ``drivers``: the drivers alone, no recorder (the sensors' own CPU cost);
 * ``ceiling``: a plain Python loop writing the same number of bytes, in the same message sizes and order, to
   a file on the same filesystem as the bags (the write-speed limit of this machine in this run); the median
-  of ``--ceiling-repeats`` runs, each after a ``--ceiling-pause`` (see ``run_ceiling``: on a VM the kernel's
-  cost per GB depends several-fold on whether page-cache pages were freed moments ago, and a continuously
-  writing recorder gets fresh ones); every run is listed, and a "warm" run reusing just-freed pages too.
+  of ``--ceiling-repeats`` runs; every run is listed, and a "warm" run reusing just-freed pages too.
+
+Every run (recorder modes, drivers, each ceiling run) starts ``--page-pause`` s after the benchmark last
+deleted a bag or file: on this kind of VM the kernel's cost of a buffered write depends several-fold on
+whether its page-cache pages were freed moments ago (cheap) or are fresh (1.5-2 CPU s/GB, what a continuously
+writing recorder gets), and without the pause whichever mode runs second would write for less.
 
 Scenarios: S1 multi-camera rig (2x 1920x1080 rgb8 @ 30 Hz, LiDAR 131072 points @ 10 Hz, IMU @ 200 Hz, 10 s);
 S2 ramp (1080p 30 Hz cameras added one at a time, on top of the S1 LiDAR and IMU unless ``--s2-base cameras``,
@@ -60,9 +63,11 @@ Definitions
   when ``~/start_recording`` opens the measured bag); the intake callbacks run on the executor thread. The
   subtraction is not additive in practice (rclpy's executor costs less per callback when it is busier), so
   when it comes out below the writer thread's CPU the targets use the writer thread's CPU instead;
-* **other CPU s**: CPU the whole machine spent during the window outside the mode's processes (from
-  /proc/stat): other people's work on a shared machine; before each mode the benchmark waits up to
-  ``--quiet-wait`` s for it to fall below ``--quiet-cpu`` CPUs;
+* **kernel s** / **other s**: CPU the machine spent during the window outside the mode's processes (from
+  /proc/stat and /proc/*/stat): kernel threads and interrupts (the writeback of the bag itself among them:
+  not charged to the recorder, but it competes for the same 2 CPUs), and other people's processes on a
+  shared machine. Before each mode the benchmark waits up to ``--quiet-wait`` s for the machine to go below
+  ``--quiet-cpu`` busy CPUs, and repeats a run where other processes used more than ``--retry-cpu``;
 * **peak RSS** = VmHWM of each process at the end of the run (after finalization), i.e. over its whole life;
 * a step of S2 is **lossless** when no topic lost a message *and* every topic published >= 97 % of nominal.
 
@@ -276,6 +281,63 @@ def thread_groups(before: dict[int, tuple[str, float]], after: dict[int, tuple[s
                  else "fast-dds" if comm.startswith("dds.") else comm)
         groups[group] = groups.get(group, 0.0) + spent
     return {name: round(value, 3) for name, value in sorted(groups.items())}
+
+
+PF_KTHREAD = 0x00200000
+
+
+def machine_snapshot() -> tuple[float, dict[int, tuple[float, bool]]]:
+    """Machine busy seconds, and per process (all its threads) CPU seconds and whether it is a kernel thread."""
+    busy = machine_busy_seconds()
+    processes: dict[int, tuple[float, bool]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as stat:
+                fields = stat.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        processes[int(entry)] = ((int(fields[11]) + int(fields[12])) / CLK_TCK, bool(int(fields[6]) & PF_KTHREAD))
+    return busy, processes
+
+
+def other_cpu(before: tuple[float, dict[int, tuple[float, bool]]], after: tuple[float, dict[int, tuple[float, bool]]],
+              ours: float, our_pids: set[int]) -> tuple[float, float]:
+    """(CPU s of other user processes, CPU s of the kernel: its threads, interrupts) between two snapshots.
+
+    The kernel share includes the writeback of our own bags and, in a VM, the I/O it causes.
+    """
+    user = 0.0
+    for pid, (seconds, kernel) in after[1].items():
+        if pid in our_pids or kernel:
+            continue
+        user += seconds - before[1].get(pid, (0.0, False))[0]
+    total_other = max(0.0, after[0] - before[0] - ours)
+    user = min(max(0.0, user), total_other)
+    return user, total_other - user
+
+
+def dirty_pages_mb() -> tuple[float, float]:
+    """(dirty + under-writeback page cache, the kernel's dirty threshold) in MB, from /proc/vmstat."""
+    values = {}
+    with open("/proc/vmstat") as vmstat:
+        for line in vmstat:
+            name, _, value = line.partition(" ")
+            values[name] = int(value)
+    page_mb = os.sysconf("SC_PAGE_SIZE") / MB
+    return ((values.get("nr_dirty", 0) + values.get("nr_writeback", 0)) * page_mb,
+            values.get("nr_dirty_threshold", 0) * page_mb)
+
+
+def sleep_watching_dirty(seconds: float) -> float:
+    """Sleep, sampling the dirty page cache twice a second; returns its peak in MB."""
+    deadline = time.monotonic() + seconds
+    peak = dirty_pages_mb()[0]
+    while (remaining := deadline - time.monotonic()) > 0:
+        time.sleep(min(0.5, remaining))
+        peak = max(peak, dirty_pages_mb()[0])
+    return peak
 
 
 def peak_rss_mb(pid: int) -> float:
@@ -515,7 +577,8 @@ class Bench:
     ros: RosClient
     counter: int = 0
     log: Callable[[str], None] = print
-    drivers_cache: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: when the benchmark last deleted a big file (see wait_for_fresh_pages)
+    last_free: float = 0.0
 
     def next_tag(self, scenario: Scenario, mode: str) -> str:
         self.counter += 1
@@ -599,12 +662,12 @@ def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, 
         t0 = time.time_ns()
         cpu0 = {c.label: cpu_times(c.pid) for c in containers}
         threads0 = {c.label: thread_cpu(c.pid) for c in containers}
-        busy0 = machine_busy_seconds()
-        time.sleep(scenario.seconds)
+        machine0 = machine_snapshot()
+        peak_dirty = sleep_watching_dirty(scenario.seconds)
         t1 = time.time_ns()
         cpu1 = {c.label: cpu_times(c.pid) for c in containers}
         threads1 = {c.label: thread_cpu(c.pid) for c in containers}
-        busy1 = machine_busy_seconds()
+        machine1 = machine_snapshot()
         live = json.loads(bench.ros.call(get_stats).message)["current"]
         time.sleep(args.drain)
         final_reply = bench.ros.call(stop, timeout=120.0)
@@ -626,11 +689,14 @@ def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, 
         if not args.keep_bags:
             shutil.rmtree(bag, ignore_errors=True)
             shutil.rmtree(uri, ignore_errors=True)
+            bench.last_free = time.monotonic()
     counts = window_counts(read["records"], topics, t0, t1)
     window_s = (t1 - t0) / 1e9
     cpu = {label: sum(cpu1[label]) - sum(cpu0[label]) for label in cpu0}
     result["cpu_sys_s"] = {label: cpu1[label][1] - cpu0[label][1] for label in cpu0}
-    result["background_cpu_s"] = max(0.0, busy1 - busy0 - sum(cpu.values()))
+    result["background_cpu_s"], result["kernel_cpu_s"] = other_cpu(
+        machine0, machine1, sum(cpu.values()), {c.pid for c in containers} | {os.getpid()})
+    result["peak_dirty_mb"], result["dirty_threshold_mb"] = peak_dirty, dirty_pages_mb()[1]
     result["thread_cpu_s"] = {label: thread_groups(threads0[label], threads1[label],
                                                    writer_tids if label == recorder_proc.label else set())
                               for label in threads0}
@@ -680,12 +746,12 @@ def run_drivers_only(bench: Bench, scenario: Scenario) -> dict[str, Any]:
         t0 = time.time_ns()
         cpu0 = cpu_times(container.pid)
         threads0 = thread_cpu(container.pid)
-        busy0 = machine_busy_seconds()
+        machine0 = machine_snapshot()
         time.sleep(scenario.seconds)
         t1 = time.time_ns()
         cpu1 = cpu_times(container.pid)
         threads1 = thread_cpu(container.pid)
-        busy1 = machine_busy_seconds()
+        machine1 = machine_snapshot()
         rss = peak_rss_mb(container.pid)
         if not container.alive():
             raise RuntimeError("the drivers container died during the measurement")
@@ -693,9 +759,10 @@ def run_drivers_only(bench: Bench, scenario: Scenario) -> dict[str, Any]:
         bench.ros.node.destroy_client(client)
         container.stop()
     cpu = sum(cpu1) - sum(cpu0)
+    user_other, kernel_other = other_cpu(machine0, machine1, cpu, {container.pid, os.getpid()})
     return {"mode": "drivers", "scenario": scenario.key, "window_s": (t1 - t0) / 1e9, "total_cpu_s": cpu,
             "cpu_s": {"drivers": cpu}, "cpu_sys_s": {"drivers": cpu1[1] - cpu0[1]}, "peak_rss_mb": {"drivers": rss},
-            "background_cpu_s": max(0.0, busy1 - busy0 - cpu),
+            "background_cpu_s": user_other, "kernel_cpu_s": kernel_other,
             "thread_cpu_s": {"drivers": thread_groups(threads0, threads1, set())},
             "source_skips_logged": source_skips(container.log_text())}
 
@@ -713,40 +780,43 @@ def run_ceiling(bench: Bench, scenario: Scenario) -> dict[str, Any]:
     data_path = bench.workdir / f"{tag}.bin"
     spec_path.write_text(json.dumps({"path": str(data_path), "sizes": [size for _, size in events]}))
     def write_once() -> dict[str, Any]:
-        busy0 = machine_busy_seconds()
+        machine0 = machine_snapshot()
         done = subprocess.run([sys.executable, "-c", CEILING_WORKER, str(spec_path)], capture_output=True,
                               text=True, timeout=600)
-        busy1 = machine_busy_seconds()
+        machine1 = machine_snapshot()
         data_path.unlink(missing_ok=True)
         if done.returncode != 0:
             raise RuntimeError(f"ceiling writer failed: {done.stderr.strip()}")
         out = json.loads(done.stdout)
-        # machine CPU during the writer's life (start-up, fsync, kernel writeback included) not spent writing
-        out["background_cpu_s"] = max(0.0, busy1 - busy0 - out["cpu_s"])
+        # other processes, and the kernel (its writeback of this file included), during the writer's life
+        out["background_cpu_s"], out["kernel_cpu_s"] = other_cpu(machine0, machine1, out["cpu_s"], {os.getpid()})
         return out
 
     # On this kind of VM the kernel's cost of a buffered write depends several-fold on the page-cache pages
     # it gets: pages a big unlink freed moments ago are reused at ~0.2 CPU s/GB (GB/s), while after a few
     # seconds the guest has handed them back to the host and fresh pages cost ~1.5-2 CPU s/GB (~500 MB/s).
     # A recorder writing continuously lives in the second regime, so each ceiling run waits
-    # --ceiling-pause seconds first; the median of those runs is the ceiling. One more run straight after
+    # --page-pause seconds after the last deletion first; the median of those runs is the ceiling. One more run straight after
     # (reusing the pages just freed) is reported as the warm, burst figure.
+    # --page-pause: see wait_for_fresh_pages.
     runs = []
     try:
         for _ in range(max(1, bench.args.ceiling_repeats)):
-            time.sleep(bench.args.ceiling_pause)
+            wait_for_fresh_pages(bench)
             runs.append(write_once())
+            bench.last_free = time.monotonic()
         warm = write_once()
     finally:
         data_path.unlink(missing_ok=True)
         spec_path.unlink(missing_ok=True)
+        bench.last_free = time.monotonic()
     out = sorted(runs, key=lambda r: r["seconds"])[len(runs) // 2]
     return {"mode": "ceiling", "scenario": scenario.key, "recorded_bytes": out["bytes"], "messages": len(events),
             "write_s": out["seconds"], "window_s": out["seconds"] + out["fsync_s"],
             "mb_per_s": out["bytes"] / MB / out["seconds"],
             "mb_per_s_with_fsync": out["bytes"] / MB / (out["seconds"] + out["fsync_s"]),
             "total_cpu_s": out["cpu_s"], "total_cpu_s_per_gb": out["cpu_s"] / (out["bytes"] / GB),
-            "background_cpu_s": out["background_cpu_s"],
+            "background_cpu_s": out["background_cpu_s"], "kernel_cpu_s": out["kernel_cpu_s"],
             "all_runs_mb_per_s": [r["bytes"] / MB / r["seconds"] for r in runs],
             "all_runs_cpu_s_per_gb": [r["cpu_s"] / (r["bytes"] / GB) for r in runs],
             "warm_mb_per_s": warm["bytes"] / MB / warm["seconds"],
@@ -815,7 +885,7 @@ def mode_table(results: dict[str, Any]) -> str:
         if not e:
             continue
         if "error" in e:
-            rows.append([mode, "ERROR: " + e["error"][:60]] + [""] * 13)
+            rows.append([mode, "ERROR: " + e["error"][:60]] + [""] * 14)
             continue
         lat = e.get("latency_ms") or {}
         rss = e.get("peak_rss_mb") or {}
@@ -827,9 +897,10 @@ def mode_table(results: dict[str, Any]) -> str:
             fmt(e.get("total_cpu_s"), ".2f"),
             fmt(sum(e["cpu_sys_s"].values()) if "cpu_sys_s" in e else e.get("cpu_sys_s"), ".2f"),
             fmt(e.get("recorder_cpu_s_per_gb"), ".2f"), fmt(e.get("total_cpu_s_per_gb"), ".2f"), rss_text,
-            fmt(lat.get("p50"), ".1f"), fmt(lat.get("p99"), ".1f"), fmt(e.get("background_cpu_s"), ".1f")])
+            fmt(lat.get("p50"), ".1f"), fmt(lat.get("p99"), ".1f"), fmt(e.get("kernel_cpu_s"), ".1f"),
+            fmt(e.get("background_cpu_s"), ".1f")])
     return table(["mode", "published", "recorded", "lost %", "MB/s", "rec CPU s", "writer s", "tot CPU s", "sys s", "rec s/GB",
-                  "tot s/GB", "peak RSS MB", "lat p50 ms", "p99 ms", "other CPU s"], rows)
+                  "tot s/GB", "peak RSS MB", "lat p50 ms", "p99 ms", "kernel s", "other s"], rows)
 
 
 def notes(results: dict[str, Any]) -> list[str]:
@@ -848,6 +919,10 @@ def notes(results: dict[str, Any]) -> list[str]:
                        f"{sum(t.get('written', 0) for t in (e['recorder_counters'] or {}).values())} written")
         if e["recorder_error"]:
             out.append(f"{mode}: recorder error: {e['recorder_error']}")
+        if e.get("dirty_threshold_mb") and e["peak_dirty_mb"] > 0.8 * e["dirty_threshold_mb"]:
+            out.append(f"{mode}: the page cache held up to {e['peak_dirty_mb']:.0f} MB of unwritten data, near the "
+                       f"kernel's dirty limit ({e['dirty_threshold_mb']:.0f} MB): writes get throttled to the "
+                       "disk's writeback speed there")
     if results.get("ipc", {}).get("recorder_cpu_note"):
         out.append("ipc rec CPU = ipc total - drivers-only total (drivers and recorder share one process); "
                    "writer s = CPU of the recorder's bag-writer thread alone (intake runs on the executor thread)")
@@ -858,8 +933,7 @@ def notes(results: dict[str, Any]) -> list[str]:
         e = results.get(mode)
         if e and "error" not in e and (e.get("background_cpu_s") or 0) > 0.1 * e.get("window_s", 10) * (os.cpu_count() or 1):
             out.append(f"{mode}: other processes used {e['background_cpu_s']:.1f} CPU s during the window "
-                       "(a busy machine: numbers are perturbed)"
-                       + (" - includes the kernel writing the ceiling's own file back" if mode == "ceiling" else ""))
+                       "(a busy machine: numbers are perturbed)")
         if e and e.get("attempts", 1) > 1:
             out.append(f"{mode}: run {e['attempts']} times because other processes perturbed it; the least "
                        "perturbed run is shown")
@@ -902,12 +976,14 @@ def print_s2(s2: dict[str, Any]) -> None:
     rows = []
     for step in s2["steps"]:
         if "error" in step:
-            rows.append([step["mode"], str(step["cameras"]), "ERROR " + step["error"][:50], "", "", "", "", "", ""])
+            rows.append([step["mode"], str(step["cameras"]), "ERROR " + step["error"][:50]] + [""] * 7)
             continue
         rows.append([step["mode"], str(step["cameras"]), str(step["lost"]), fmt(step["lost_pct"], ".2f"),
                      fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".1f"),
-                     fmt(step["total_cpu_s"], ".2f"), fmt(step.get("background_cpu_s"), ".1f"), verdict(step)])
-    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "tot CPU s", "other CPU s", "lossless"],
+                     fmt(step["total_cpu_s"], ".2f"), fmt(step.get("kernel_cpu_s"), ".1f"),
+                     fmt(step.get("background_cpu_s"), ".1f"), verdict(step)])
+    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "tot CPU s", "kernel s", "other s",
+                 "lossless"],
                 rows))
     for mode, best in s2["largest_lossless"].items():
         print(f"  largest lossless camera count, {mode}: {best}"
@@ -1058,7 +1134,8 @@ def git_state() -> dict[str, Any]:
 def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="smoke run: S1 only, 3 s window")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke run: S1 only, 3 s window, 3 s page pause, one ceiling run, no repeats")
     p.add_argument("--scenarios", default="s1,s2,s3", help="comma-separated subset of s1,s2,s3")
     p.add_argument("--modes", default="ipc,dds,drivers,ceiling", help="S1/S3 modes to run (S2 always ipc,dds)")
     p.add_argument("--seconds", type=float, default=10.0, help="S1 measured window")
@@ -1091,24 +1168,40 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
                         "this many times; the least perturbed run is reported")
     p.add_argument("--retry-cpu", type=float, default=0.5)
     p.add_argument("--ceiling-repeats", type=int, default=3, help="ceiling runs per scenario; the median counts")
-    p.add_argument("--ceiling-pause", type=float, default=10.0,
-                   help="seconds to wait before each ceiling run, so it writes to fresh page-cache pages as a "
-                        "continuously writing recorder does (see run_ceiling)")
+    p.add_argument("--page-pause", type=float, default=10.0,
+                   help="seconds between deleting a bag (or ceiling file) and the next run, so every run writes "
+                        "to fresh page-cache pages as a continuously writing recorder does (see run_ceiling)")
     p.add_argument("--output-dir", default=".", help="where the temporary bag directory is created")
     p.add_argument("--keep-bags", action="store_true", help="do not delete the bags (debugging)")
     p.add_argument("--json", metavar="FILE", help="also write the results as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="FILE", default="record_bench.png",
                    help="PNG plot (needs matplotlib: the 'plot' extra); '' to skip")
     args = p.parse_args(argv)
-    if args.quick:
+    if args.quick:  # a smoke run: S1 only, short windows and pauses (numbers less careful than a full run)
         args.scenarios = "s1"
         args.seconds = min(args.seconds, 3.0)
+        args.page_pause = min(args.page_pause, 3.0)
+        args.quiet_wait = min(args.quiet_wait, 5.0)
+        args.ceiling_repeats = 1
+        args.retries = 0
     args.scenario_set = {s.strip().lower() for s in args.scenarios.split(",") if s.strip()}
     args.mode_set = {m.strip().lower() for m in args.modes.split(",") if m.strip()}
     unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {"ipc", "dds", "drivers", "ceiling"})
     if unknown:
         p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
     return args
+
+
+def wait_for_fresh_pages(bench: Bench) -> None:
+    """Wait until --page-pause s have passed since the benchmark last deleted a bag or ceiling file.
+
+    Right after a big unlink, this VM's kernel hands the freed page-cache pages to the next writer at a
+    fraction of the cost of fresh ones (0.2 instead of ~1.5-2 CPU s/GB); after a few seconds they are gone.
+    Without the pause, whichever mode runs after another would get cheaper writes.
+    """
+    remaining = bench.args.page_pause - (time.monotonic() - bench.last_free)
+    if remaining > 0:
+        time.sleep(remaining)
 
 
 def wait_for_quiet(bench: Bench) -> tuple[float, float]:
@@ -1133,6 +1226,7 @@ def guarded(bench: Bench, label: str, run: Callable[[], dict[str, Any]], retry: 
     """Run one mode; a run perturbed by other processes is repeated (--retries) and the least perturbed kept."""
     attempts: list[dict[str, Any]] = []
     for attempt in range(1 + (bench.args.retries if retry else 0)):
+        wait_for_fresh_pages(bench)
         waited, load = wait_for_quiet(bench) if bench.args.quiet_wait > 0 else (0.0, float("nan"))
         bench.log(f"[{time.strftime('%H:%M:%S')}] {label}{' (repeat: the last run was perturbed)' if attempt else ''}"
                   " ..." + (f" (waited {waited:.0f} s for other processes; machine load now {load:.2f} CPUs)"
@@ -1255,7 +1349,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     git = report["environment"]["git"]
     print(f"\n(total run time {report['elapsed_s']:.0f} s; code at {git['commit']}"
           + (f" + uncommitted changes in {', '.join(git['modified'])}" if git["modified"] else "")
-          + "; 'other CPU s' = machine CPU during the window not used by the mode's processes)")
+          + "; 'kernel s' = CPU of kernel threads and interrupts during the window (the writeback of the bag "
+          "among them), 'other s' = CPU of other people's processes)")
     if args.plot:
         path = plot(report, Path(args.plot))
         log(f"plot written to {path}" if path else "no plot: matplotlib is not installed (pip install '.[plot]')")
