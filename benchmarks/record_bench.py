@@ -78,6 +78,7 @@ LOCALHOST before anything starts. Bags and the ceiling file go to a temporary di
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -1336,21 +1337,23 @@ def main(argv: Optional[list[str]] = None) -> int:
     report["elapsed_s"] = time.monotonic() - started
     report["environment"]["loadavg_end"] = os.getloadavg()
 
-    if "S1" in report:
-        print_s1(report["S1"], s1_scenario(args), args)
-    if "S2" in report:
-        print_s2(report["S2"])
-    if "S3" in report:
-        print_s3(report["S3"], s3_scenario(args))
     report["targets"] = evaluate_targets(report, args)
-    print("\n== Targets")
-    for t in report["targets"]:
-        print(f"  {t['result']:4}  {t['target']}: {t['detail']}")
-    git = report["environment"]["git"]
-    print(f"\n(total run time {report['elapsed_s']:.0f} s; code at {git['commit']}"
-          + (f" + uncommitted changes in {', '.join(git['modified'])}" if git["modified"] else "")
-          + "; 'kernel s' = CPU of kernel threads and interrupts during the window (the writeback of the bag "
-          "among them), 'other s' = CPU of other people's processes)")
+    # with --json - the JSON alone goes to stdout, the tables to stderr
+    with contextlib.redirect_stdout(sys.stderr if args.json == "-" else sys.stdout):
+        if "S1" in report:
+            print_s1(report["S1"], s1_scenario(args), args)
+        if "S2" in report:
+            print_s2(report["S2"])
+        if "S3" in report:
+            print_s3(report["S3"], s3_scenario(args))
+        print("\n== Targets")
+        for t in report["targets"]:
+            print(f"  {t['result']:4}  {t['target']}: {t['detail']}")
+        git = report["environment"]["git"]
+        print(f"\n(total run time {report['elapsed_s']:.0f} s; code at {git['commit']}"
+              + (f" + uncommitted changes in {', '.join(git['modified'])}" if git["modified"] else "")
+              + "; 'kernel s' = CPU of kernel threads and interrupts during the window (the writeback of the "
+              "bag among them), 'other s' = CPU of other people's processes)", flush=True)
     if args.plot:
         path = plot(report, Path(args.plot))
         log(f"plot written to {path}" if path else "no plot: matplotlib is not installed (pip install '.[plot]')")
