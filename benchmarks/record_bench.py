@@ -1110,6 +1110,8 @@ def plot(report: dict[str, Any], path: Path) -> Optional[Path]:
                         markersize=10)
         if s2.get("ceiling"):
             ax.axhline(s2["ceiling"]["mb_per_s"], color="tab:gray", linestyle="--", label="ceiling")
+        from matplotlib.ticker import MaxNLocator
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_xlabel("cameras (x = lossy step)")
         ax.set_title("S2 ramp: recorded MB/s", fontsize=10)
         ax.legend(fontsize=8)
