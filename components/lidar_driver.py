@@ -146,7 +146,7 @@ class LidarDriver(SensorDriver):
         xyz += self._noise[offset:offset + n]
         del xyz  # release the buffer export before handing the array over
         data[0:8] = array("B", (sequence & 0xFFFFFFFFFFFFFFFF).to_bytes(8, "little"))
-        msg = PointCloud2()
+        msg = PointCloud2(check_fields=True)  # keeps the array.array as is (see CameraDriver.make_image)
         msg.header = Header(stamp=stamp_from_ns(stamp_ns), frame_id=self.frame_id)
         msg.height = 1
         msg.width = n
