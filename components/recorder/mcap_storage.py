@@ -52,6 +52,7 @@ from mcap.records import (
 )
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 
+from .direct_file import DirectFile, open_exclusive
 from .metadata import ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
 __all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "McapStorage", "MessageBuffers"]
@@ -151,7 +152,7 @@ class McapStorage:
         self._chunk_size = options.chunk_size
         self._compression = _COMPRESSION_NAMES[options.compression]
         buffering = io.DEFAULT_BUFFER_SIZE if options.use_chunking else _UNCHUNKED_BUFFER
-        self._file: BinaryIO = open(path, "xb", buffering=buffering)  # noqa: SIM115
+        self._file: BinaryIO | DirectFile = open_exclusive(path, buffering)
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[str, int] = {}
         self._topics_by_channel: dict[int, str] = {}
@@ -362,6 +363,7 @@ class McapStorage:
                                                       len(entries))
                 indexes += entries
             self._file.write(indexes)
+            self._file.flush()  # a chunk is the unit a failure may lose: hand it to the OS now
             self._chunk_indexes.append(ChunkIndex(
                 message_start_time=self._chunk_start_ns, message_end_time=self._chunk_end_ns,
                 chunk_start_offset=start, chunk_length=len(head) + compressed_size,
