@@ -51,10 +51,19 @@ class ComponentNode(Node):
         return wrapper  # type: ignore[return-value]  # duck-types Publisher
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
-                            qos_profile: QoSProfile | int, **kwargs: Any) -> Subscription:
+                            qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,
+                            **kwargs: Any) -> Subscription:
+        """rclpy's create_subscription, taking part in intra-process delivery when the component does.
+
+        ``intra_process_inline=True`` runs the callback for in-process messages directly in the publisher's
+        thread, inside ``publish()``, instead of queueing it for the executor: no queue, no executor wake-up.
+        Only for callbacks that are thread-safe, never block and never raise — the recorder's intake, which
+        just hands the message to its writer thread, is the case it exists for.
+        """
         if self._ipm is None:
             return super().create_subscription(msg_type, topic, callback, qos_profile, **kwargs)
-        subscriber = IntraProcessSubscriber(self, self._ipm, msg_type, topic, callback, qos_profile, **kwargs)
+        subscriber = IntraProcessSubscriber(self, self._ipm, msg_type, topic, callback, qos_profile,
+                                            inline=intra_process_inline, **kwargs)
         self._ipc_subscriptions.append(subscriber)
         return subscriber  # type: ignore[return-value]  # duck-types Subscription
 
@@ -108,7 +117,8 @@ class IntraProcessSubscriber:
     """An in-process subscription plus a DDS reader for publishers outside the container."""
 
     def __init__(self, node: Node, manager: IntraProcessManager, msg_type: Any, topic: str,
-                 callback: Callable[..., None], qos_profile: QoSProfile | int, **kwargs: Any) -> None:
+                 callback: Callable[..., None], qos_profile: QoSProfile | int, *, inline: bool = False,
+                 **kwargs: Any) -> None:
         self._manager = manager
         self._callback = callback
         self._with_info = _takes_message_info(callback)
@@ -119,7 +129,7 @@ class IntraProcessSubscriber:
         self._guard = node.create_guard_condition(self._drain, kwargs.get("callback_group"))
         self._node = node
         self.queue = IntraProcessSubscription(self.topic_name, self.dds_subscription.qos_profile,
-                                              self._guard.trigger)
+                                              self._guard.trigger, self._deliver if inline else None)
         manager.add_subscription(self.queue)
 
     @property
@@ -137,15 +147,16 @@ class IntraProcessSubscriber:
             item = self.queue.take()
             if item is None:
                 return
-            message, (published, received) = item
-            if self._with_info:
-                self._callback(message, {"source_timestamp": published, "received_timestamp": received,
-                                         "publication_sequence_number": None,
-                                         "reception_sequence_number": None})
-            else:
-                self._callback(message)
+            self._deliver(*item)
         if self.queue.queue:
             self._guard.trigger()  # more arrived meanwhile: run again after others had their turn
+
+    def _deliver(self, message: Any, stamps: tuple[int, int]) -> None:
+        if self._with_info:
+            self._callback(message, {"source_timestamp": stamps[0], "received_timestamp": stamps[1],
+                                     "publication_sequence_number": None, "reception_sequence_number": None})
+        else:
+            self._callback(message)
 
     def _on_dds_message(self, message: Any, info: dict[str, Any]) -> None:
         if self._manager.is_local_publication(self.topic_name, info.get("publication_sequence_number"),

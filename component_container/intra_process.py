@@ -73,11 +73,16 @@ class LocalPublicationLog:
 
 @dataclass(eq=False)
 class IntraProcessSubscription:
-    """An in-process subscription: its bounded queue, drop counter and the hook that wakes its executor."""
+    """An in-process subscription: its bounded queue, drop counter and the hook that wakes its executor.
+
+    With ``inline`` set there is no queue: ``offer`` calls it at once, in the publisher's thread (see
+    ``ComponentNode.create_subscription(intra_process_inline=True)``).
+    """
 
     topic: str
     qos: QoSProfile
     wake: Callable[[], None]
+    inline: Callable[[Any, tuple[int, int]], None] | None = None
     queue: deque = field(default_factory=deque)
     received: int = 0
     dropped: int = 0
@@ -89,6 +94,11 @@ class IntraProcessSubscription:
 
     def offer(self, message: Any, stamps: tuple[int, int]) -> None:
         """Queue a message (dropping the oldest if keep_last is full) and wake the executor."""
+        if self.inline is not None:
+            with self._lock:
+                self.received += 1
+            self.inline(message, stamps)
+            return
         with self._lock:
             if self.queue.maxlen is not None and len(self.queue) == self.queue.maxlen:
                 self.dropped += 1

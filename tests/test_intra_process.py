@@ -6,6 +6,7 @@ separate DDS participant that can only be reached over the wire (plus one test w
 from __future__ import annotations
 
 import subprocess
+import threading
 import sys
 import time
 from typing import Any, Callable, Iterator
@@ -265,3 +266,19 @@ def test_container_process_talker_reaches_other_process_and_unload_under_traffic
                 listener_proc.wait()
             rclpy.try_shutdown(context=node_context)
         assert container.stop() == 0
+
+
+def test_inline_subscription_runs_in_the_publishers_thread_without_executor(contexts, ipm):
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sink", context=inside, intra_process_manager=ipm)
+    got: list[tuple[String, dict, int]] = []
+    subscription = sub_node.create_subscription(
+        String, "chatter", lambda m, info: got.append((m, info, threading.get_ident())), 10,
+        intra_process_inline=True)
+    publisher = pub_node.create_publisher(String, "chatter", 10)
+    msg = String(data="now")
+    publisher.publish(msg)  # nobody spins: the callback has already run when publish() returns
+    assert len(got) == 1 and got[0][0] is msg and got[0][2] == threading.get_ident()
+    assert got[0][1]["received_timestamp"] >= got[0][1]["source_timestamp"] > 0
+    assert subscription.received_count == 1 and subscription.dropped_count == 0

@@ -358,6 +358,12 @@ def read_rosbags(bag: Path) -> list[Msg]:
     return out
 
 
+def mcap_is_chunked(path: Path) -> bool:
+    with open(path, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    return summary is not None and bool(summary.chunk_indexes)
+
+
 def read_mcap_file(path: Path) -> list[tuple[Msg, int, int]]:
     """(message, channel id, mcap sequence) in file order."""
     out = []
@@ -427,7 +433,9 @@ def verify_bag(bag: Path, storage: str = "mcap", *, window: tuple[int, int] | No
                 assert info["duration"]["nanoseconds"] == max(times) - min(times)
             last_sequence: dict[int, int] = {}
             times = [m.log_time for m, _, _ in rows]
-            assert times == sorted(times), f"{info['path']}: log times do not ascend in file order"
+            if not mcap_is_chunked(bag / info["path"]):  # unindexed files must be in log-time order; chunked
+                # ones are indexed, and like rosbag2 the recorder writes them in arrival order
+                assert times == sorted(times), f"{info['path']}: log times do not ascend in file order"
             for m, channel, sequence in rows:
                 if sequence:  # 0, or increasing per channel
                     assert sequence > last_sequence.get(channel, 0)

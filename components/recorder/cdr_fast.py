@@ -118,12 +118,20 @@ def _finish(prefix: bytearray, data: memoryview, suffix: bytes) -> bytes | Seria
     return bytes(prefix)
 
 
-def _image(msg: Image) -> bytes | SerializedBuffers | None:
+def _start(msg: Any) -> tuple[memoryview, bytearray] | None:
+    """The payload view and a buffer holding the encapsulation header and the std_msgs/Header."""
     data = _payload(msg.data)
     if data is None:
         return None
     buffer = bytearray(CDR_LE_HEADER)
     _header(buffer, msg.header)
+    return data, buffer
+
+
+def _image(msg: Image) -> bytes | SerializedBuffers | None:
+    if (start := _start(msg)) is None:
+        return None
+    data, buffer = start
     _align4(buffer)
     buffer += _U32_PAIR.pack(msg.height, msg.width)
     _string(buffer, msg.encoding)
@@ -134,11 +142,9 @@ def _image(msg: Image) -> bytes | SerializedBuffers | None:
 
 
 def _point_cloud2(msg: PointCloud2) -> bytes | SerializedBuffers | None:
-    data = _payload(msg.data)
-    if data is None:
+    if (start := _start(msg)) is None:
         return None
-    buffer = bytearray(CDR_LE_HEADER)
-    _header(buffer, msg.header)
+    data, buffer = start
     _align4(buffer)
     fields = msg.fields
     buffer += _U32_PAIR.pack(msg.height, msg.width)
@@ -158,11 +164,9 @@ def _point_cloud2(msg: PointCloud2) -> bytes | SerializedBuffers | None:
 
 
 def _compressed_image(msg: CompressedImage) -> bytes | SerializedBuffers | None:
-    data = _payload(msg.data)
-    if data is None:
+    if (start := _start(msg)) is None:
         return None
-    buffer = bytearray(CDR_LE_HEADER)
-    _header(buffer, msg.header)
+    data, buffer = start
     _string(buffer, msg.format)
     _align4(buffer)
     buffer += _U32.pack(len(data))

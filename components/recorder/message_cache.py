@@ -1,10 +1,11 @@
 """The hand-off between the recorder's intake callbacks and its writer thread.
 
-The intake side runs on the container's executor and must never wait on the disk: it only appends to this
-cache. The cache is bounded by ``max_cache_size`` bytes, counting both queued messages and those the writer
-holds until it has written them (so the bound is the recorder's whole buffer, not one half of a double
-buffer); a message that does not fit is dropped and counted for its topic (never silently lost). In snapshot mode the cache is a ring instead: the oldest messages make
-room, and nothing is written until a snapshot is requested.
+The intake side (the executor, or a publisher's thread for intra-process messages) must never wait on the
+disk: it only appends to this cache. The cache is bounded by ``max_cache_size`` bytes, counting both queued
+messages and those the writer holds until it has written them (so the bound is the recorder's whole buffer,
+not one half of a double buffer); a message that does not fit is dropped and counted for its topic (never
+silently lost). In snapshot mode the cache is a ring instead: the oldest messages make room, and nothing is
+written until a snapshot is requested.
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ class MessageCache:
         self._queue: deque[CachedMessage] = deque()
         self._bytes = 0
         self._closed = False
+        self.received: Counter[str] = Counter()  # every push, counted under the lock (pushers may race)
         self.dropped: Counter[str] = Counter()
         self.evicted: Counter[str] = Counter()
         self._condition = threading.Condition()
@@ -53,6 +55,7 @@ class MessageCache:
     def push(self, message: CachedMessage) -> bool:
         """Queue a message; False (and counted) if it was dropped because the cache is full or closed."""
         with self._condition:
+            self.received[message.topic] += 1
             if self._closed:
                 self.dropped[message.topic] += 1
                 return False

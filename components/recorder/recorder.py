@@ -152,11 +152,16 @@ class Recorder(ComponentNode):
             if self._session is not None:
                 self._session.add_topic(info)
         self._topic_subscriptions[topic] = self.create_subscription(
-            msg_type, topic, functools.partial(self._intake, topic), qos, raw=True)
+            msg_type, topic, functools.partial(self._intake, topic), qos, raw=True,
+            intra_process_inline=True)  # the intake only hands over to the writer thread: no executor hop
         self.get_logger().info(f"Subscribed to {topic} ({type_name})")
 
     def _intake(self, topic: str, message: Any, info: dict[str, Any]) -> None:
-        """Runs on the executor: hand the message (object or CDR bytes) to the writer thread, nothing more."""
+        """Hand the message (object or CDR bytes) to the writer thread, nothing more.
+
+        Runs on the executor for DDS messages and in the publisher's thread for intra-process ones, so it
+        must stay thread-safe, non-blocking and exception-free (MessageCache.push is all three).
+        """
         session = self._session
         if session is None or self._paused:
             return

@@ -51,7 +51,6 @@ class RecordingSession:
                                 options.max_bagfile_duration, options.storage_preset_profile,
                                 options.custom_data or None, on_split)
         self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
-        self.received: Counter[str] = Counter()
         self.write_dropped: Counter[str] = Counter()
         # Messages the writer accepted; after a storage failure the file may hold fewer (a buffered chunk that
         # could not reach the disk), and the difference is lost too.
@@ -80,7 +79,6 @@ class RecordingSession:
 
     def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> None:
         """Intake: hand one message to the writer thread. Never blocks on I/O."""
-        self.received[topic] += 1
         self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
 
     def snapshot(self) -> bool:
@@ -170,7 +168,7 @@ class RecordingSession:
         """Live counts per topic, for the ``~/get_stats`` service and the closing log line."""
         written = self.writer.topic_message_counts
         queue = Counter(self._queue_drops() if self._queue_drops else {})
-        topics = sorted(set(written) | set(self.received) | set(queue))
+        topics = sorted(set(written) | set(self.cache.received) | set(queue))
         # Only a failure loses accepted messages (the writer thread has stopped then, so the counts are still).
         lost_in_storage = Counter({t: n - written.get(t, 0) for t, n in self.handed.items()} if self.error else {})
         dropped = self.cache.dropped + self.write_dropped + queue + lost_in_storage
@@ -181,7 +179,7 @@ class RecordingSession:
             "cache_bytes": self.cache.bytes,
             "error": self.error,
             "write_latency_ms": _percentiles(list(self._latencies)),
-            "topics": {t: {"received": self.received[t], "written": written.get(t, 0),
+            "topics": {t: {"received": self.cache.received[t], "written": written.get(t, 0),
                            "dropped": dropped[t], "queue_dropped": queue[t]} for t in topics},
         }
 
