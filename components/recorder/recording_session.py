@@ -60,6 +60,7 @@ class RecordingSession:
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
         self._snapshot_mode = options.snapshot_mode
         self._snapshot_requested = threading.Event()
+        self._snapshots: deque[list[CachedMessage]] = deque()  # taken from the ring, waiting to be written
         self._finish_lock = threading.Lock()
         self._finished = False
         self._thread = threading.Thread(target=self._run, name=f"bag_writer:{self.writer.path.name}",
@@ -85,6 +86,7 @@ class RecordingSession:
         """Snapshot mode: write what the ring cache holds now. False outside snapshot mode or when failed."""
         if not self._snapshot_mode or not self.active:
             return False
+        self._snapshots.append(self.cache.drain())  # the ring as it is now, not when the writer wakes
         self._snapshot_requested.set()
         return True
 
@@ -103,8 +105,8 @@ class RecordingSession:
         while True:
             if self._snapshot_mode:
                 self._snapshot_requested.wait(0.2)
-                batch = self.cache.drain() if self._snapshot_requested.is_set() else []
                 self._snapshot_requested.clear()
+                batch = self._snapshots.popleft() if self._snapshots else []
             else:
                 batch = self.cache.take_all(timeout=0.2)
             batch.sort(key=_log_time)  # stable: each topic keeps its order
