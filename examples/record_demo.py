@@ -5,7 +5,8 @@
 3. record for a few seconds, then unload the recorder: the bag is finalized while the drivers keep running;
 4. print ``ipc-component bag info`` and stop the container.
 
-Usage: ``python examples/record_demo.py [--seconds 5] [--output DIR] [--storage mcap|sqlite3]``.
+Usage: ``python examples/record_demo.py [--seconds 5] [--output DIR] [--storage mcap|sqlite3]`` (without
+``--output`` the bag goes to a temp dir that is deleted at the end).
 The run stays on this machine: a random ROS_DOMAIN_ID unless one is set, discovery limited to localhost.
 """
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -47,7 +49,8 @@ def wait_for_container(timeout: float = 30.0) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="how long to record (default 5)")
-    parser.add_argument("--output", default=None, help="directory for the bag (default: a new temp dir)")
+    parser.add_argument("--output", default=None,
+                        help="directory to keep the bag in (default: a temp dir, deleted at the end)")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     args = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
@@ -78,6 +81,9 @@ def main() -> int:
         except subprocess.TimeoutExpired:
             container.kill()
             container.wait()
+        if args.output is None:  # a few seconds of this rig are gigabytes: do not leave them in /tmp
+            shutil.rmtree(output, ignore_errors=True)
+            print(f"(deleted {output}; pass --output DIR to keep the bag)")
     return 0
 
 
