@@ -81,6 +81,15 @@ class RosSession:
         if not found:
             raise CliError(f"Unable to find container node '{container}'")
 
+    def container_client(self, srv_type: Any, container: str, service: str, start: float) -> Any:
+        """A client of ``<container>/_container/<service>``, found, ready and able to get replies."""
+        self.find_container(container, start + BUDGET)
+        client = self.node.create_client(srv_type, f"{container}/_container/{service}")
+        if not client.wait_for_service(timeout_sec=SERVICE_WAIT):
+            raise CliError(f"No '{service}' service found for '{container}' container")
+        self.ensure_replies(container, time.monotonic() + BUDGET)
+        return client
+
     def ensure_replies(self, container: str, deadline: float) -> None:
         """Make sure the container can answer this process before sending a request that must not be lost.
 
@@ -223,11 +232,7 @@ def run_load(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         extra_arguments=parameter_msgs(args.extra_arguments, "extra argument"))
     start = time.monotonic()
     with RosSession(ros_args) as ros:
-        ros.find_container(container, start + BUDGET)
-        client = ros.node.create_client(LoadNode, f"{container}/_container/load_node")
-        if not client.wait_for_service(timeout_sec=SERVICE_WAIT):
-            raise CliError(f"No 'load_node' service found for '{container}' container")
-        ros.ensure_replies(container, time.monotonic() + BUDGET)
+        client = ros.container_client(LoadNode, container, "load_node", start)
         try:
             response = ros.call(client, request, container)
         except CliError as exc:
@@ -260,11 +265,7 @@ def run_unload(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     unique_ids = [parse_unique_id(text) for text in args.component_uid]
     start = time.monotonic()
     with RosSession(ros_args) as ros:
-        ros.find_container(container, start + BUDGET)
-        client = ros.node.create_client(UnloadNode, f"{container}/_container/unload_node")
-        if not client.wait_for_service(timeout_sec=SERVICE_WAIT):
-            raise CliError(f"No 'unload_node' service found for '{container}' container")
-        ros.ensure_replies(container, time.monotonic() + BUDGET)
+        client = ros.container_client(UnloadNode, container, "unload_node", start)
         for uid in unique_ids:
             try:
                 response = ros.call(client, UnloadNode.Request(unique_id=uid), container)
