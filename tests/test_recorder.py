@@ -35,6 +35,7 @@ import rclpy
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+from rcl_interfaces.srv import GetParameters
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -1034,6 +1035,12 @@ def test_parameter_aliases(rig: Rig, tmp_path: Path) -> None:
     recorder = rig.record("recorder_aliases", uri, **{
         "record_all": True, "exclude": r"^(?!/imu/imu$)",  # every topic but the rig's IMU
         "bag_name": str(uri), "storage_id": "sqlite3", "max_bag_duration": 0.5})
+    names = ["storage.uri", "storage.storage_id", "record.all_topics", "storage.max_bagfile_duration"]
+    client = rig.probe.create_client(GetParameters, "/recorder_aliases/get_parameters")
+    values = call(rig.probe, client, GetParameters.Request(names=names)).values
+    rig.probe.destroy_client(client)
+    assert [values[0].string_value, values[1].string_value, values[2].bool_value, values[3].double_value] == \
+        [str(uri), "sqlite3", True, 0.5], "alias values are mirrored to their rosbag2 parameter names"
     time.sleep(1.6)
     recorder.unload()
     bag = verify_bag(uri, "sqlite3")

@@ -122,6 +122,8 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
             value = [v.strip() for v in value.replace(",", " ").split()]
         values[target] = convert(value)
         node.declare_parameter(alias, given.value, ParameterDescriptor(dynamic_typing=True))
+        # Mirror the value to the rosbag2 name, so `ros2 param get <node> storage.uri` shows what is used.
+        node.set_parameters([Parameter(target, value=values[target])])
     return _validate(values)
 
 
