@@ -15,6 +15,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.subscription import Subscription
 
+from component_container.health import Health
 from component_container.intra_process import (
     IntraProcessManager,
     IntraProcessPublication,
@@ -30,6 +31,11 @@ class ComponentNode(Node):
     exactly as rclcpp components accept ``rclcpp::NodeOptions``.
     """
 
+    #: Seconds the container grants this component's ``destroy_node`` when it is unloaded (the container's
+    #: ``--shutdown-timeout``, set at load). A component that waits on something (a writer thread, a disk)
+    #: must give up within it; the container abandons a destroy that takes longer.
+    shutdown_timeout: float = 10.0
+
     def __init__(self, node_name: str, *, intra_process_manager: IntraProcessManager | None = None,
                  **kwargs: Any) -> None:
         self._ipm = intra_process_manager
@@ -40,6 +46,13 @@ class ComponentNode(Node):
     @property
     def uses_intra_process(self) -> bool:
         return self._ipm is not None
+
+    def health(self) -> Health | None:
+        """This component's status for ``/diagnostics``; None means "running" with no details.
+
+        Called about once a second from the container's diagnostics thread: must be quick and thread-safe.
+        """
+        return None
 
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: QoSProfile | int,
                          **kwargs: Any) -> Publisher:
