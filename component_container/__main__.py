@@ -1,25 +1,43 @@
 """``python -m component_container``: run a component container process.
 
 Usage: ``python -m component_container [--executor single|multi|isolated] [--use-intra-process-comms]
-[--allow-module-plugins] [--load FILE.yaml]... [--ros-args ...]``
+[--allow-module-plugins] [--on-component-error unload|exit] [--shutdown-timeout SECONDS] [--load FILE.yaml]...
+[--ros-args ...]``
 
-SIGINT and SIGTERM unload every component (newest first, so a recorder finalizes its bag) and exit 0.
+SIGINT and SIGTERM unload every component (newest first, so a recorder finalizes its bag) within the shutdown
+timeout and exit 0; a second signal, or a shutdown that overruns, exits at once with status 1. A component
+error under ``--on-component-error exit`` and a dead container thread exit with status 1 too.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from component_container.component_executors import EXECUTOR_KINDS, spin_in_thread
+from component_container.component_executors import (
+    EXECUTOR_KINDS,
+    SupervisedSingleThreadedExecutor,
+    spin_in_thread,
+)
 from component_container.component_manager import ComponentManager
 from component_container.startup_file import StartupFileError, load_requests
+from component_container.supervisor import ERROR_POLICIES, ExitRequest
+
+# Beyond the shutdown timeout, what the last steps (manager node, rclpy context) may take before a forced exit.
+EXIT_MARGIN = 2.0
+
+
+def positive_seconds(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value <= 3600.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 3600] seconds, got {text}")
+    return value
 
 
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
@@ -30,9 +48,21 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
                         help="components use intra-process communication unless a load request says false")
     parser.add_argument("--allow-module-plugins", action="store_true",
                         help="also accept plugin names of the form 'python.module:ClassName'")
+    parser.add_argument("--on-component-error", choices=ERROR_POLICIES, default="unload",
+                        help="a component callback raised: unload only that component (default), or finalize "
+                             "every bag and exit with status 1 so that launch can respawn the container")
+    parser.add_argument("--shutdown-timeout", type=positive_seconds, default=10.0, metavar="SECONDS",
+                        help="bound on an unload and on the whole shutdown (default: 10)")
     parser.add_argument("--load", action="append", default=[], metavar="FILE.yaml",
                         help="components to load at start-up (repeatable)")
     return parser.parse_args(remove_ros_args(argv)[1:])
+
+
+def force_exit(status: int) -> None:
+    """Leave now, whatever threads are still stuck (a hung disk): what is unfinished is left for repair."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,13 +73,21 @@ def main(argv: list[str] | None = None) -> int:
     except StartupFileError as exc:
         print(exc, file=sys.stderr)
         return 2
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    exit_request = ExitRequest()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if exit_request.request(0, signal.Signals(signum).name) > 1:
+            print("Second signal: exiting without finishing the shutdown", file=sys.stderr)
+            force_exit(1)
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:
         manager = ComponentManager(args.executor, use_intra_process_comms=args.use_intra_process_comms,
-                                   allow_module_plugins=args.allow_module_plugins)
+                                   allow_module_plugins=args.allow_module_plugins,
+                                   on_component_error=args.on_component_error,
+                                   shutdown_timeout=args.shutdown_timeout, exit_request=exit_request)
     except Exception as exc:  # bad thread_num and the like: say so and exit non-zero
         print(f"Cannot start the container: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
@@ -59,17 +97,31 @@ def main(argv: list[str] | None = None) -> int:
             manager.load(request)
         except Exception as exc:  # noqa: BLE001 - every load failure is reported, the container stays up
             manager.get_logger().error(f"Failed to load component {request.plugin_name}: {exc}")
-    manager_executor = SingleThreadedExecutor()
+    manager_executor = SupervisedSingleThreadedExecutor(
+        on_error=lambda _node, exc: manager.supervisor.thread_died("component_manager", exc))
     manager_executor.add_node(manager)
-    manager_thread = spin_in_thread(manager_executor, "component_manager")
-    stop.wait()
-    manager.get_logger().info("Shutting down: unloading all components")
-    manager_executor.shutdown(timeout_sec=5.0)
-    manager_thread.join(timeout=5.0)
-    manager.shutdown()
-    manager.destroy_node()
-    rclpy.try_shutdown()
-    return 0
+    manager.service_thread = spin_in_thread(manager_executor, "component_manager", manager.supervisor.thread_died)
+    while not exit_request.wait(0.5):  # a timed wait keeps the main thread responsive to signals
+        pass
+    manager.get_logger().info(f"Shutting down ({exit_request.reason}): unloading all components")
+    status = [exit_request.status]
+
+    def shut_down() -> None:
+        if not manager.shutdown(args.shutdown_timeout):
+            status[0] = max(status[0], 1)
+        manager_executor.shutdown(timeout_sec=1.0)
+        manager.service_thread.join(timeout=1.0)  # never finalize the interpreter under a waiting executor
+        manager.destroy_node()
+        rclpy.try_shutdown()
+
+    finisher = threading.Thread(target=shut_down, name="shutdown", daemon=True)
+    finisher.start()
+    finisher.join(args.shutdown_timeout + EXIT_MARGIN)
+    if finisher.is_alive():
+        print(f"Shutdown did not finish within {args.shutdown_timeout:.1f} s: exiting with status 1",
+              file=sys.stderr)
+        force_exit(1)
+    return status[0]
 
 
 if __name__ == "__main__":

@@ -1,8 +1,16 @@
-"""Where component callbacks run: the three executor models of rclcpp's component containers.
+"""Where component callbacks run: the three executor models of rclcpp's component containers, supervised.
 
 * ``single``: one single-threaded executor, one thread, for every component (``component_container``);
 * ``multi``: one multi-threaded executor with ``thread_num`` threads (``component_container_mt``);
 * ``isolated``: a single-threaded executor and thread per component (``component_container_isolated``).
+
+rclpy re-raises a callback's exception out of ``spin()``, which would end the thread that runs every other
+component too. Here every callback is wrapped where rclpy makes its handler (``Executor._make_handler``, the one
+place that knows the entity *and* its node): an exception is handed to ``on_error(node, exc)`` and the thread
+goes on. The same wrapper counts each node's in-flight callbacks, so that unloading can *drain* a component
+(stop scheduling it, wait for the callbacks already running) before its node is destroyed, and skips callbacks
+of a node that is being removed. Anything that still escapes ``spin()`` is an executor failure, reported to
+``on_fatal``: the container then shuts down instead of listing components nobody runs.
 
 The container node itself is never spun here: it has its own executor thread so that LoadNode/UnloadNode
 answer even while a component callback is busy or blocked.
@@ -10,25 +18,116 @@ answer even while a component callback is busy or blocked.
 from __future__ import annotations
 
 import threading
-from typing import Protocol
+import weakref
+from collections import Counter
+from typing import Any, Callable, Protocol
 
 from rclpy.context import Context
 from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 
 EXECUTOR_KINDS = ("single", "multi", "isolated")
-# How long unloading waits for a component's in-flight callbacks before destroying it anyway.
-CALLBACK_DRAIN_TIMEOUT = 5.0
+#: What a component callback may raise and still be handled as that component's failure (SystemExit too:
+#: a component calling sys.exit() must not end a thread that runs other components).
+COMPONENT_ERRORS = (Exception, SystemExit)
+
+ErrorHandler = Callable[[Node, BaseException], None]
+FatalHandler = Callable[[str, BaseException], None]
+#: How long removing a node waits for its running callbacks unless the caller says otherwise.
+DRAIN_TIMEOUT = 5.0
 
 
-def spin_in_thread(executor: Executor, name: str) -> threading.Thread:
-    """Spin ``executor`` on a daemon thread until it is shut down."""
+class CallbackGate:
+    """Which nodes may run callbacks, and how many of their callbacks are running right now."""
+
+    def __init__(self) -> None:
+        # Weak: a removed node stays refused for as long as a stale handler could still name it, no longer.
+        self._closed: weakref.WeakSet[Node] = weakref.WeakSet()
+        self._running: Counter[Node] = Counter()
+        self._idle = threading.Condition()
+
+    def enter(self, node: Node | None) -> bool:
+        """Start one callback of ``node``; False (do not run it) if the node is being removed."""
+        with self._idle:
+            if node in self._closed:
+                return False
+            self._running[node] += 1
+            return True
+
+    def leave(self, node: Node | None) -> None:
+        with self._idle:
+            self._running[node] -= 1
+            if self._running[node] <= 0:
+                del self._running[node]
+                self._idle.notify_all()
+
+    def close(self, node: Node, timeout: float) -> bool:
+        """Admit no more callbacks of ``node`` and wait for the running ones; False if they did not finish."""
+        with self._idle:
+            self._closed.add(node)
+            return self._idle.wait_for(lambda: self._running[node] <= 0, timeout)
+
+
+class SupervisedExecutor(Executor):
+    """An rclpy executor whose callbacks report their exceptions instead of raising out of ``spin()``."""
+
+    def __init__(self, *args: Any, on_error: ErrorHandler | None = None, **kwargs: Any) -> None:
+        """``on_error(node, exc)`` gets what a callback of ``node`` raised; without it, it is re-raised."""
+        super().__init__(*args, **kwargs)
+        self.gate = CallbackGate()
+        self._on_error = on_error or _reraise
+
+    def _make_handler(self, entity: Any, node: Node, take_from_wait_list: Callable) -> Any:
+        gate, on_error = self.gate, self._on_error
+
+        def supervised_take(entity: Any) -> Callable | None:
+            if not gate.enter(node):
+                return None  # the node is being unloaded: its pending work is dropped, not run
+            try:
+                call = take_from_wait_list(entity)
+            except COMPONENT_ERRORS as exc:
+                gate.leave(node)
+                on_error(node, exc)
+                return None
+            if call is None:
+                gate.leave(node)
+                return None
+
+            async def supervised_call() -> None:
+                try:
+                    await call()
+                except COMPONENT_ERRORS as exc:
+                    on_error(node, exc)
+                finally:
+                    gate.leave(node)
+
+            return supervised_call
+
+        return super()._make_handler(entity, node, supervised_take)
+
+
+def _reraise(_node: Node, exc: BaseException) -> None:
+    raise exc
+
+
+class SupervisedSingleThreadedExecutor(SupervisedExecutor, SingleThreadedExecutor):
+    """rclpy's SingleThreadedExecutor, supervised."""
+
+
+class SupervisedMultiThreadedExecutor(SupervisedExecutor, MultiThreadedExecutor):
+    """rclpy's MultiThreadedExecutor, supervised."""
+
+
+def spin_in_thread(executor: Executor, name: str, on_fatal: FatalHandler | None = None) -> threading.Thread:
+    """Spin ``executor`` on a daemon thread until it is shut down; an escaping exception goes to ``on_fatal``."""
 
     def spin() -> None:
         try:
             executor.spin()
-        except Exception:  # a context shut down under the executor ends the thread quietly
-            if executor.context.ok():
+        except BaseException as exc:  # noqa: BLE001 - whatever ends this thread must be reported
+            if executor.context.ok() and on_fatal is not None:
+                on_fatal(name, exc)
+            elif executor.context.ok():
                 raise
 
     thread = threading.Thread(target=spin, name=name, daemon=True)
@@ -42,65 +141,87 @@ class ComponentExecutor(Protocol):
     def add(self, node: Node) -> None:
         """Start executing ``node``'s callbacks."""
 
-    def remove(self, node: Node) -> None:
-        """Stop executing ``node``'s callbacks (in-flight ones may still be finishing)."""
+    def remove(self, node: Node, timeout: float = DRAIN_TIMEOUT) -> bool:
+        """Stop executing ``node``'s callbacks and wait up to ``timeout`` s for the running ones (True if
+        they finished)."""
 
-    def shutdown(self) -> None:
+    def threads(self) -> list[threading.Thread]:
+        """The threads that run component callbacks, for the diagnostics."""
+
+    def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
         """Stop all threads."""
 
 
 class SharedExecutor:
-    """One executor, single- or multi-threaded, shared by every component."""
+    """One supervised executor, single- or multi-threaded, shared by every component."""
 
-    def __init__(self, executor: Executor) -> None:
+    def __init__(self, executor: SupervisedExecutor, on_fatal: FatalHandler | None = None) -> None:
         self._executor = executor
-        self._thread = spin_in_thread(executor, "components")
+        self._thread = spin_in_thread(executor, "components", on_fatal)
 
     def add(self, node: Node) -> None:
         self._executor.add_node(node)
 
-    def remove(self, node: Node) -> None:
+    def remove(self, node: Node, timeout: float = DRAIN_TIMEOUT) -> bool:
+        drained = self._executor.gate.close(node, timeout)
         self._executor.remove_node(node)
+        return drained
 
-    def shutdown(self) -> None:
-        self._executor.shutdown(timeout_sec=CALLBACK_DRAIN_TIMEOUT)
-        self._thread.join(timeout=CALLBACK_DRAIN_TIMEOUT)
+    def threads(self) -> list[threading.Thread]:
+        return [self._thread]
+
+    def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
+        self._executor.shutdown(timeout_sec=timeout)
+        self._thread.join(timeout=timeout)
 
 
 class IsolatedExecutors:
-    """A single-threaded executor and a thread per component; removing one cancels and joins it."""
+    """A supervised single-threaded executor and a thread per component."""
 
-    def __init__(self, context: Context) -> None:
+    def __init__(self, context: Context, on_error: ErrorHandler | None = None,
+                 on_fatal: FatalHandler | None = None) -> None:
         self._context = context
-        self._running: dict[Node, tuple[SingleThreadedExecutor, threading.Thread]] = {}
+        self._on_error = on_error
+        self._on_fatal = on_fatal
+        self._running: dict[Node, tuple[SupervisedSingleThreadedExecutor, threading.Thread]] = {}
         self._lock = threading.Lock()
 
     def add(self, node: Node) -> None:
-        executor = SingleThreadedExecutor(context=self._context)
+        executor = SupervisedSingleThreadedExecutor(context=self._context, on_error=self._on_error)
         executor.add_node(node)
+        thread = spin_in_thread(executor, f"component:{node.get_name()}", self._on_fatal)
         with self._lock:
-            self._running[node] = (executor, spin_in_thread(executor, f"component:{node.get_name()}"))
+            self._running[node] = (executor, thread)
 
-    def remove(self, node: Node) -> None:
+    def remove(self, node: Node, timeout: float = DRAIN_TIMEOUT) -> bool:
         with self._lock:
             executor, thread = self._running.pop(node, (None, None))
-        if executor is not None and thread is not None:
-            executor.shutdown(timeout_sec=CALLBACK_DRAIN_TIMEOUT)
-            thread.join(timeout=CALLBACK_DRAIN_TIMEOUT)
+        if executor is None or thread is None:
+            return True
+        drained = executor.gate.close(node, timeout)
+        executor.shutdown(timeout_sec=0.0 if not drained else timeout)
+        thread.join(timeout=timeout if drained else 0.0)
+        return drained
 
-    def shutdown(self) -> None:
+    def threads(self) -> list[threading.Thread]:
+        with self._lock:
+            return [thread for _, thread in self._running.values()]
+
+    def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
         with self._lock:
             nodes = list(self._running)
         for node in nodes:
-            self.remove(node)
+            self.remove(node, timeout)
 
 
-def make_component_executor(kind: str, context: Context, thread_num: int) -> ComponentExecutor:
-    """Build the executor model named by ``--executor``."""
+def make_component_executor(kind: str, context: Context, thread_num: int, on_error: ErrorHandler | None = None,
+                            on_fatal: FatalHandler | None = None) -> ComponentExecutor:
+    """Build the executor model named by ``--executor`` (without handlers, errors propagate as in rclpy)."""
     if kind == "single":
-        return SharedExecutor(SingleThreadedExecutor(context=context))
+        return SharedExecutor(SupervisedSingleThreadedExecutor(context=context, on_error=on_error), on_fatal)
     if kind == "multi":
-        return SharedExecutor(MultiThreadedExecutor(num_threads=thread_num, context=context))
+        return SharedExecutor(SupervisedMultiThreadedExecutor(num_threads=thread_num, context=context,
+                                                              on_error=on_error), on_fatal)
     if kind == "isolated":
-        return IsolatedExecutors(context)
+        return IsolatedExecutors(context, on_error, on_fatal)
     raise ValueError(f"Unknown executor '{kind}': choose one of {', '.join(EXECUTOR_KINDS)}")

@@ -8,27 +8,33 @@ from __future__ import annotations
 
 import os
 import threading
+import time
+import traceback
 from dataclasses import dataclass
 from typing import Any
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from component_container.component_executors import ComponentExecutor, make_component_executor
+from component_container.component_executors import COMPONENT_ERRORS, ComponentExecutor, make_component_executor
 from component_container.component_node import ComponentNode
 from component_container.component_options import LoadRequestError, options_from_request
+from component_container.diagnostics import DiagnosticsPublisher, component_health, status, threads_health
+from component_container.health import ERROR, Health
 from component_container.intra_process import IntraProcessManager
 from component_container.plugin_registry import PluginError, PluginRegistry
+from component_container.supervisor import ComponentFailure, ExitRequest, Supervisor
 
 # rclcpp_components gives load and unload a deep queue so that bursts of launch requests are not lost.
 LOAD_UNLOAD_QOS = QoSProfile(depth=200)
 
 
-@dataclass
+@dataclass(eq=False)
 class LoadedComponent:
     """A component the container owns."""
 
@@ -36,63 +42,96 @@ class LoadedComponent:
     node: Node
     package_name: str
     plugin_name: str
+    full_name: str  # taken at load: a component that destroyed its own node can no longer say it
     logger_level_set: bool = False
 
 
+@dataclass
+class UnloadResult:
+    """What unloading did: ``found`` is False for an unknown id; ``error`` says what went wrong otherwise."""
+
+    found: bool
+    error: str = ""
+
+
 class ComponentManager(Node):
-    """The container node: owns the components, their executor model and the intra-process manager."""
+    """The container node: owns the components, their executor model and the intra-process manager.
+
+    Supervision (see component_container.supervisor): component callbacks that raise are reported to
+    :meth:`_component_raised`, which takes the component out of ListNodes at once and hands it to the
+    error policy; dying executor threads end the container. Unloading is bounded by ``shutdown_timeout``.
+    """
 
     def __init__(self, executor_kind: str = "single", *, use_intra_process_comms: bool = False,
                  allow_module_plugins: bool = False, node_name: str = "ComponentManager",
-                 **kwargs: Any) -> None:
+                 on_component_error: str = "unload", shutdown_timeout: float = 10.0,
+                 exit_request: ExitRequest | None = None, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         self._registry = PluginRegistry(allow_module_plugins)
         self._default_intra_process = use_intra_process_comms
-        self.intra_process_manager = IntraProcessManager()
+        self.shutdown_timeout = shutdown_timeout
+        self.exit_request = exit_request or ExitRequest()
+        self.supervisor = Supervisor(on_component_error, self.get_logger(), self._unload_failed,
+                                     self.exit_request)
+        self.intra_process_manager = IntraProcessManager(on_callback_error=self._component_raised)
         thread_num = self.declare_parameter(
             "thread_num", os.cpu_count() or 1,
             ParameterDescriptor(read_only=True, description="threads of the multi-threaded executor")).value
         if not 1 <= thread_num <= (os.cpu_count() or 1) * 64:
             raise ValueError(f"thread_num must be a positive number of threads, got {thread_num}")
-        self._executor: ComponentExecutor = make_component_executor(executor_kind, self.context, thread_num)
+        self.executor_kind = executor_kind
+        self._executor: ComponentExecutor = make_component_executor(
+            executor_kind, self.context, thread_num, self._component_raised, self.supervisor.thread_died)
         self._components: dict[int, LoadedComponent] = {}
+        self._failed_components: dict[int, LoadedComponent] = {}  # delisted, waiting for the policy
         self._last_id = 0
         self._lock = threading.Lock()
+        self._unload_lock = threading.Lock()  # the service thread and the supervisor never unload at once
+        self.service_thread: threading.Thread | None = None
         group = MutuallyExclusiveCallbackGroup()
         self.create_service(LoadNode, "~/_container/load_node", self._on_load_node,
                             qos_profile=LOAD_UNLOAD_QOS, callback_group=group)
         self.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node,
                             qos_profile=LOAD_UNLOAD_QOS, callback_group=group)
         self.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes, callback_group=group)
+        self._diagnostics = DiagnosticsPublisher(self, self._diagnostic_statuses)
 
-    # --- service callbacks -------------------------------------------------------------------------------
+    # --- service callbacks (each answers, whatever a component did) --------------------------------------
     def _on_load_node(self, request: LoadNode.Request, response: LoadNode.Response) -> LoadNode.Response:
+        response.full_node_name, response.unique_id = "", 0
         try:
             loaded = self.load(request)
         except (LoadRequestError, PluginError, ComponentConstructionError) as exc:
-            self.get_logger().error(f"Failed to load component {request.plugin_name}: {exc}")
             response.success, response.error_message = False, str(exc)
-            response.full_node_name, response.unique_id = "", 0
+        except COMPONENT_ERRORS as exc:  # a bug on the load path: answer, log, stay up
+            response.success, response.error_message = False, f"Internal error while loading: {exc!r}"
+            self.get_logger().error("".join(traceback.format_exception(exc)))
+        else:
+            response.success, response.full_node_name = True, loaded.full_name
+            response.unique_id = loaded.unique_id
             return response
-        response.success = True
-        response.full_node_name = loaded.node.get_fully_qualified_name()
-        response.unique_id = loaded.unique_id
+        self.get_logger().error(f"Failed to load component {request.plugin_name}: {response.error_message}")
         return response
 
     def _on_unload_node(self, request: UnloadNode.Request,
                         response: UnloadNode.Response) -> UnloadNode.Response:
-        if self.unload(request.unique_id):
-            response.success = True
-        else:
+        try:
+            result = self.unload(request.unique_id)
+        except COMPONENT_ERRORS as exc:
+            result = UnloadResult(True, f"Internal error while unloading: {exc!r}")
+            self.get_logger().error("".join(traceback.format_exception(exc)))
+        if not result.found:
             response.success = False
             response.error_message = f"No node found with unique_id: {request.unique_id}"
             self.get_logger().error(response.error_message)
+        else:
+            response.success, response.error_message = not result.error, result.error
         return response
 
     def _on_list_nodes(self, request: ListNodes.Request, response: ListNodes.Response) -> ListNodes.Response:
         for component in self.components():
             response.unique_ids.append(component.unique_id)
-            response.full_node_names.append(component.node.get_fully_qualified_name())
+            response.full_node_names.append(component.full_name)
         return response
 
     # --- the load path -----------------------------------------------------------------------------------
@@ -115,46 +154,125 @@ class ComponentManager(Node):
         # rcl node exists can be cleaned up: rclcpp destroys the half-built node, here it would linger in the
         # graph (publishers, parameter services) until the garbage collector happened to break its cycles.
         node = node_class.__new__(node_class)
+        node.shutdown_timeout = self.shutdown_timeout
         try:
             node.__init__(**kwargs)
-        except Exception as exc:  # a component's constructor may raise anything; report it, stay up
+        except COMPONENT_ERRORS as exc:  # a component's constructor may raise anything; report it, stay up
             _destroy_partially_constructed(node)
             raise ComponentConstructionError(f"Component constructor threw an exception: {exc}") from exc
-        if options.log_level is not None:
-            node.get_logger().set_level(options.log_level)
-        loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name,
-                                 options.log_level is not None)
-        with self._lock:
-            self._components[unique_id] = loaded
-        self._executor.add(node)
+        try:
+            loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name,
+                                     node.get_fully_qualified_name(), options.log_level is not None)
+            if options.log_level is not None:
+                node.get_logger().set_level(options.log_level)
+            with self._lock:
+                self._components[unique_id] = loaded
+            self._executor.add(node)
+        except COMPONENT_ERRORS as exc:  # the component cannot run: it must not stay listed
+            with self._lock:
+                self._components.pop(unique_id, None)
+            self._executor.remove(node, 0.0)
+            _destroy_partially_constructed(node)
+            raise ComponentConstructionError(f"Component could not be started: {exc}") from exc
         return loaded
 
-    def unload(self, unique_id: int) -> bool:
-        """Stop and destroy one component; False if no component has that id."""
+    # --- the unload path ---------------------------------------------------------------------------------
+    def unload(self, unique_id: int, timeout: float | None = None) -> UnloadResult:
+        """Stop and destroy one component within ``timeout`` (default: ``shutdown_timeout``).
+
+        The component leaves ListNodes first, then its callbacks are drained (no new ones start, running
+        ones may finish), then its node is destroyed. A destroy that raises or overruns is reported in the
+        result; the component is gone from the container either way.
+        """
         with self._lock:
             loaded = self._components.pop(unique_id, None)
         if loaded is None:
-            return False
-        self.get_logger().info(f"Unloading {loaded.node.get_fully_qualified_name()} (id {unique_id})")
-        self._executor.remove(loaded.node)
+            return UnloadResult(False)
+        with self._unload_lock:
+            return self._teardown(loaded, self.shutdown_timeout if timeout is None else timeout)
+
+    def _teardown(self, loaded: LoadedComponent, timeout: float) -> UnloadResult:
+        deadline = time.monotonic() + timeout
+        self.get_logger().info(f"Unloading {loaded.full_name} (id {loaded.unique_id})")
+        if not self._executor.remove(loaded.node, timeout):
+            self.get_logger().warning(f"{loaded.full_name}: callbacks still running after {timeout:.1f} s; "
+                                      "destroying it anyway")
         if loaded.logger_level_set:  # logger levels outlive nodes: the next node of that name starts clean
             loaded.node.get_logger().set_level(LoggingSeverity.UNSET)
-        try:
-            loaded.node.destroy_node()
-        except Exception as exc:  # a failing destructor must not take the container down
-            self.get_logger().error(f"Destroying {loaded.plugin_name} (id {unique_id}) failed: {exc}")
-        return True
+        error = _destroy_within(loaded.node, max(0.0, deadline - time.monotonic()))
+        if error:
+            error = f"Unloading {loaded.full_name} (id {loaded.unique_id}): {error}"
+            self.get_logger().error(error)
+        return UnloadResult(True, error)
+
+    def _component_raised(self, node: Node, exc: BaseException) -> None:
+        """A callback of ``node`` raised (called in the thread where it did): delist it, apply the policy."""
+        with self._lock:
+            loaded = next((c for c in self._components.values() if c.node is node), None)
+            if loaded is not None:
+                del self._components[loaded.unique_id]
+                self._failed_components[loaded.unique_id] = loaded
+        if loaded is None:  # a component already leaving (e.g. InvalidHandle after a drain timeout)
+            return
+        reason = f"{type(exc).__name__}: {exc}".splitlines()[0] if str(exc) else type(exc).__name__
+        self.supervisor.component_failed(ComponentFailure(loaded.unique_id, loaded.full_name, reason), exc)
+
+    def _unload_failed(self, unique_id: int, reason: str) -> None:
+        """The ``unload`` policy: tear down a component that :meth:`_component_raised` delisted."""
+        with self._lock:
+            loaded = self._failed_components.pop(unique_id, None)
+        if loaded is not None:
+            with self._unload_lock:
+                self._teardown(loaded, self.shutdown_timeout)
 
     def components(self) -> list[LoadedComponent]:
-        """The loaded components in ascending id order."""
+        """The loaded (running) components in ascending id order."""
         with self._lock:
             return [self._components[uid] for uid in sorted(self._components)]
 
-    def shutdown(self) -> None:
-        """Destroy every component, newest first (so recorders finalize), then stop the executors."""
+    def shutdown(self, timeout: float | None = None) -> bool:
+        """Unload every component, newest first (so recorders finalize), within ``timeout`` in all; then
+        stop the threads. False if some component could not be unloaded cleanly in time."""
+        deadline = time.monotonic() + (self.shutdown_timeout if timeout is None else timeout)
+        clean = True
+        self.supervisor.stop()
+        for failed_id in list(self._failed_components):
+            self._unload_failed(failed_id, "")
         for component in reversed(self.components()):
-            self.unload(component.unique_id)
-        self._executor.shutdown()
+            result = self.unload(component.unique_id, max(0.0, deadline - time.monotonic()))
+            clean = clean and not result.error
+        self._diagnostics.stop()
+        self._executor.shutdown(max(0.0, deadline - time.monotonic()))
+        return clean
+
+    # --- health ------------------------------------------------------------------------------------------
+    def threads(self) -> dict[str, threading.Thread]:
+        """The container's own threads, by name."""
+        threads = {thread.name: thread for thread in self._executor.threads()}
+        if self.service_thread is not None:
+            threads["component_manager"] = self.service_thread
+        return threads
+
+    def _diagnostic_statuses(self) -> list[DiagnosticStatus]:
+        prefix = self.get_fully_qualified_name()
+        components = self.components()
+        container = threads_health(self.threads())
+        if not self.supervisor.alive():
+            container = Health(ERROR, "supervisor thread died", container.values)
+        container.values.update({"executor": self.executor_kind, "components": str(len(components)),
+                                 "on_component_error": self.supervisor.policy})
+        statuses = [status(f"{prefix}: container", container)]
+        for component in components:
+            health = component_health(component.node)
+            health.values = {"unique_id": str(component.unique_id), "plugin": component.plugin_name,
+                             **health.values}
+            statuses.append(status(f"{prefix}: {component.full_name}", health))
+        running = {component.full_name for component in components}
+        for failure in self.supervisor.failures:
+            if failure.full_name not in running:
+                statuses.append(status(f"{prefix}: {failure.full_name}", Health(
+                    ERROR, f"failed and unloaded: {failure.reason}", {"unique_id": str(failure.unique_id)})))
+        return statuses
 
 
 class ComponentConstructionError(Exception):
@@ -167,3 +285,31 @@ def _destroy_partially_constructed(node: Node) -> None:
         node.destroy_node()
     except Exception:  # noqa: BLE001 - __init__ failed before the node existed, or half-way through it
         pass
+
+
+def _destroy_within(node: Node, timeout: float) -> str:
+    """Run the component's ``destroy_node`` on a helper thread for at most ``timeout`` s; '' if it went well.
+
+    If the component's own ``destroy_node`` raises, the base classes' is run as well, so its DDS entities and
+    intra-process registrations do not linger. One that overruns is abandoned (a daemon thread), with an error.
+    """
+    errors: list[str] = []
+
+    def destroy() -> None:
+        try:
+            node.destroy_node()
+        except COMPONENT_ERRORS as exc:
+            errors.append(f"its destroy_node raised {type(exc).__name__}: {exc}; its node was destroyed anyway")
+            base = ComponentNode if isinstance(node, ComponentNode) else Node
+            try:
+                base.destroy_node(node)
+            except COMPONENT_ERRORS as base_exc:
+                errors.append(f"destroying its node failed too: {base_exc}")
+
+    thread = threading.Thread(target=destroy, name="unload", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        return (f"did not finish within {timeout:.1f} s (shutdown timeout); it was abandoned and may have "
+                "left work unfinished (a recorder's bag can be repaired)")
+    return "; ".join(errors)

@@ -7,7 +7,10 @@ provides on top of rclpy: when loaded with ``use_intra_process_comms``, ``create
 """
 from __future__ import annotations
 
+import copy
+import functools
 import inspect
+import sys
 from typing import Any, Callable
 
 from rclpy.node import Node
@@ -21,6 +24,11 @@ from component_container.intra_process import (
     IntraProcessPublication,
     IntraProcessSubscription,
 )
+
+
+# See IntraProcessPublisher: how many published objects are watched for reuse (and copied while watching).
+REUSE_WATCH = 3
+_OWN_REFERENCES = 3
 
 
 class ComponentNode(Node):
@@ -59,7 +67,7 @@ class ComponentNode(Node):
         publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
         if self._ipm is None:
             return publisher
-        wrapper = IntraProcessPublisher(publisher, self._ipm)
+        wrapper = IntraProcessPublisher(publisher, self._ipm, self.get_logger())
         self._ipc_publishers.append(wrapper)
         return wrapper  # type: ignore[return-value]  # duck-types Publisher
 
@@ -95,32 +103,68 @@ class ComponentNode(Node):
         return super().destroy_subscription(subscription)
 
     def destroy_node(self) -> None:
-        for publisher in list(self._ipc_publishers):
-            self.destroy_publisher(publisher)
-        for subscription in list(self._ipc_subscriptions):
-            self.destroy_subscription(subscription)
-        super().destroy_node()
+        """Leave the intra-process manager first (no publisher can deliver here any more), then destroy the
+        node; the rcl node is destroyed even if unregistering fails."""
+        try:
+            for subscription in list(self._ipc_subscriptions):
+                self.destroy_subscription(subscription)
+            for publisher in list(self._ipc_publishers):
+                self.destroy_publisher(publisher)
+        finally:
+            super().destroy_node()
 
 
 class IntraProcessPublisher:
-    """Publishes a message object to in-process subscriptions by reference, and to DDS when needed."""
+    """Publishes a message object to in-process subscriptions by reference, and to DDS when needed.
 
-    def __init__(self, publisher: Publisher, manager: IntraProcessManager) -> None:
+    The reuse rule. rclcpp moves a message published by ``unique_ptr`` (zero-copy) and copies one published by
+    const reference. Python cannot tell the two apart, and a publisher that fills and publishes one object
+    again and again is legal in plain rclpy; delivered by reference, every in-process subscriber and the
+    recorder would see it change under them. So the first ``REUSE_WATCH`` publishes go in-process as copies
+    while the publisher shows what it does, and the last ``REUSE_WATCH`` objects are remembered: publishing
+    one of them again switches this publisher to copies for good (one warning). A publisher that builds a new
+    object per publish is delivered by reference from then on, at the cost of a few identity checks.
+    """
+
+    def __init__(self, publisher: Publisher, manager: IntraProcessManager, logger: Any) -> None:
         self.publisher = publisher
         self._manager = manager
+        self._logger = logger
         self._publication: IntraProcessPublication = manager.add_publication(publisher.topic_name,
                                                                              publisher.qos_profile)
         self._always_dds = publisher.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self._recent: list[Any] = []
+        self._published = 0
+        self.reuses_messages = False
 
     def publish(self, msg: Any) -> None:
-        """Deliver ``msg`` (which then belongs to the subscribers) in-process and, if needed, over DDS."""
-        local = self._manager.deliver(self._publication, msg)
+        """Deliver ``msg`` in-process (by reference unless the reuse rule says copy) and, if needed, over DDS."""
+        local = self._manager.deliver(self._publication, copy.deepcopy(msg) if self._must_copy(msg) else msg)
         # DDS only for readers outside the intra-process set; transient_local keeps the DDS history whole.
         if self._always_dds or self.publisher.get_subscription_count() > local:
             self._publication.log.record(lambda: self.publisher.publish(msg))
 
+    def _must_copy(self, msg: Any) -> bool:
+        if self.reuses_messages:
+            return True
+        if any(recent is msg for recent in self._recent):
+            self.reuses_messages = True
+            self._logger.warning(
+                f"Publisher on {self.publisher.topic_name} publishes a message object it published before: "
+                "in-process subscribers get copies from now on (publish a new object each time to keep "
+                "delivery zero-copy)")
+            return True
+        # Forget objects nobody else holds any more (so this costs no memory): the entry in the list, the
+        # comprehension's variable and getrefcount's argument are this publisher's own three references.
+        self._recent = [recent for recent in self._recent if sys.getrefcount(recent) > _OWN_REFERENCES]
+        self._recent.append(msg)
+        del self._recent[:-REUSE_WATCH]
+        self._published += 1
+        return self._published <= REUSE_WATCH
+
     def unregister(self) -> None:
         self._manager.remove_publication(self._publication)
+        self._recent.clear()
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)  # topic_name, qos_profile, get_subscription_count, ...
@@ -141,8 +185,10 @@ class IntraProcessSubscriber:
         self.topic_name = self.dds_subscription.topic_name
         self._guard = node.create_guard_condition(self._drain, kwargs.get("callback_group"))
         self._node = node
+        on_error = (functools.partial(manager.on_callback_error, node)
+                    if manager.on_callback_error is not None else None)
         self.queue = IntraProcessSubscription(self.topic_name, self.dds_subscription.qos_profile,
-                                              self._guard.trigger, self._deliver if inline else None)
+                                              self._guard.trigger, self._deliver if inline else None, on_error)
         manager.add_subscription(self.queue)
 
     @property

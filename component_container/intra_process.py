@@ -23,8 +23,17 @@ from typing import Any, Callable
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from component_container.component_executors import COMPONENT_ERRORS
+
 # How many recent DDS writes of a volatile publisher stay recognisable to the local DDS readers.
 PUBLICATION_LOG_DEPTH = 256
+# keep_all in-process queues are bounded like a middleware reader's resource limits (Fast DDS bounds keep_all
+# readers too): past either limit a new message is refused and counted in ``dropped``, so a stalled subscriber
+# of 1080p frames costs at most this much memory instead of growing until the process is killed.
+KEEP_ALL_MAX_MESSAGES = 1000
+KEEP_ALL_MAX_BYTES = 256 * 1024 * 1024
+# How long closing a subscription waits for its inline callbacks (which must never block) to return.
+INLINE_DRAIN_TIMEOUT = 1.0
 
 
 def qos_compatible(offered: QoSProfile, requested: QoSProfile) -> bool:
@@ -76,40 +85,88 @@ class IntraProcessSubscription:
     """An in-process subscription: its bounded queue, drop counter and the hook that wakes its executor.
 
     With ``inline`` set there is no queue: ``offer`` calls it at once, in the publisher's thread (see
-    ``ComponentNode.create_subscription(intra_process_inline=True)``).
+    ``ComponentNode.create_subscription(intra_process_inline=True)``); what it raises goes to ``on_error``,
+    never into the publisher. After :meth:`close` (the subscriber is being destroyed) offers are ignored, so a
+    publish racing with an unload never touches the subscriber's destroyed guard condition.
     """
 
     topic: str
     qos: QoSProfile
     wake: Callable[[], None]
     inline: Callable[[Any, tuple[int, int]], None] | None = None
+    on_error: Callable[[BaseException], None] | None = None
     queue: deque = field(default_factory=deque)
     received: int = 0
     dropped: int = 0
 
     def __post_init__(self) -> None:
-        keep_last = self.qos.history != HistoryPolicy.KEEP_ALL
-        self.queue = deque(maxlen=max(self.qos.depth, 1) if keep_last else None)
-        self._lock = threading.Lock()
+        self._keep_all = self.qos.history == HistoryPolicy.KEEP_ALL
+        self.queue = deque(maxlen=None if self._keep_all else max(self.qos.depth, 1))
+        self._queued_bytes = 0
+        self._closed = False
+        self._inline_running = 0
+        self._lock = threading.Condition()
 
     def offer(self, message: Any, stamps: tuple[int, int]) -> None:
-        """Queue a message (dropping the oldest if keep_last is full) and wake the executor."""
+        """Queue a message (keep_last: dropping the oldest; keep_all: refusing it past the limits) and wake
+        the executor; inline subscriptions run their callback here instead."""
         if self.inline is not None:
-            with self._lock:
-                self.received += 1
-            self.inline(message, stamps)
+            self._offer_inline(message, stamps)
             return
         with self._lock:
-            if self.queue.maxlen is not None and len(self.queue) == self.queue.maxlen:
+            if self._closed:
+                return
+            self.received += 1
+            if self._keep_all:
+                size = rough_size(message)
+                if len(self.queue) >= KEEP_ALL_MAX_MESSAGES or self._queued_bytes + size > KEEP_ALL_MAX_BYTES:
+                    self.dropped += 1  # like a middleware reader at its resource limits: the sample is refused
+                    return
+                self._queued_bytes += size
+            elif len(self.queue) == self.queue.maxlen:
                 self.dropped += 1
             self.queue.append((message, stamps))
+            self.wake()  # under the lock: close() cannot destroy the guard condition in between
+
+    def _offer_inline(self, message: Any, stamps: tuple[int, int]) -> None:
+        with self._lock:
+            if self._closed:
+                return
             self.received += 1
-        self.wake()
+            self._inline_running += 1
+        try:
+            self.inline(message, stamps)  # type: ignore[misc]  # checked by the caller
+        except COMPONENT_ERRORS as exc:
+            if self.on_error is None:
+                raise
+            self.on_error(exc)
+        finally:
+            with self._lock:
+                self._inline_running -= 1
+                self._lock.notify_all()
 
     def take(self) -> tuple[Any, tuple[int, int]] | None:
         """The oldest queued message with its (publish, receive) nanosecond stamps, or None."""
         with self._lock:
-            return self.queue.popleft() if self.queue else None
+            if not self.queue:
+                return None
+            item = self.queue.popleft()
+            if self._keep_all:
+                self._queued_bytes -= rough_size(item[0])
+            return item
+
+    def close(self, timeout: float = INLINE_DRAIN_TIMEOUT) -> None:
+        """Accept nothing more and wait (bounded) for inline callbacks running in publishers' threads."""
+        with self._lock:
+            self._closed = True
+            self.queue.clear()
+            self._lock.wait_for(lambda: self._inline_running == 0, timeout)
+
+
+def rough_size(message: Any) -> int:
+    """A cheap estimate of a message's bytes for the keep_all byte limit: its ``data`` buffer plus headers."""
+    data = getattr(message, "data", None)
+    return 256 + (len(data) if hasattr(data, "__len__") else 0)
 
 
 @dataclass(eq=False)
@@ -125,7 +182,10 @@ class IntraProcessPublication:
 class IntraProcessManager:
     """The container-wide registry that routes published objects to in-process subscriptions."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_callback_error: Callable[[Any, BaseException], None] | None = None) -> None:
+        """``on_callback_error(node, exc)`` gets what an inline subscription callback raised (the container
+        handles it as that component's failure); without it the exception propagates."""
+        self.on_callback_error = on_callback_error
         self._lock = threading.Lock()
         self._subscriptions: dict[str, list[IntraProcessSubscription]] = {}
         self._publications: dict[str, list[IntraProcessPublication]] = {}
@@ -153,8 +213,10 @@ class IntraProcessManager:
             _remove(self._publications, publication.topic, publication)
 
     def remove_subscription(self, subscription: IntraProcessSubscription) -> None:
+        """Unregister and close a subscription: once this returns, no publisher calls into it any more."""
         with self._lock:
             _remove(self._subscriptions, subscription.topic, subscription)
+        subscription.close()
 
     def subscriptions_for(self, publication: IntraProcessPublication) -> list[IntraProcessSubscription]:
         """The in-process subscriptions that may receive from this publication (QoS-compatible)."""
