@@ -17,6 +17,7 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import InvalidHandle
 from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -129,6 +130,7 @@ class ComponentManager(Node):
         return response
 
     def _on_list_nodes(self, request: ListNodes.Request, response: ListNodes.Response) -> ListNodes.Response:
+        self._reap_destroyed()
         for component in self.components():
             response.unique_ids.append(component.unique_id)
             response.full_node_names.append(component.full_name)
@@ -217,6 +219,12 @@ class ComponentManager(Node):
         reason = f"{type(exc).__name__}: {exc}".splitlines()[0] if str(exc) else type(exc).__name__
         self.supervisor.component_failed(ComponentFailure(loaded.unique_id, loaded.full_name, reason), exc)
 
+    def _reap_destroyed(self) -> None:
+        """A component that destroyed its own node is not running any more: it fails like one that raised."""
+        for component in self.components():
+            if not _node_alive(component.node):
+                self._component_raised(component.node, RuntimeError("its node was destroyed while it was loaded"))
+
     def _unload_failed(self, unique_id: int, reason: str) -> None:
         """The ``unload`` policy: tear down a component that :meth:`_component_raised` delisted."""
         with self._lock:
@@ -254,6 +262,7 @@ class ComponentManager(Node):
         return threads
 
     def _diagnostic_statuses(self) -> list[DiagnosticStatus]:
+        self._reap_destroyed()
         prefix = self.get_fully_qualified_name()
         components = self.components()
         container = threads_health(self.threads())
@@ -285,6 +294,14 @@ def _destroy_partially_constructed(node: Node) -> None:
         node.destroy_node()
     except Exception:  # noqa: BLE001 - __init__ failed before the node existed, or half-way through it
         pass
+
+
+def _node_alive(node: Node) -> bool:
+    try:
+        with node.handle:
+            return True
+    except InvalidHandle:
+        return False
 
 
 def _destroy_within(node: Node, timeout: float) -> str:

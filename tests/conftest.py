@@ -7,7 +7,44 @@ from __future__ import annotations
 
 import os
 import random
+from typing import Iterator
+
+import pytest
 
 os.environ["ROS_DOMAIN_ID"] = os.environ.get("IPC_TEST_DOMAIN_ID") or str(random.randint(1, 100))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_STATIC_PEERS", None)
+
+# rclpy and the helpers are imported only now, after the domain is set.
+import rclpy  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+from container_process import Containers  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def ros() -> Iterator[None]:
+    """The default context: ContainerClient and rclpy.spin_once use the global executor."""
+    owned = not rclpy.ok()
+    if owned:
+        rclpy.init()
+    yield
+    if owned:
+        rclpy.shutdown()
+
+
+@pytest.fixture()
+def probe(ros: None) -> Iterator[Node]:
+    node = Node("container_test_probe")
+    yield node
+    node.destroy_node()
+
+
+
+@pytest.fixture()
+def containers(probe: Node) -> Iterator[Containers]:
+    started = Containers(probe)
+    try:
+        yield started
+    finally:
+        started.close()

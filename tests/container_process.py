@@ -2,34 +2,50 @@
 from __future__ import annotations
 
 import os
+import pathlib
 import signal
 import subprocess
 import sys
+import tempfile
 import time
-from typing import Any
+from typing import Any, Callable
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.executors import SingleThreadedExecutor
+import rclpy
 from rclpy.node import Node
+from std_msgs.msg import String
 
 from component_container.parameter_values import parameter_msg
 
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
 
 class ContainerProcess:
-    """``python -m component_container`` as a subprocess; a context manager that stops it on exit."""
+    """``python -m component_container`` as a subprocess; a context manager that stops it on exit.
+
+    Its output goes to a temporary file, not a pipe: a pipe nobody reads while the test runs fills up (64 KiB
+    of log lines) and then blocks the container inside its logging calls.
+    """
 
     def __init__(self, *args: str, name: str = "ComponentManager", cwd: str | None = None) -> None:
         self.name = name if name.startswith("/") else f"/{name}"
         command = [sys.executable, "-m", "component_container", *args]
         if name != "ComponentManager":
             command += ["--ros-args", "-r", f"__node:={self.name.rsplit('/', 1)[1]}"]
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        self._log = tempfile.TemporaryFile(mode="w+", prefix="container_", suffix=".log")
+        self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT,
                                         text=True, cwd=cwd, env=dict(os.environ))
-        self.output = ""
 
     @property
     def pid(self) -> int:
         return self.process.pid
+
+    @property
+    def output(self) -> str:
+        """Everything the container printed so far."""
+        self._log.seek(0)
+        return self._log.read()
 
     def alive(self) -> bool:
         return self.process.poll() is None
@@ -39,13 +55,11 @@ class ContainerProcess:
         if self.alive():
             self.process.send_signal(sig)
             try:
-                self.output, _ = self.process.communicate(timeout=timeout)
+                self.process.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 self.process.kill()
-                self.output, _ = self.process.communicate()
+                self.process.wait()
                 raise AssertionError(f"container {self.pid} did not exit within {timeout} s:\n{self.output}")
-        elif not self.output and self.process.stdout is not None:
-            self.output = self.process.stdout.read()
         return self.process.returncode
 
     def __enter__(self) -> "ContainerProcess":
@@ -115,3 +129,87 @@ class ContainerClient:
 
     def list(self) -> ListNodes.Response:
         return self._call(self._list, ListNodes.Request())
+
+
+# --- helpers of the container tests ---------------------------------------------------------------------
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+
+def proc_status(pid: int) -> dict[str, str]:
+    fields = {}
+    for line in pathlib.Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        fields[key] = value.strip()
+    return fields
+
+
+
+def wait_until(predicate: Callable[[], Any], timeout: float, node: Node | None = None) -> Any:
+    """Poll ``predicate`` (spinning ``node`` meanwhile, if given) until it is truthy or ``timeout`` passes."""
+    deadline = time.monotonic() + timeout
+    while True:
+        result = predicate()
+        if result or time.monotonic() > deadline:
+            return result
+        if node is not None:
+            rclpy.spin_once(node, timeout_sec=0.02)
+        else:
+            time.sleep(0.02)
+
+
+
+def node_names(node: Node) -> set[tuple[str, str]]:
+    return set(node.get_node_names_and_namespaces())
+
+
+
+class Received:
+    """A plain rclpy subscription of std_msgs/String that records what arrives."""
+
+    def __init__(self, node: Node, topic: str) -> None:
+        self.messages: list[str] = []
+        self.subscription = node.create_subscription(
+            String, topic, lambda message: self.messages.append(message.data), 10)
+
+
+
+def listing(client: ContainerClient) -> list[tuple[int, str]]:
+    response = client.list()
+    return list(zip(response.unique_ids, response.full_node_names))
+
+
+
+class Containers:
+    """Starts containers (repository root as cwd) and guarantees they are stopped and gone afterwards."""
+
+    def __init__(self, probe: Node) -> None:
+        self.probe = probe
+        self.started: list[ContainerProcess] = []
+
+    def start(self, *args: str, container: str = "/ComponentManager",
+              wait: bool = True) -> tuple[ContainerProcess, ContainerClient]:
+        process = ContainerProcess(*args, cwd=str(REPO))
+        self.started.append(process)
+        client = ContainerClient(self.probe, container)
+        if wait:
+            try:
+                client.wait()
+            except AssertionError:
+                process.stop()
+                raise AssertionError(f"container did not come up:\n{process.output}")
+        return process, client
+
+    def close(self) -> None:
+        for process in self.started:
+            with process:
+                if process.alive():
+                    process.stop()
+            print(f"--- output of container {process.pid} (exit code {process.process.returncode}):\n"
+                  f"{process.output}")  # shown by pytest when the test failed
+            assert not process.alive() and not pid_alive(process.pid), f"container {process.pid} still runs"

@@ -4,11 +4,15 @@ container started with ``--allow-module-plugins`` and the repository root as its
 from __future__ import annotations
 
 import pathlib
+import sys
+import threading
 import time
 from typing import Any
 
 from rclpy.node import Node
 from std_msgs.msg import String
+
+from component_container.component_node import ComponentNode
 
 
 class ThrowingComponent(Node):
@@ -54,3 +58,91 @@ class LoggingComponent(Node):
 
 class NotANode:
     """Not an rclpy Node: the container must refuse to load it."""
+
+
+class SlowPublisher(Node):
+    """A timer callback that takes a while and then publishes: unloading it nearly always meets it running."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("slow_publisher", **kwargs)
+        self.hold = self.declare_parameter("hold", 0.05).value
+        self._publisher = self.create_publisher(String, "slow_output", 10)
+        self._timer = self.create_timer(0.01, self._tick)
+
+    def _tick(self) -> None:
+        time.sleep(self.hold)
+        self._publisher.publish(String(data="slow"))
+
+
+class RaisingComponent(Node):
+    """Publishes on ``raising_output`` at 20 Hz and raises from its timer callback at tick ``raise_after``."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("raising_component", **kwargs)
+        self.raise_after = self.declare_parameter("raise_after", 5).value
+        self._publisher = self.create_publisher(String, "raising_output", 10)
+        self._ticks = 0
+        self._timer = self.create_timer(0.05, self._tick)
+
+    def _tick(self) -> None:
+        self._ticks += 1
+        if self._ticks == self.raise_after:
+            raise RuntimeError("deliberate failure in RaisingComponent's timer callback")
+        self._publisher.publish(String(data=str(self._ticks)))
+
+
+class SelfDestroyingComponent(Node):
+    """Destroys its own node from its first timer callback (it is no longer running after that)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("self_destroying", **kwargs)
+        self._timer = self.create_timer(0.05, self.destroy_node)
+
+
+class ExitingConstructor(Node):
+    """Calls sys.exit() in its constructor."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("exiting_constructor", **kwargs)
+        sys.exit(3)
+
+
+class BadDestructor(Node):
+    """A publisher, and a destroy_node that raises before destroying anything."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("bad_destructor", **kwargs)
+        self._publisher = self.create_publisher(String, "bad_destructor_output", 10)
+
+    def destroy_node(self) -> None:
+        raise RuntimeError("deliberate failure in BadDestructor.destroy_node")
+
+
+class HangingDestructor(Node):
+    """A destroy_node that never returns (a disk that hangs, say)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("hanging_destructor", **kwargs)
+
+    def destroy_node(self) -> None:
+        threading.Event().wait()
+
+
+class ReusingPublisher(ComponentNode):
+    """Publishes ONE std_msgs/String object ``count`` times on ``reused``, setting its data to 0, 1, 2...
+    before each publish, all from one callback (a burst the subscribers cannot have finished with)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("reusing_publisher", **kwargs)
+        self.count = self.declare_parameter("count", 100).value
+        self.delay = self.declare_parameter("delay", 1.0).value
+        self._publisher = self.create_publisher(String, "reused", 1000)
+        self._message = String()
+        self._timer = self.create_timer(self.delay, self._burst)
+
+    def _burst(self) -> None:
+        self._timer.cancel()
+        for index in range(self.count):
+            self._message.data = str(index)
+            self._publisher.publish(self._message)
+

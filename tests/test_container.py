@@ -8,7 +8,6 @@ checks that its process is gone.
 """
 from __future__ import annotations
 
-import os
 import pathlib
 import re
 import signal
@@ -21,11 +20,20 @@ from rcl_interfaces.msg import Log, ParameterType
 from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
 
-from container_process import ContainerClient, ContainerProcess
+from container_process import (
+    REPO,
+    ContainerClient,
+    ContainerProcess,
+    Containers,
+    Received,
+    listing,
+    node_names,
+    pid_alive,
+    proc_status,
+    wait_until,
+)
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
 PLUGINS = "tests.container_test_plugins"
 TALKER, LISTENER = "components::Talker", "components::Listener"
 
@@ -35,39 +43,6 @@ CONSTRUCTOR = "Component constructor threw an exception: "
 
 
 # --- helpers ----------------------------------------------------------------------------------------------
-def pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
-def proc_status(pid: int) -> dict[str, str]:
-    fields = {}
-    for line in pathlib.Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        fields[key] = value.strip()
-    return fields
-
-
-def wait_until(predicate: Callable[[], Any], timeout: float, node: Node | None = None) -> Any:
-    """Poll ``predicate`` (spinning ``node`` meanwhile, if given) until it is truthy or ``timeout`` passes."""
-    deadline = time.monotonic() + timeout
-    while True:
-        result = predicate()
-        if result or time.monotonic() > deadline:
-            return result
-        if node is not None:
-            rclpy.spin_once(node, timeout_sec=0.02)
-        else:
-            time.sleep(0.02)
-
-
-def node_names(node: Node) -> set[tuple[str, str]]:
-    return set(node.get_node_names_and_namespaces())
-
-
 def get_parameter(node: Node, full_node_name: str, name: str) -> Any:
     """A component's parameter value read through its own parameter service, as ``ros2 param get`` does."""
     client = node.create_client(GetParameters, f"{full_node_name}/get_parameters")
@@ -86,15 +61,6 @@ def get_parameter(node: Node, full_node_name: str, name: str) -> Any:
             ParameterType.PARAMETER_STRING: value.string_value}[value.type]
 
 
-class Received:
-    """A plain rclpy subscription of std_msgs/String that records what arrives."""
-
-    def __init__(self, node: Node, topic: str) -> None:
-        self.messages: list[str] = []
-        self.subscription = node.create_subscription(
-            String, topic, lambda message: self.messages.append(message.data), 10)
-
-
 def assert_failed(response: Any, message: str | None = None, *, prefix: str | None = None) -> None:
     assert not response.success, response
     if message is not None:
@@ -104,67 +70,9 @@ def assert_failed(response: Any, message: str | None = None, *, prefix: str | No
     assert response.full_node_name == "" and response.unique_id == 0
 
 
-def listing(client: ContainerClient) -> list[tuple[int, str]]:
-    response = client.list()
-    return list(zip(response.unique_ids, response.full_node_names))
-
-
-# --- fixtures ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module", autouse=True)
-def ros() -> Iterator[None]:
-    """The default context: ContainerClient and rclpy.spin_once use the global executor."""
-    owned = not rclpy.ok()
-    if owned:
-        rclpy.init()
-    yield
-    if owned:
-        rclpy.shutdown()
-
-
-@pytest.fixture()
-def probe(ros: None) -> Iterator[Node]:
-    node = Node("container_test_probe")
-    yield node
-    node.destroy_node()
-
-
-class Containers:
-    """Starts containers (repository root as cwd) and guarantees they are stopped and gone afterwards."""
-
-    def __init__(self, probe: Node) -> None:
-        self.probe = probe
-        self.started: list[ContainerProcess] = []
-
-    def start(self, *args: str, container: str = "/ComponentManager",
-              wait: bool = True) -> tuple[ContainerProcess, ContainerClient]:
-        process = ContainerProcess(*args, cwd=str(REPO))
-        self.started.append(process)
-        client = ContainerClient(self.probe, container)
-        if wait:
-            try:
-                client.wait()
-            except AssertionError:
-                process.stop()
-                raise AssertionError(f"container did not come up:\n{process.output}")
-        return process, client
-
-    def close(self) -> None:
-        for process in self.started:
-            with process:
-                if process.alive():
-                    process.stop()
-            print(f"--- output of container {process.pid} (exit code {process.process.returncode}):\n"
-                  f"{process.output}")  # shown by pytest when the test failed
-            assert not process.alive() and not pid_alive(process.pid), f"container {process.pid} still runs"
-
-
-@pytest.fixture()
-def containers(probe: Node) -> Iterator[Containers]:
-    started = Containers(probe)
-    try:
-        yield started
-    finally:
-        started.close()
+def _ros(ros: None) -> None:
+    """Every test here uses the default context (ContainerClient, rclpy.spin_once)."""
 
 
 # --- load / list / unload -----------------------------------------------------------------------------------
@@ -455,7 +363,7 @@ def test_invalid_thread_num_is_refused(containers: Containers, thread_num: int) 
     process, _ = containers.start("--executor", "multi", "--ros-args", "-p", f"thread_num:={thread_num}",
                                   wait=False)
     assert process.process.wait(timeout=20) == 2
-    output = process.process.stdout.read() if process.process.stdout else ""
+    output = process.output
     assert "Cannot start the container: thread_num must be a positive number of threads" in output, output
 
 
@@ -494,7 +402,7 @@ def test_malformed_startup_file_is_refused(containers: Containers, tmp_path: pat
     startup.write_text("components:\n  - plugin: components::Talker\n")
     process, _ = containers.start("--load", str(startup), wait=False)
     assert process.process.wait(timeout=20) == 2
-    output = process.process.stdout.read() if process.process.stdout else ""
+    output = process.output
     assert "needs 'package' and 'plugin'" in output, output
 
 

@@ -291,3 +291,122 @@ def test_inline_subscription_runs_in_the_publishers_thread_without_executor(cont
     assert len(got) == 1 and got[0][0] == msg and got[0][2] == threading.get_ident()
     assert got[0][1]["received_timestamp"] >= got[0][1]["source_timestamp"] > 0
     assert subscription.received_count == 1 and subscription.dropped_count == 0
+
+
+# --- supervision: races, bounds, reuse ----------------------------------------------------------------------
+def test_unsubscribing_while_a_publisher_delivers_never_raises_into_it(contexts, ipm):
+    """Destroying an in-process subscription while another thread publishes to it: the publisher must never
+    see the subscription's destroyed guard condition (InvalidHandle inside its own publish())."""
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    publisher = pub_node.create_publisher(String, "race", 10)
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def publish_forever() -> None:
+        while not stop.is_set():
+            try:
+                publisher.publish(String(data="x"))
+            except BaseException as exc:  # noqa: BLE001 - what the test is looking for
+                errors.append(exc)
+                return
+
+    thread = threading.Thread(target=publish_forever)
+    thread.start()
+    try:
+        for _ in range(300):
+            subscription = sub_node.create_subscription(String, "race", lambda m: None, 10)
+            time.sleep(0.0005)
+            sub_node.destroy_subscription(subscription)
+    finally:
+        stop.set()
+        thread.join()
+    assert errors == []
+
+
+def test_keep_all_queues_are_bounded_and_count_drops(contexts, ipm):
+    inside, _ = contexts
+    from rclpy.qos import HistoryPolicy
+    from sensor_msgs.msg import Image
+
+    from component_container.intra_process import KEEP_ALL_MAX_BYTES, KEEP_ALL_MAX_MESSAGES
+
+    keep_all = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1)
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("stalled", context=inside, intra_process_manager=ipm)
+    small = sub_node.create_subscription(String, "many", lambda m: None, keep_all)
+    big = sub_node.create_subscription(Image, "frames", lambda m: None, keep_all)
+    strings = pub_node.create_publisher(String, "many", keep_all)
+    frames = pub_node.create_publisher(Image, "frames", keep_all)
+    for i in range(KEEP_ALL_MAX_MESSAGES + 500):  # nobody spins: the subscriber is stalled
+        strings.publish(String(data=str(i)))
+    assert len(small.queue.queue) == KEEP_ALL_MAX_MESSAGES
+    assert small.dropped_count == 500 and small.received_count == KEEP_ALL_MAX_MESSAGES + 500
+    frame_bytes = 1920 * 1080 * 3
+    for _ in range(KEEP_ALL_MAX_BYTES // frame_bytes + 20):
+        frames.publish(Image(height=1080, width=1920, encoding="rgb8", step=1920 * 3, data=bytes(frame_bytes)))
+    assert len(big.queue.queue) == KEEP_ALL_MAX_BYTES // (frame_bytes + 256)
+    assert big.dropped_count == big.received_count - len(big.queue.queue) >= 20
+
+
+def test_a_reused_message_object_is_copied_for_in_process_subscribers(contexts, ipm):
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    got: list[String] = []
+    sub_node.create_subscription(String, "reused", got.append, 1000)
+    publisher = pub_node.create_publisher(String, "reused", 1000)
+    message = String()
+    for i in range(100):  # one object, refilled and published again while the subscriber still holds it
+        message.data = str(i)
+        publisher.publish(message)
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    assert spin_until(executor, lambda: len(got) == 100)
+    assert [m.data for m in got] == [str(i) for i in range(100)]
+    assert all(m is not message for m in got) and len({id(m) for m in got}) == 100
+    assert publisher.reuses_messages
+    executor.shutdown()
+
+
+def test_a_pool_of_reused_objects_is_detected_and_fresh_objects_stay_zero_copy(contexts, ipm):
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    pooled: list[String] = []
+    fresh: list[String] = []
+    sub_node.create_subscription(String, "pooled", pooled.append, 1000)
+    sub_node.create_subscription(String, "fresh", fresh.append, 1000)
+    pool_publisher = pub_node.create_publisher(String, "pooled", 1000)
+    fresh_publisher = pub_node.create_publisher(String, "fresh", 1000)
+    pool = [String() for _ in range(REUSE_WATCH)]
+    fresh_sent = [String(data=str(i)) for i in range(50)]
+    for i in range(50):
+        pool[i % REUSE_WATCH].data = str(i)
+        pool_publisher.publish(pool[i % REUSE_WATCH])
+        fresh_publisher.publish(fresh_sent[i])
+    executor = SingleThreadedExecutor(context=inside)
+    executor.add_node(sub_node)
+    assert spin_until(executor, lambda: len(pooled) == 50 and len(fresh) == 50)
+    assert [m.data for m in pooled] == [str(i) for i in range(50)]
+    assert pool_publisher.reuses_messages and not fresh_publisher.reuses_messages
+    assert delivered(fresh, fresh_sent)
+    executor.shutdown()
+
+
+def test_a_raising_inline_callback_is_reported_not_raised_into_the_publisher(contexts):
+    inside, _ = contexts
+    reported: list[tuple[Any, BaseException]] = []
+    manager = IntraProcessManager(on_callback_error=lambda node, exc: reported.append((node, exc)))
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=manager)
+    sub_node = ComponentNode("sink", context=inside, intra_process_manager=manager)
+
+    def broken(message: String) -> None:
+        raise ValueError(f"cannot take {message.data}")
+
+    sub_node.create_subscription(String, "inline", broken, 10, intra_process_inline=True)
+    publisher = pub_node.create_publisher(String, "inline", 10)
+    publisher.publish(String(data="this"))  # must not raise here
+    assert len(reported) == 1 and reported[0][0] is sub_node
+    assert str(reported[0][1]) == "cannot take this"
