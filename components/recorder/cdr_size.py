@@ -28,7 +28,7 @@ from __future__ import annotations
 import functools
 import importlib
 import operator
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 from rosidl_parser import definition
@@ -122,7 +122,8 @@ class _Fixed:
         """The offset after this part, starting at ``offset``."""
         phase = offset % _PERIOD
         if gaps is not None:
-            gaps += [(offset + start, offset + stop) for start, stop in self.gaps[phase]]
+            for start, stop in self.gaps[phase]:
+                gaps.append((offset + start, offset + stop))
         return offset + self.sizes[phase]
 
     def repeat_end(self, offset: int, count: int, gaps: Gaps) -> int:
@@ -254,26 +255,46 @@ def _sequence_sizer(element: definition.AbstractType) -> Sizer:
     return lambda values, offset, gaps: elements_end(values, _aligned(offset, 4, gaps) + 4, gaps)
 
 
-def _field_step(name: str, slot: definition.AbstractType) -> Sizer:
-    """The step of one variable-size field: read the attribute, size the value."""
+def _field_step(path: str, slot: definition.AbstractType) -> Sizer:
+    """The step of one variable-size field: read the attribute (a dotted path), size the value."""
     end = _sizer(slot)
-    value = operator.attrgetter(name)
+    value = operator.attrgetter(path)
     return lambda msg, offset, gaps: end(value(msg), offset, gaps)
 
 
 def _fixed_step(fixed: _Fixed) -> Sizer:
-    """A run of fixed-size fields as one step."""
-    return lambda msg, offset, gaps: fixed.end(offset, gaps)
+    """A run of fixed-size fields as one step (a table lookup when only the size is wanted)."""
+    sizes = fixed.sizes
+    return lambda msg, offset, gaps: offset + sizes[offset % _PERIOD] if gaps is None else fixed.end(offset, gaps)
+
+
+_STRUCTURE_NEEDS_AT_LEAST_ONE_MEMBER = definition.BasicType("uint8")
+
+
+def _flat_fields(cls: type, prefix: str = "") -> Iterator[tuple[str, definition.AbstractType]]:
+    """``cls``'s fields with nested messages (not in sequences or arrays) replaced by their fields.
+
+    Paths name the instance slots rclpy's generated classes keep a field's value in (``_header``), which
+    read much faster than the properties in front of them, when the class has them. Flattening lets
+    fixed-size fields on both sides of a message boundary merge into one run.
+    """
+    if not cls.SLOT_TYPES:  # the C struct (and so the sample) has a uint8 structure_needs_at_least_one_member
+        yield prefix, _STRUCTURE_NEEDS_AT_LEAST_ONE_MEMBER
+        return
+    for name, slot in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES, strict=True):
+        path = prefix + (f"_{name}" if f"_{name}" in cls.__slots__ else name)
+        if isinstance(slot, definition.NamespacedType):
+            yield from _flat_fields(_message_class(slot), path + ".")
+        else:
+            yield path, slot
 
 
 @functools.cache
 def _layout(cls: type) -> _Layout:
     """The plan for ``cls``, built once: consecutive fixed-size fields merged into one part."""
-    if not cls.SLOT_TYPES:  # the C struct (and so the sample) has a uint8 structure_needs_at_least_one_member
-        return _Layout(_Fixed.primitives(_PRIMITIVE_SIZES["uint8"]), ())
     steps: list[Sizer] = []
     run: _Fixed | None = None
-    for name, slot in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES, strict=True):
+    for path, slot in _flat_fields(cls):
         fixed = _fixed(slot)
         if fixed is not None:
             run = fixed if run is None else run.then(fixed)
@@ -281,7 +302,7 @@ def _layout(cls: type) -> _Layout:
         if run is not None:
             steps.append(_fixed_step(run))
             run = None
-        steps.append(_field_step(name, slot))
+        steps.append(_field_step(path, slot))
     if not steps:
         return _Layout(run, ())
     if run is not None:
