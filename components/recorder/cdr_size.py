@@ -152,17 +152,16 @@ class _Fixed:
 
 def _string_end(value: str, offset: int, gaps: Gaps) -> int:
     """After a ``string``: the C conversion keeps the UTF-8 bytes up to the first NUL and adds one NUL."""
-    nul = value.find("\x00")
-    if nul >= 0:
-        value = value[:nul]
+    if "\x00" in value:
+        value = value[:value.index("\x00")]
     length = len(value) if value.isascii() else len(value.encode())
-    return _aligned(offset, 4, gaps) + 4 + length + 1
+    return (_aligned(offset, 4, gaps) if offset & 3 else offset) + 4 + length + 1
 
 
 def _wstring_end(value: str, offset: int, gaps: Gaps) -> int:
     """After a ``wstring``: a count of UTF-16 code units, then each one as a 4-byte ``wchar_t``."""
     units = len(value) if value.isascii() else len(value.encode("utf-16-le")) // 2
-    return _aligned(offset, 4, gaps) + 4 + 4 * units
+    return (_aligned(offset, 4, gaps) if offset & 3 else offset) + 4 + 4 * units
 
 
 class _Layout:
@@ -252,7 +251,8 @@ def _elements_sizer(element: definition.AbstractType) -> Sizer:
 def _sequence_sizer(element: definition.AbstractType) -> Sizer:
     """Sizer of a sequence: the ``uint32`` count, then the elements."""
     elements_end = _elements_sizer(element)
-    return lambda values, offset, gaps: elements_end(values, _aligned(offset, 4, gaps) + 4, gaps)
+    return lambda values, offset, gaps: elements_end(values, (_aligned(offset, 4, gaps) if offset & 3 else offset) + 4,
+                                                     gaps)
 
 
 def _field_step(path: str, slot: definition.AbstractType) -> Sizer:
