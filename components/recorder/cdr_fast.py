@@ -14,8 +14,10 @@ The encoding is what rmw_fastrtps_cpp produces: XCDR1 little endian with the enc
 ``00 01 00 00``, primitives aligned to their size relative to the end of that header, strings as a
 ``uint32`` length that counts the terminating NUL, the UTF-8 bytes and the NUL, sequences as a
 ``uint32`` element count and the elements. Alignment padding is written as zeros (Fast-CDR leaves it
-uninitialized, so rclpy's bytes differ from these only there). Every other message type, and messages
-whose ``data`` is not a byte buffer, go to ``serialize_message``.
+uninitialized, so rclpy's bytes differ from these only there; the samples Fast DDS publishes have them
+zeroed, like these). Every other message type, and messages whose ``data`` is not a byte buffer, go to
+``serialize_message``, cut to the size of the message and with its padding zeroed (:mod:`.cdr_size`):
+rclpy returns rmw_fastrtps' size estimate, which can run past the serialized data.
 """
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ from typing import Any
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import Header
+
+from .cdr_size import serialized_layout
 
 __all__ = ["CDR_LE_HEADER", "MIN_BUFFERS_SIZE", "CdrData", "SerializedBuffers", "serialize"]
 
@@ -181,16 +185,38 @@ _ENCODERS: dict[type, Callable[[Any], bytes | SerializedBuffers | None]] = {
 }
 
 
-def serialize(msg: Any) -> bytes | SerializedBuffers:
-    """The CDR serialization of ``msg``, as ``serialize_message`` would produce it (padding zeroed).
+def _wire_exact(msg: Any) -> bytes | memoryview:
+    """``serialize_message``'s bytes cut to the message and with zeroed padding: what the wire carries.
+
+    rclpy returns rmw_fastrtps' size *estimate* as the length, which can run past the serialized data,
+    and leaves alignment padding uninitialized; :func:`.cdr_size.serialized_layout` says where both are.
+    Padding is only rewritten when it is not zero already, and big messages are cut as a view, so a big
+    payload is copied again only if its padding needs zeroing.
+    """
+    data = serialize_message(msg)
+    size, padding = serialized_layout(msg)
+    dirty = [(start, stop) for start, stop in padding if data.count(0, start, stop) != stop - start]
+    if dirty:
+        fixed = bytearray(memoryview(data)[:size])
+        for start, stop in dirty:
+            fixed[start:stop] = bytes(stop - start)
+        return bytes(fixed) if size < MIN_BUFFERS_SIZE else memoryview(fixed).toreadonly()
+    if size == len(data):
+        return data
+    return memoryview(data)[:size] if size >= MIN_BUFFERS_SIZE else data[:size]
+
+
+def serialize(msg: Any) -> bytes | memoryview | SerializedBuffers:
+    """The CDR serialization of ``msg``: exactly the sample a raw subscription would receive for it.
 
     Image, PointCloud2 and CompressedImage messages with a payload of at least
     :data:`MIN_BUFFERS_SIZE` bytes come back as :class:`SerializedBuffers` that reference
-    ``msg.data``; everything else as ``bytes``.
+    ``msg.data``; other messages of at least that size whose ``serialize_message`` output had to be cut
+    or cleaned as a read-only ``memoryview``; everything else as ``bytes``.
     """
     encoder = _ENCODERS.get(type(msg))
     if encoder is not None:
         result = encoder(msg)
         if result is not None:
             return result
-    return serialize_message(msg)
+    return _wire_exact(msg)
