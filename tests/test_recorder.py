@@ -1054,10 +1054,23 @@ def test_parameter_aliases(rig: Rig, tmp_path: Path) -> None:
 @pytest.mark.parametrize("parameters, expected", [
     ({"bag_name": "{uri}", "storage.uri": "{uri}_other"}, "'bag_name' is an alias of 'storage.uri'"),
     ({"storage.storage_id": "foo"}, "parameter 'storage.storage_id' must be one of mcap, sqlite3, got 'foo'"),
-    ({"storage_id": "foo"}, "parameter 'storage.storage_id' must be one of mcap, sqlite3, got 'foo'"),
+    ({"storage_id": "foo"},
+     "parameter 'storage_id' (alias of 'storage.storage_id') must be one of mcap, sqlite3, got 'foo'"),
     ({"storage.max_cache_size": 0}, "parameter 'storage.max_cache_size' must be positive"),
     ({"storage.storage_preset_profile": "turbo"}, "storage_preset_profile 'turbo'"),
-], ids=["alias_and_name", "storage_id", "storage_id_alias", "cache_size", "preset"])
+    # aliases have the types of their rosbag2 names
+    ({"record_all": "false"}, "parameter 'record_all' (alias of 'record.all_topics') must be a boolean"),
+    ({"start_recording_immediately": "false"},
+     "parameter 'start_recording_immediately' (alias of 'record.start_paused') must be a boolean"),
+    ({"max_bag_size": True}, "parameter 'max_bag_size' (alias of 'storage.max_bagfile_size') must be a number"),
+    ({"max_cache_size": 1.9}, "parameter 'max_cache_size' (alias of 'storage.max_cache_size') must be a number "
+                              "(integer), got 1.9"),
+    ({"storage.uri": 7}, "parameter 'storage.uri' must be a string, got 7"),
+    ({"exclude": "(/imu"}, "parameter 'exclude' (alias of 'record.exclude_regex') is not a valid regular "
+                           "expression"),
+    ({"record.regex": "[a"}, "parameter 'record.regex' is not a valid regular expression"),
+], ids=["alias_and_name", "storage_id", "storage_id_alias", "cache_size", "preset", "record_all_string",
+        "start_immediately_string", "bag_size_bool", "cache_size_float", "uri_int", "exclude_regex", "regex"])
 def test_bad_parameters_are_refused(rig: Rig, tmp_path: Path, parameters: dict[str, Any], expected: str) -> None:
     uri = tmp_path / "never"
     parameters = {k: v.format(uri=uri) if isinstance(v, str) else v for k, v in parameters.items()}
@@ -1068,3 +1081,15 @@ def test_bad_parameters_are_refused(rig: Rig, tmp_path: Path, parameters: dict[s
     assert expected in response.error_message, response.error_message
     assert not uri.exists() and not Path(f"{uri}_other").exists()
     assert "/recorder_bad" not in rig.listed()
+
+
+def test_not_set_means_default_and_unknown_names_are_reported(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "hygiene"
+    recorder = rig.record("recorder_hygiene", uri, **{
+        "storage.uri": None, "bag_name": str(uri),  # NOT_SET (as a launch file's None sends it): the default
+        "record.topic": ["/imu/imu"], "max_bag_sise": 5, "record.topics": ["/imu/imu"]})
+    time.sleep(0.5)
+    recorder.unload()
+    assert set(verify_bag(uri).counts()) == {"/imu/imu"}
+    warnings = re.findall(r"\[recorder_hygiene\]: Unknown parameters, ignored: (.*)", rig.container.log())
+    assert warnings == ["record.topic (did you mean record.topics?), max_bag_sise (did you mean max_bag_size?)"]
