@@ -78,10 +78,11 @@ class Container:
     """``python -m component_container`` with its log in a file (readable while it runs); stopped by pid.
 
     ``fsize_limit`` starts it through a wrapper that sets RLIMIT_FSIZE (and ignores SIGXFSZ), so that writes
-    beyond that size fail with EFBIG: a full disk for this process only.
+    beyond that size fail with EFBIG: a full disk for this process only. ``env`` adds environment variables.
     """
 
-    def __init__(self, name: str, log_dir: Path, *args: str, fsize_limit: int | None = None) -> None:
+    def __init__(self, name: str, log_dir: Path, *args: str, fsize_limit: int | None = None,
+                 env: dict[str, str] | None = None) -> None:
         self.name = f"/{name}"
         self.log_path = log_dir / f"{name}.log"
         argv = ["component_container", *args, "--ros-args", "-r", f"__node:={name}"]
@@ -94,7 +95,7 @@ class Container:
                        f"sys.argv = {argv!r}; runpy.run_module('component_container', run_name='__main__')"]
         self._log = open(self.log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed in stop()
         self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(REPO),
-                                        env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                                        env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})))
 
     @property
     def pid(self) -> int:
@@ -229,8 +230,9 @@ class Rig:
         self.drivers: dict[str, int] = {}
         self.loaded: list[Recorder] = []
 
-    def load_driver(self, plugin: str, name: str, parameters: dict[str, Any], ipc: bool = True) -> int:
-        response = self.client.load(plugin, name=name, parameters=parameters, extra=IPC if ipc else None)
+    def load_driver(self, plugin: str, name: str, parameters: dict[str, Any], ipc: bool = True,
+                    package: str = "components") -> int:
+        response = self.client.load(plugin, package, name=name, parameters=parameters, extra=IPC if ipc else None)
         assert response.success, response.error_message
         self.drivers[name] = response.unique_id
         return response.unique_id
@@ -238,18 +240,21 @@ class Rig:
     def unload_driver(self, name: str) -> None:
         assert self.client.unload(self.drivers.pop(name)).success
 
-    def try_load_recorder(self, name: str, parameters: dict[str, Any]) -> Any:
-        return self.client.load("components::Recorder", name=name, parameters=parameters, extra=IPC)
+    def try_load_recorder(self, name: str, parameters: dict[str, Any],
+                          plugin: tuple[str, str] = ("components", "components::Recorder")) -> Any:
+        return self.client.load(plugin[1], plugin[0], name=name, parameters=parameters, extra=IPC)
 
-    def record(self, name: str, uri: Path, **parameters: Any) -> Recorder:
-        """Load a recorder writing to ``uri`` with ``parameters`` (defaults: the rig's sensor topics)."""
+    def record(self, name: str, uri: Path, *, plugin: tuple[str, str] = ("components", "components::Recorder"),
+               **parameters: Any) -> Recorder:
+        """Load a recorder (``plugin``: package and plugin name) writing to ``uri`` with ``parameters``
+        (defaults: the rig's sensor topics)."""
         if not any(key in parameters for key in ("bag_name", "bag_file", "bag_prefix", "uri")):
             parameters.setdefault("storage.uri", str(uri))
         if not any(key in parameters for key in ("record.topics", "record.all_topics", "record_all",
                                                   "topics", "topic_names", "record.regex")):
             parameters["record.topics"] = RIG_TOPICS
         loaded_ns = time.time_ns()
-        response = self.try_load_recorder(name, parameters)
+        response = self.try_load_recorder(name, parameters, plugin)
         assert response.success, response.error_message
         assert response.full_node_name == f"/{name}"
         recorder = Recorder(self, name, response.unique_id, uri, loaded_ns)

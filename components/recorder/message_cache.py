@@ -81,7 +81,8 @@ class MessageCache:
         self._bytes = 0
         self._closed = False
         self.received: Counter[str] = Counter()  # every push, counted under the lock (pushers may race)
-        self.dropped: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()  # refused because the cache was full
+        self.refused: Counter[str] = Counter()  # refused because the cache was closed
         self.evicted: Counter[str] = Counter()
         self._condition = threading.Condition()
 
@@ -89,12 +90,17 @@ class MessageCache:
     def bytes(self) -> int:
         return self._bytes
 
+    def counts(self) -> tuple[Counter[str], Counter[str], Counter[str]]:
+        """Copies of (received, dropped, refused), consistent with each other, for another thread to read."""
+        with self._condition:
+            return Counter(self.received), Counter(self.dropped), Counter(self.refused)
+
     def push(self, message: CachedMessage) -> bool:
         """Queue a message; False (and counted) if it was dropped because the cache is full or closed."""
         with self._condition:
             self.received[message.topic] += 1
             if self._closed:
-                self.dropped[message.topic] += 1
+                self.refused[message.topic] += 1
                 return False
             if self._ring:
                 while self._queue and self._bytes + message.size > self.max_bytes:
@@ -136,7 +142,7 @@ class MessageCache:
                 self._bytes -= message.size
 
     def close(self) -> None:
-        """Refuse new messages (they count as dropped) and wake the writer for its final flush."""
+        """Refuse new messages (counted in ``refused``) and wake the writer for its final flush."""
         with self._condition:
             self._closed = True
             self._condition.notify_all()
