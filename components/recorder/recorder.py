@@ -9,7 +9,10 @@ Services (private): ``~/pause``, ``~/resume``, ``~/toggle_paused``, ``~/is_pause
 (std_srvs/Trigger; get_stats answers the live counts as JSON in ``message``). Events: ``events/write_split``.
 
 Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
-``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM.
+``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM, within the
+container's shutdown timeout. A loaded recorder is a working one or says why not: a bad message, a type that
+cannot be used here or a failing disk is logged, counted in ``~/get_stats`` and reported by :meth:`health`,
+and never silently stops the recording (see RecordingSession).
 """
 from __future__ import annotations
 
