@@ -36,6 +36,7 @@ from test_recorder import (  # noqa: F401 - probe and log_dir are fixtures
     IMU,
     NOT_INFRASTRUCTURE,
     Container,
+    Recorder as LoadedRecorder,
     Rig,
     log_dir,
     probe,
@@ -47,7 +48,7 @@ PLUGINS = "tests.container_test_plugins"
 IMU_TOPIC = "/sup_imu/imu"
 SHUTDOWN_TIMEOUT = 10.0  # ComponentNode.shutdown_timeout's default: this branch's container does not change it
 
-BROKEN_STEREO_MSGS = '''"""stereo_msgs as a broken installation shows it: the type name resolves, to no message class."""
+BROKEN_STEREO_MSGS = '''"""stereo_msgs as a broken installation shows it: the type name resolves to no message class."""
 
 
 def DisparityImage() -> None:
@@ -109,7 +110,8 @@ def test_unserializable_message_is_dropped_and_recording_goes_on(supervised: Rig
         assert bag.seqs(topic) == [n for n in range(30) if n != 10]
         assert len(bag.seqs(IMU_TOPIC)) == final["topics"][IMU_TOPIC]["written"] > 0
         log = supervised.container.log()
-        assert len(re.findall(rf"\[recorder_broken\]: Dropped a message on {topic} that cannot be serialized", log)) == 1
+        dropped_logs = re.findall(rf"\[recorder_broken\]: Dropped a message on {topic} that cannot be serialized", log)
+        assert len(dropped_logs) == 1
         assert re.search(rf"  dropped by reason: {topic} serialize_failed 1", log)
         recorder.unload()
     finally:
@@ -230,7 +232,7 @@ def test_unusable_type_is_ignored_and_discovery_goes_on(supervised: Rig, tmp_pat
 
 
 # --- item 6: a hung disk cannot hold an unload or a shutdown ------------------------------------------------
-def wait_until_hung(recorder: "Recorder") -> None:  # noqa: F821 - test_recorder.Recorder, by duck type
+def wait_until_hung(recorder: LoadedRecorder) -> None:
     """The writer has taken HANG_AFTER messages and hangs; ~/get_stats still answers while it does."""
     hung = HangingBagWriter.HANG_AFTER
     assert wait_until(lambda: recorder.stats()["current"]["topics"].get(IMU_TOPIC, {}).get("written") == hung, 10.0)
