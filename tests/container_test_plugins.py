@@ -10,9 +10,13 @@ import time
 from typing import Any
 
 from rclpy.node import Node
+from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from component_container.component_node import ComponentNode
+from components.recorder.bag_writer import BagWriter
+from components.recorder.cdr_fast import CdrData
+from components.recorder.recorder import Recorder
 
 
 class ThrowingComponent(Node):
@@ -146,3 +150,63 @@ class ReusingPublisher(ComponentNode):
             self._message.data = str(index)
             self._publisher.publish(self._message)
 
+class BrokenImagePublisher(ComponentNode):
+    """Publishes ``count`` small images on ``~/image_raw`` once someone subscribes, numbered by the first 8 bytes
+    of ``data``; image number ``broken`` claims a height no uint32 holds (field checks are off by default in
+    Jazzy, so nothing stops it before a serializer does)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("broken_image_publisher", **kwargs)
+        self._count = self.declare_parameter("count", 30).value
+        self._broken = self.declare_parameter("broken", 10).value
+        self._sent = 0
+        self._publisher = self.create_publisher(Image, "~/image_raw", 100)
+        self._timer = self.create_timer(0.02, self._publish)
+
+    def _publish(self) -> None:
+        if self._sent >= self._count or self._publisher.get_subscription_count() == 0:
+            return
+        image = Image(height=8, width=16, encoding="mono8", step=16,
+                      data=self._sent.to_bytes(8, "little") + bytes(120))
+        image.header.frame_id = "broken_camera"
+        image.header.stamp = self.get_clock().now().to_msg()
+        if self._sent == self._broken:
+            image.height = 2**40
+        self._publisher.publish(image)
+        self._sent += 1
+
+
+class HangingBagWriter(BagWriter):
+    """A bag on a disk that hangs: after ``HANG_AFTER`` messages a write never returns, holding the writer's
+    lock as a write stuck in the kernel would."""
+
+    HANG_AFTER = 20
+
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+        if self.message_count >= self.HANG_AFTER:
+            with self._lock:
+                threading.Event().wait()
+        super().write(topic, data, log_time_ns, publish_time_ns)
+
+
+class HangingDiskRecorder(Recorder):
+    """The recorder, writing to a disk that hangs (see HangingBagWriter)."""
+
+    writer_class = HangingBagWriter
+
+
+class CrashingBagWriter(BagWriter):
+    """A writer with a bug: writing a message on ``CRASH_TOPIC`` raises something no storage error handler expects."""
+
+    CRASH_TOPIC = "/writer_crash"
+
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+        if topic == self.CRASH_TOPIC:
+            raise RuntimeError(f"deliberate bug in the writer, on {topic}")
+        super().write(topic, data, log_time_ns, publish_time_ns)
+
+
+class CrashingWriterRecorder(Recorder):
+    """The recorder, with a writer that has a bug (see CrashingBagWriter)."""
+
+    writer_class = CrashingBagWriter

@@ -78,10 +78,11 @@ class Container:
     """``python -m component_container`` with its log in a file (readable while it runs); stopped by pid.
 
     ``fsize_limit`` starts it through a wrapper that sets RLIMIT_FSIZE (and ignores SIGXFSZ), so that writes
-    beyond that size fail with EFBIG: a full disk for this process only.
+    beyond that size fail with EFBIG: a full disk for this process only. ``env`` adds environment variables.
     """
 
-    def __init__(self, name: str, log_dir: Path, *args: str, fsize_limit: int | None = None) -> None:
+    def __init__(self, name: str, log_dir: Path, *args: str, fsize_limit: int | None = None,
+                 env: dict[str, str] | None = None) -> None:
         self.name = f"/{name}"
         self.log_path = log_dir / f"{name}.log"
         argv = ["component_container", *args, "--ros-args", "-r", f"__node:={name}"]
@@ -94,7 +95,7 @@ class Container:
                        f"sys.argv = {argv!r}; runpy.run_module('component_container', run_name='__main__')"]
         self._log = open(self.log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed in stop()
         self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(REPO),
-                                        env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                                        env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})))
 
     @property
     def pid(self) -> int:
@@ -229,8 +230,9 @@ class Rig:
         self.drivers: dict[str, int] = {}
         self.loaded: list[Recorder] = []
 
-    def load_driver(self, plugin: str, name: str, parameters: dict[str, Any], ipc: bool = True) -> int:
-        response = self.client.load(plugin, name=name, parameters=parameters, extra=IPC if ipc else None)
+    def load_driver(self, plugin: str, name: str, parameters: dict[str, Any], ipc: bool = True,
+                    package: str = "components") -> int:
+        response = self.client.load(plugin, package, name=name, parameters=parameters, extra=IPC if ipc else None)
         assert response.success, response.error_message
         self.drivers[name] = response.unique_id
         return response.unique_id
@@ -238,18 +240,21 @@ class Rig:
     def unload_driver(self, name: str) -> None:
         assert self.client.unload(self.drivers.pop(name)).success
 
-    def try_load_recorder(self, name: str, parameters: dict[str, Any]) -> Any:
-        return self.client.load("components::Recorder", name=name, parameters=parameters, extra=IPC)
+    def try_load_recorder(self, name: str, parameters: dict[str, Any],
+                          plugin: tuple[str, str] = ("components", "components::Recorder")) -> Any:
+        return self.client.load(plugin[1], plugin[0], name=name, parameters=parameters, extra=IPC)
 
-    def record(self, name: str, uri: Path, **parameters: Any) -> Recorder:
-        """Load a recorder writing to ``uri`` with ``parameters`` (defaults: the rig's sensor topics)."""
+    def record(self, name: str, uri: Path, *, plugin: tuple[str, str] = ("components", "components::Recorder"),
+               **parameters: Any) -> Recorder:
+        """Load a recorder (``plugin``: package and plugin name) writing to ``uri`` with ``parameters``
+        (defaults: the rig's sensor topics)."""
         if not any(key in parameters for key in ("bag_name", "bag_file", "bag_prefix", "uri")):
             parameters.setdefault("storage.uri", str(uri))
         if not any(key in parameters for key in ("record.topics", "record.all_topics", "record_all",
                                                   "topics", "topic_names", "record.regex")):
             parameters["record.topics"] = RIG_TOPICS
         loaded_ns = time.time_ns()
-        response = self.try_load_recorder(name, parameters)
+        response = self.try_load_recorder(name, parameters, plugin)
         assert response.success, response.error_message
         assert response.full_node_name == f"/{name}"
         recorder = Recorder(self, name, response.unique_id, uri, loaded_ns)
@@ -1054,10 +1059,23 @@ def test_parameter_aliases(rig: Rig, tmp_path: Path) -> None:
 @pytest.mark.parametrize("parameters, expected", [
     ({"bag_name": "{uri}", "storage.uri": "{uri}_other"}, "'bag_name' is an alias of 'storage.uri'"),
     ({"storage.storage_id": "foo"}, "parameter 'storage.storage_id' must be one of mcap, sqlite3, got 'foo'"),
-    ({"storage_id": "foo"}, "parameter 'storage.storage_id' must be one of mcap, sqlite3, got 'foo'"),
+    ({"storage_id": "foo"},
+     "parameter 'storage_id' (alias of 'storage.storage_id') must be one of mcap, sqlite3, got 'foo'"),
     ({"storage.max_cache_size": 0}, "parameter 'storage.max_cache_size' must be positive"),
     ({"storage.storage_preset_profile": "turbo"}, "storage_preset_profile 'turbo'"),
-], ids=["alias_and_name", "storage_id", "storage_id_alias", "cache_size", "preset"])
+    # aliases have the types of their rosbag2 names
+    ({"record_all": "false"}, "parameter 'record_all' (alias of 'record.all_topics') must be a boolean"),
+    ({"start_recording_immediately": "false"},
+     "parameter 'start_recording_immediately' (alias of 'record.start_paused') must be a boolean"),
+    ({"max_bag_size": True}, "parameter 'max_bag_size' (alias of 'storage.max_bagfile_size') must be a number"),
+    ({"max_cache_size": 1.9}, "parameter 'max_cache_size' (alias of 'storage.max_cache_size') must be a number "
+                              "(integer), got 1.9"),
+    ({"storage.uri": 7}, "parameter 'storage.uri' must be a string, got 7"),
+    ({"exclude": "(/imu"}, "parameter 'exclude' (alias of 'record.exclude_regex') is not a valid regular "
+                           "expression"),
+    ({"record.regex": "[a"}, "parameter 'record.regex' is not a valid regular expression"),
+], ids=["alias_and_name", "storage_id", "storage_id_alias", "cache_size", "preset", "record_all_string",
+        "start_immediately_string", "bag_size_bool", "cache_size_float", "uri_int", "exclude_regex", "regex"])
 def test_bad_parameters_are_refused(rig: Rig, tmp_path: Path, parameters: dict[str, Any], expected: str) -> None:
     uri = tmp_path / "never"
     parameters = {k: v.format(uri=uri) if isinstance(v, str) else v for k, v in parameters.items()}
@@ -1068,3 +1086,15 @@ def test_bad_parameters_are_refused(rig: Rig, tmp_path: Path, parameters: dict[s
     assert expected in response.error_message, response.error_message
     assert not uri.exists() and not Path(f"{uri}_other").exists()
     assert "/recorder_bad" not in rig.listed()
+
+
+def test_not_set_means_default_and_unknown_names_are_reported(rig: Rig, tmp_path: Path) -> None:
+    uri = tmp_path / "hygiene"
+    recorder = rig.record("recorder_hygiene", uri, **{
+        "storage.uri": None, "bag_name": str(uri),  # NOT_SET (as a launch file's None sends it): the default
+        "record.topic": ["/imu/imu"], "max_bag_sise": 5, "record.topics": ["/imu/imu"]})
+    time.sleep(0.5)
+    recorder.unload()
+    assert set(verify_bag(uri).counts()) == {"/imu/imu"}
+    warnings = re.findall(r"\[recorder_hygiene\]: Unknown parameters, ignored: (.*)", rig.container.log())
+    assert warnings == ["record.topic (did you mean record.topics?), max_bag_sise (did you mean max_bag_size?)"]

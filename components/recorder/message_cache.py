@@ -12,7 +12,11 @@ from __future__ import annotations
 import threading
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
+
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
+
+from components.recorder.cdr_size import serialized_size
 
 
 @dataclass(slots=True)
@@ -26,12 +30,45 @@ class CachedMessage:
     publish_time_ns: int
 
 
+#: Size charged for a message whose size cannot be computed: it cannot be serialized either, and the writer
+#: drops and reports it (the intake must never raise in a publisher's thread).
+UNSIZED = 256
+
+
+def _image_size(msg: Image) -> int:
+    return 64 + len(msg.header.frame_id) + len(msg.encoding) + len(msg.data)
+
+
+def _compressed_image_size(msg: CompressedImage) -> int:
+    return 48 + len(msg.header.frame_id) + len(msg.format) + len(msg.data)
+
+
+def _point_cloud2_size(msg: PointCloud2) -> int:
+    return 64 + len(msg.header.frame_id) + sum(24 + len(f.name) for f in msg.fields) + len(msg.data)
+
+
+# The big sensor messages are sized from their buffers without serializing (at most a few bytes of padding
+# over the exact size, never under it); exact types only, as in cdr_fast.
+_FAST_SIZES: dict[type, Callable[[Any], int]] = {
+    Image: _image_size,
+    PointCloud2: _point_cloud2_size,
+    CompressedImage: _compressed_image_size,
+}
+
+
 def payload_size(payload: Any) -> int:
-    """Bytes a payload will occupy: exact for CDR bytes, the data buffer plus headers for messages."""
+    """Bytes a payload occupies once serialized: what counts against ``max_cache_size``.
+
+    Exact for CDR bytes and for message objects (so a LaserScan, MarkerArray or Path counts for what it holds,
+    not just a ``data`` field); an upper estimate for images and clouds.
+    """
     if isinstance(payload, (bytes, bytearray, memoryview)):
         return len(payload)
-    data = getattr(payload, "data", None)
-    return 256 + (len(data) if hasattr(data, "__len__") else 0)
+    try:
+        fast = _FAST_SIZES.get(type(payload))
+        return fast(payload) if fast is not None else serialized_size(payload)
+    except Exception:  # noqa: BLE001 - a broken message: the writer reports it when it fails to serialize it
+        return UNSIZED
 
 
 class MessageCache:
@@ -44,7 +81,8 @@ class MessageCache:
         self._bytes = 0
         self._closed = False
         self.received: Counter[str] = Counter()  # every push, counted under the lock (pushers may race)
-        self.dropped: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()  # refused because the cache was full
+        self.refused: Counter[str] = Counter()  # refused because the cache was closed
         self.evicted: Counter[str] = Counter()
         self._condition = threading.Condition()
 
@@ -52,12 +90,17 @@ class MessageCache:
     def bytes(self) -> int:
         return self._bytes
 
+    def counts(self) -> tuple[Counter[str], Counter[str], Counter[str]]:
+        """Copies of (received, dropped, refused), consistent with each other, for another thread to read."""
+        with self._condition:
+            return Counter(self.received), Counter(self.dropped), Counter(self.refused)
+
     def push(self, message: CachedMessage) -> bool:
         """Queue a message; False (and counted) if it was dropped because the cache is full or closed."""
         with self._condition:
             self.received[message.topic] += 1
             if self._closed:
-                self.dropped[message.topic] += 1
+                self.refused[message.topic] += 1
                 return False
             if self._ring:
                 while self._queue and self._bytes + message.size > self.max_bytes:
@@ -99,7 +142,7 @@ class MessageCache:
                 self._bytes -= message.size
 
     def close(self) -> None:
-        """Refuse new messages (they count as dropped) and wake the writer for its final flush."""
+        """Refuse new messages (counted in ``refused``) and wake the writer for its final flush."""
         with self._condition:
             self._closed = True
             self._condition.notify_all()

@@ -9,7 +9,10 @@ Services (private): ``~/pause``, ``~/resume``, ``~/toggle_paused``, ``~/is_pause
 (std_srvs/Trigger; get_stats answers the live counts as JSON in ``message``). Events: ``events/write_split``.
 
 Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
-``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM.
+``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM, within the
+container's shutdown timeout. A loaded recorder is a working one or says why not: a bad message, a type that
+cannot be used here or a failing disk is logged, counted in ``~/get_stats`` and reported by :meth:`health`,
+and never silently stops the recording (see RecordingSession).
 """
 from __future__ import annotations
 
@@ -23,17 +26,26 @@ from typing import Any
 
 from rclpy.duration import Duration
 from rclpy.qos import QoSProfile
+from rclpy.type_support import check_is_valid_msg_type
 from rosbag2_interfaces.msg import WriteSplitEvent
 from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
+from component_container.health import Health
+from components.recorder.bag_writer import BagWriter
+from components.recorder.message_definitions import message_definition
 from components.recorder.metadata import TopicInfo, qos_profile_dict
+from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
 from components.recorder.recording_session import RecordingSession
 from components.recorder.topic_selection import TopicFilter, adapt_qos, load_qos_overrides
 
 SPLIT_EVENT_TOPIC = "events/write_split"
+#: Share of the container's shutdown_timeout that finalizing a bag may take: the node must still be destroyed
+#: (its endpoints, the split event acknowledgement) within the rest.
+FINISH_SHARE = 0.8
+ACK_SHARE = 0.1
 
 
 def message_class(type_name: str) -> Any:
@@ -45,10 +57,14 @@ def message_class(type_name: str) -> Any:
 class Recorder(ComponentNode):
     """Records selected topics into rosbag2 bags (see module docstring)."""
 
+    #: What writes the bags; a subclass may record through its own BagWriter.
+    writer_class: type[BagWriter] = BagWriter
+
     def __init__(self, **kwargs: Any) -> None:
         overrides = {p.name: p for p in kwargs.get("parameter_overrides") or []}
         self._lock = threading.RLock()
         self._session: RecordingSession | None = None
+        self._health = HealthMonitor()
         super().__init__("recorder", **kwargs)
         try:
             self._options = declare_options(self, overrides)
@@ -96,7 +112,8 @@ class Recorder(ComponentNode):
         # Queue drops count per subscription since it was created; a session counts only its own.
         baseline = {topic: getattr(sub, "dropped_count", 0) for topic, sub in self._topic_subscriptions.items()}
         session = RecordingSession(self._options, self._next_uri(), self.get_logger(), self._publish_split,
-                                   queue_drops=functools.partial(self._queue_drops, baseline))
+                                   queue_drops=functools.partial(self._queue_drops, baseline),
+                                   writer_class=self.writer_class)
         for info in self._topics.values():
             session.add_topic(info)
         self._session = session
@@ -105,12 +122,16 @@ class Recorder(ComponentNode):
         return session
 
     def stop_recording(self) -> dict[str, Any] | None:
-        """Finalize the current bag (flush, summary, metadata.yaml); returns its final counts. Idempotent."""
+        """Finalize the current bag (flush, summary, metadata.yaml); returns its final counts. Idempotent.
+
+        Bounded by the container's shutdown_timeout: a writer stuck on a hung disk is abandoned (and its bag
+        left unfinalized, see RecordingSession.finish) rather than blocking an unload or a shutdown forever.
+        """
         with self._lock:
             session, self._session = self._session, None
         if session is None:
             return None
-        session.finish()
+        session.finish(timeout=FINISH_SHARE * self.shutdown_timeout)
         stats = session.stats()
         self._finished_stats.append(stats)
         return stats
@@ -137,23 +158,37 @@ class Recorder(ComponentNode):
         self.get_logger().warning(f"Not recording {topic}: {reason}")
 
     def _subscribe(self, topic: str, type_name: str, publishers: list[Any]) -> None:
+        """Record ``topic``. A type this process cannot record is logged and ignored; discovery goes on.
+
+        Everything that can fail for a type (its module, its class, its type support, the definition the bag
+        must carry) is checked before the topic is registered, so a failure leaves nothing half-registered
+        that a later ~/start_recording would trip over.
+        """
         try:
             msg_type = message_class(type_name)
-        except (ImportError, AttributeError, ValueError) as exc:
-            self._ignore(topic, f"type {type_name} is not installed here ({exc})")
+            check_is_valid_msg_type(msg_type)
+            message_definition(type_name)
+        except Exception as exc:  # noqa: BLE001 - any broken installation of a type: that topic only
+            self._ignore(topic, f"type {type_name} cannot be recorded here ({type(exc).__name__}: {exc})")
             return
         offered = [p.qos_profile for p in publishers]
         qos: QoSProfile = self._qos_overrides.get(topic) or adapt_qos(offered)
         type_hash = next((str(p.topic_type_hash) for p in publishers if str(p.topic_type_hash).startswith("RIHS01_")),
                          "")
         info = TopicInfo(topic, type_name, "cdr", [qos_profile_dict(q) for q in offered], type_hash)
-        with self._lock:
-            self._topics[topic] = info
-            if self._session is not None:
-                self._session.add_topic(info)
-        self._topic_subscriptions[topic] = self.create_subscription(
-            msg_type, topic, functools.partial(self._intake, topic), qos, raw=True,
-            intra_process_inline=True)  # the intake only hands over to the writer thread: no executor hop
+        try:
+            with self._lock:  # declared in the bag before the first message can reach the writer
+                if self._session is not None:
+                    self._session.add_topic(info)
+                self._topics[topic] = info
+            self._topic_subscriptions[topic] = self.create_subscription(
+                msg_type, topic, functools.partial(self._intake, topic), qos, raw=True,
+                intra_process_inline=True)  # the intake only hands over to the writer thread: no executor hop
+        except Exception as exc:  # noqa: BLE001 - as above; the bag may list the topic, without messages
+            with self._lock:
+                self._topics.pop(topic, None)
+            self._ignore(topic, f"cannot subscribe with type {type_name} ({type(exc).__name__}: {exc})")
+            return
         self.get_logger().info(f"Subscribed to {topic} ({type_name})")
 
     def _intake(self, topic: str, message: Any, info: dict[str, Any]) -> None:
@@ -180,6 +215,11 @@ class Recorder(ComponentNode):
         return {"recording": session is not None, "paused": self._paused,
                 "current": session.stats() if session else None,
                 "finished": list(self._finished_stats)}
+
+    def health(self) -> Health:
+        """For /diagnostics: OK while recording, WARN when not (or dropping), ERROR after a storage failure."""
+        session = self._session
+        return self._health.sample(session.stats() if session else None, self._paused)
 
     # --- services -----------------------------------------------------------------------------------------
     def _set_paused(self, paused: bool) -> None:
@@ -234,8 +274,9 @@ class Recorder(ComponentNode):
         stats = self.stop_recording()
         if stats is None:
             response.success, response.message = False, "not recording"
-        else:
-            response.success, response.message = stats["error"] is None, json.dumps(stats)
+        else:  # the final counts; on failure, "error" and "serialize_errors" in them say why
+            response.success = stats["error"] is None and not stats["serialize_errors"]
+            response.message = json.dumps(stats)
         return response
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -249,7 +290,7 @@ class Recorder(ComponentNode):
         events = getattr(self, "_split_events", None)
         if events is not None and self.context.ok():
             try:
-                events.wait_for_all_acked(Duration(seconds=1.0))
+                events.wait_for_all_acked(Duration(seconds=min(1.0, ACK_SHARE * self.shutdown_timeout)))
             except Exception:  # noqa: BLE001 - never let this keep the node from being destroyed
                 pass
         super().destroy_node()

@@ -18,6 +18,8 @@ An alias given together with its rosbag2 name is an error, so nothing is silentl
 """
 from __future__ import annotations
 
+import difflib
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,25 +53,29 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     "snapshot_mode": False,
     "custom_data": [""],
 }
-# alias -> (rosbag2 name, converter)
-ALIASES: dict[str, tuple[str, Any]] = {
-    "record_all": ("record.all_topics", bool),
-    "topic_names": ("record.topics", list),
-    "topics": ("record.topics", list),
-    "exclude": ("record.exclude_regex", str),
-    "start_paused": ("record.start_paused", bool),
-    "start_recording_immediately": ("record.start_paused", lambda value: not value),
-    "bag_file": ("storage.uri", str),
-    "bag_name": ("storage.uri", str),
-    "bag_prefix": ("storage.uri", str),
-    "uri": ("storage.uri", str),
-    "storage_id": ("storage.storage_id", str),
-    "max_cache_size": ("storage.max_cache_size", int),
-    "max_bag_size": ("storage.max_bagfile_size", int),
-    "max_bagfile_size": ("storage.max_bagfile_size", int),
-    "max_bag_duration": ("storage.max_bagfile_duration", float),
-    "max_bagfile_duration": ("storage.max_bagfile_duration", float),
+DEFAULTS: dict[str, Any] = {**{f"record.{k}": v for k, v in RECORD_DEFAULTS.items()},
+                             **{f"storage.{k}": v for k, v in STORAGE_DEFAULTS.items()}}
+#: alias -> rosbag2 name; an alias takes the type of its rosbag2 parameter
+ALIASES: dict[str, str] = {
+    "record_all": "record.all_topics",
+    "topic_names": "record.topics",
+    "topics": "record.topics",
+    "exclude": "record.exclude_regex",
+    "start_paused": "record.start_paused",
+    "start_recording_immediately": "record.start_paused",
+    "bag_file": "storage.uri",
+    "bag_name": "storage.uri",
+    "bag_prefix": "storage.uri",
+    "uri": "storage.uri",
+    "storage_id": "storage.storage_id",
+    "max_cache_size": "storage.max_cache_size",
+    "max_bag_size": "storage.max_bagfile_size",
+    "max_bagfile_size": "storage.max_bagfile_size",
+    "max_bag_duration": "storage.max_bagfile_duration",
+    "max_bagfile_duration": "storage.max_bagfile_duration",
 }
+#: aliases whose boolean means the opposite of their rosbag2 parameter
+INVERTED_ALIASES = frozenset({"start_recording_immediately"})
 STORAGE_IDS = ("mcap", "sqlite3")
 
 
@@ -105,71 +111,83 @@ def _clean(values: list[str]) -> list[str]:
 
 
 def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOptions:
-    """Declare every parameter on ``node`` and return the validated options; ValueError on bad input."""
+    """Declare every parameter on ``node`` and return the validated options; ValueError on bad input.
+
+    Errors name the parameter as the user gave it (an alias, or the rosbag2 name); a parameter given as
+    NOT_SET means its default. Names the recorder does not know get one warning: a misspelled parameter would
+    otherwise be ignored without a word, and the recording would silently use the default.
+    """
+    given = {name: p.value for name, p in overrides.items() if p.type_ != Parameter.Type.NOT_SET}
     values: dict[str, Any] = {}
-    for prefix, defaults in (("record", RECORD_DEFAULTS), ("storage", STORAGE_DEFAULTS)):
-        for name, default in defaults.items():
-            values[f"{prefix}.{name}"] = node.declare_parameter(
-                f"{prefix}.{name}", default, ParameterDescriptor(dynamic_typing=True)).value
-    for alias, (target, convert) in ALIASES.items():
-        given = overrides.get(alias)
-        if given is None or alias == target:
+    sources = {name: name for name in DEFAULTS}  # rosbag2 name -> the name the user gave it as
+    for name, default in DEFAULTS.items():
+        value = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
+        if value is None:  # declared NOT_SET: show the default that is used
+            node.set_parameters([Parameter(name, value=default)])
+        values[name] = default if value is None else _typed(name, value, f"'{name}'")
+    for alias, target in ALIASES.items():
+        if alias not in given:
             continue
-        if target in overrides:
+        if target in given:
             raise ValueError(f"parameter '{alias}' is an alias of '{target}': give only one of them")
-        value = given.value
-        if convert is list and isinstance(value, str):
+        value = given[alias]
+        if isinstance(DEFAULTS[target], list) and isinstance(value, str):  # the seed tools took "a, b" for a list
             value = [v.strip() for v in value.replace(",", " ").split()]
-        values[target] = convert(value)
-        node.declare_parameter(alias, given.value, ParameterDescriptor(dynamic_typing=True))
+        sources[target] = alias
+        value = _typed(target, value, _label(target, alias))
+        values[target] = not value if alias in INVERTED_ALIASES else value
+        node.declare_parameter(alias, given[alias], ParameterDescriptor(dynamic_typing=True))
         # Mirror the value to the rosbag2 name, so `ros2 param get <node> storage.uri` shows what is used.
         node.set_parameters([Parameter(target, value=values[target])])
-    return _validate(values)
+    unknown = [name for name in given if not node.has_parameter(name) and not name.startswith("qos_overrides.")]
+    if unknown:
+        node.get_logger().warning("Unknown parameters, ignored: " + ", ".join(_suggest(name) for name in unknown))
+    return _validate(values, {name: _label(name, source) for name, source in sources.items()})
 
 
-def _typed(values: dict[str, Any]) -> dict[str, Any]:
-    """Coerce each value to its default's type, with an error naming the parameter when impossible."""
-    typed = {}
-    defaults = {**{f"record.{k}": v for k, v in RECORD_DEFAULTS.items()},
-                **{f"storage.{k}": v for k, v in STORAGE_DEFAULTS.items()}}
-    for name, value in values.items():
-        kind = type(defaults[name])
-        if kind is list:
-            value = [value] if isinstance(value, str) else value
-            if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-                raise ValueError(f"parameter '{name}' must be a list of strings, got {value!r}")
-            typed[name] = list(value)
-        elif kind is bool:
-            if not isinstance(value, bool):
-                raise ValueError(f"parameter '{name}' must be a boolean, got {value!r}")
-            typed[name] = value
-        elif kind is int and name.endswith("duration"):
-            typed[name] = _number(name, value, float)
-        elif kind in (int, float):
-            typed[name] = _number(name, value, kind)
-        else:
-            typed[name] = str(value)
-    return typed
+def _label(name: str, source: str) -> str:
+    """How an error names a parameter: as the user gave it."""
+    return f"'{name}'" if source == name else f"'{source}' (alias of '{name}')"
 
 
-def _number(name: str, value: Any, kind: type) -> Any:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and value != int(value)):
-        raise ValueError(f"parameter '{name}' must be a number{' (integer)' if kind is int else ''}, "
-                         f"got {value!r}")
-    return kind(value)
+def _suggest(name: str) -> str:
+    close = difflib.get_close_matches(name, [*DEFAULTS, *ALIASES], n=1, cutoff=0.75)
+    return f"{name} (did you mean {close[0]}?)" if close else name
 
 
-def _validate(values: dict[str, Any]) -> RecordOptions:
-    values = _typed(values)
+def _typed(name: str, value: Any, label: str) -> Any:
+    """``value`` as the type of rosbag2's parameter ``name``, or a ValueError naming the parameter (``label``)."""
+    kind = type(DEFAULTS[name])
+    if kind is list:
+        value = [value] if isinstance(value, str) else value
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise ValueError(f"parameter {label} must be a list of strings, got {value!r}")
+        return list(value)
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"parameter {label} must be a boolean, got {value!r}")
+        return value
+    if kind in (int, float):
+        kind = float if name.endswith("duration") else kind
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and value != int(value)):
+            raise ValueError(f"parameter {label} must be a number{' (integer)' if kind is int else ''}, "
+                             f"got {value!r}")
+        return kind(value)
+    if not isinstance(value, str):
+        raise ValueError(f"parameter {label} must be a string, got {value!r}")
+    return value
+
+
+def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     storage_id = values["storage.storage_id"] or "mcap"
     if storage_id not in STORAGE_IDS:
-        raise ValueError(f"parameter 'storage.storage_id' must be one of {', '.join(STORAGE_IDS)}, "
+        raise ValueError(f"parameter {labels['storage.storage_id']} must be one of {', '.join(STORAGE_IDS)}, "
                          f"got '{storage_id}'")
     for name in ("storage.max_bagfile_size", "storage.max_bagfile_duration"):
         if values[name] < 0:
-            raise ValueError(f"parameter '{name}' must not be negative, got {values[name]}")
+            raise ValueError(f"parameter {labels[name]} must not be negative, got {values[name]}")
     if values["storage.max_cache_size"] <= 0:
-        raise ValueError("parameter 'storage.max_cache_size' must be positive: the recorder needs a cache "
+        raise ValueError(f"parameter {labels['storage.max_cache_size']} must be positive: the recorder needs a cache "
                          f"to hand messages to its writer thread, got {values['storage.max_cache_size']}")
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
@@ -179,6 +197,11 @@ def _validate(values: dict[str, Any]) -> RecordOptions:
         if not sep or not key:
             raise ValueError(f"parameter 'storage.custom_data' entries must be 'key=value', got '{item}'")
         custom[key] = value
+    for name in ("record.regex", "record.exclude_regex"):
+        try:
+            re.compile(values[name])
+        except re.error as exc:
+            raise ValueError(f"parameter {labels[name]} is not a valid regular expression: {exc}") from None
     interval = values["record.topic_polling_interval.sec"] + values["record.topic_polling_interval.nsec"] / 1e9
     if interval <= 0:
         raise ValueError("parameter 'record.topic_polling_interval' must be positive")

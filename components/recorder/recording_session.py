@@ -4,14 +4,24 @@ The session owns a :class:`BagWriter`, the :class:`MessageCache` the intake fill
 that serializes intra-process message objects (DDS payloads already are CDR bytes) and writes them. Nothing
 here runs on the executor except :meth:`offer`, which only appends to the cache.
 
-A storage failure (disk full, file removed) ends the session: the error is kept and logged, the bag is
-closed with what was written, and further messages are counted as dropped. ``finish`` is idempotent.
+The writer thread is supervised, so one bad message or one bad disk never silently ends a recording:
+
+* a message object that cannot be serialized (field checks are off by default in Jazzy, so a malformed
+  message reaches the recorder) is dropped and counted with its reason; the recording goes on;
+* a storage failure (disk full, file removed), and anything else the writer thread did not expect, ends the
+  session: the error is kept and logged, the bag is closed with what was written, and further messages are
+  counted as dropped;
+* :meth:`finish` is bounded: a writer that does not finish in time (a hung disk) is abandoned, its bag left
+  unfinalized (repairable) and the error recorded.
+
+Every drop is counted per topic and reason (``drop_reasons`` in :meth:`stats`). ``finish`` is idempotent.
 """
 from __future__ import annotations
 
 import threading
 import time
-from collections import Counter, deque
+import traceback
+from collections import Counter, defaultdict, deque
 from typing import Any, Callable
 
 from components.recorder import cdr_fast
@@ -26,6 +36,13 @@ Serializer = Callable[[Any], CdrData]
 QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
 
+# Why a message was dropped: the keys of ``drop_reasons`` in the stats.
+CACHE_FULL = "cache_full"                # the cache was full: the writer fell behind
+QUEUE_FULL = "queue_full"                # a subscription's queue overflowed before the intake
+SERIALIZE_FAILED = "serialize_failed"    # the message object could not be serialized
+STORAGE_FAILED = "storage_failed"        # taken in, but the storage failed (or hung) before it was written
+RECORDING_STOPPED = "recording_stopped"  # arrived after the session had stopped taking messages
+
 
 def _percentiles(samples_ns: list[int]) -> dict[str, float] | None:
     """p50/p99 in milliseconds of the receive-to-write latencies, None before the first write."""
@@ -36,25 +53,37 @@ def _percentiles(samples_ns: list[int]) -> dict[str, float] | None:
             for q, f in (("p50", 0.50), ("p99", 0.99))}
 
 
+def _describe(exc: BaseException) -> str:
+    """A storage error as the OS put it; anything else with its type, since it is a bug to report."""
+    return str(exc) if isinstance(exc, BagWriteError) else f"unexpected {type(exc).__name__}: {exc}"
+
+
 class RecordingSession:
     """Records into one bag directory until :meth:`finish`."""
 
     def __init__(self, options: RecordOptions, uri: str, logger: Any,
                  on_split: Callable[[str, str], None] | None = None,
-                 serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None) -> None:
+                 serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None,
+                 writer_class: type[BagWriter] = BagWriter) -> None:
         self._logger = logger
         self._serialize = serialize
         self._queue_drops = queue_drops
         self._last_log_time = 0
         self._monotonic_log_times = options.storage_preset_profile == "fastwrite"
-        self.writer = BagWriter(uri, options.storage_id, options.max_bagfile_size,
-                                options.max_bagfile_duration, options.storage_preset_profile,
-                                options.custom_data or None, on_split)
+        self.writer = writer_class(uri, options.storage_id, options.max_bagfile_size,
+                                   options.max_bagfile_duration, options.storage_preset_profile,
+                                   options.custom_data or None, on_split)
         self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
-        self.write_dropped: Counter[str] = Counter()
+        # The live counts are the session's own, not the writer's: reading the writer's would wait on its lock,
+        # which a write to a hung disk holds forever (and ~/get_stats, health and unload must still answer).
+        self._topics: set[str] = set()
         # Messages the writer accepted; after a storage failure the file may hold fewer (a buffered chunk that
         # could not reach the disk), and the difference is lost too.
         self.handed: Counter[str] = Counter()
+        self._bytes_written = 0  # the writer's count after its latest batch
+        self._stats_lock = threading.Lock()  # the writer thread's drop counts and errors, read by others
+        self._writer_drops: defaultdict[str, Counter[str]] = defaultdict(Counter)
+        self.serialize_errors: dict[str, str] = {}  # per topic, the first reason a message could not be serialized
         self.error: str | None = None
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
@@ -63,6 +92,7 @@ class RecordingSession:
         self._snapshots: deque[list[CachedMessage]] = deque()  # taken from the ring, waiting to be written
         self._finish_lock = threading.Lock()
         self._finished = False
+        # A daemon: a writer stuck on a hung disk is abandoned by finish() and must not keep the process alive.
         self._thread = threading.Thread(target=self._run, name=f"bag_writer:{self.writer.path.name}",
                                         daemon=True)
         self._thread.start()
@@ -72,14 +102,19 @@ class RecordingSession:
         return not self._finished and self.error is None
 
     def add_topic(self, info: TopicInfo) -> None:
-        """Declare a topic in the bag (listed even if it never gets a message)."""
+        """Declare a topic in the bag (listed even if it never gets a message).
+
+        Raises what BagWriter.add_topic raises for a topic it cannot describe (no definition installed); a
+        storage failure instead ends the session.
+        """
         try:
             self.writer.add_topic(info)
         except BagWriteError as exc:
             self._fail(exc)
+        self._topics.add(info.name)
 
     def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> None:
-        """Intake: hand one message to the writer thread. Never blocks on I/O."""
+        """Intake: hand one message to the writer thread. Never blocks on I/O, never raises."""
         self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
 
     def snapshot(self) -> bool:
@@ -98,29 +133,45 @@ class RecordingSession:
         except BagWriteError as exc:
             self._fail(exc)
             return False
+        except ValueError:  # the writer thread closed the bag after a failure meanwhile
+            return False
         return True
 
     # --- writer thread ----------------------------------------------------------------------------------
     def _run(self) -> None:
-        while True:
-            if self._snapshot_mode:
-                self._snapshot_requested.wait(0.2)
-                self._snapshot_requested.clear()
-                batch = self._snapshots.popleft() if self._snapshots else []
-            else:
-                batch = self.cache.take_all(timeout=0.2)
-            batch.sort(key=_log_time)  # stable: each topic keeps its order
-            for index, message in enumerate(batch):
-                if not self._write(message):
-                    for lost in batch[index:]:
-                        self.write_dropped[lost.topic] += 1
+        """Write batches until the cache is closed and empty; never dies silently (see module docstring)."""
+        batch: list[CachedMessage] = []
+        written = 0
+        try:
+            while True:
+                batch, written = self._next_batch(), 0
+                batch.sort(key=_log_time)  # stable: each topic keeps its order
+                for message in batch:
+                    self._write(message)
+                    written += 1
+                self._bytes_written = self.writer.bytes_written
+                if self.cache.closed and not batch:
                     return
-            if self.cache.closed and not batch:
-                return
+        except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
+            self._fail(exc)
+            self._discard(batch[written:], STORAGE_FAILED)
+            self._close_writer()  # the bag is finalized now, not only at unload
 
-    def _write(self, message: CachedMessage) -> bool:
+    def _next_batch(self) -> list[CachedMessage]:
+        if not self._snapshot_mode:
+            return self.cache.take_all(timeout=0.2)
+        self._snapshot_requested.wait(0.2)
+        self._snapshot_requested.clear()
+        return self._snapshots.popleft() if self._snapshots else []
+
+    def _write(self, message: CachedMessage) -> None:
+        """Serialize and write one message; raises what the storage raised (the caller ends the session)."""
         payload = message.payload
-        data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
+        try:
+            data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
+        except Exception as exc:  # noqa: BLE001 - a malformed message object: dropped, the recording goes on
+            self._drop_unserializable(message, exc)
+            return
         message.payload = None  # let the message object go as soon as it is serialized
         # Unindexed MCAP files (fastwrite) must have ascending log times: their readers, rosbags among them,
         # refuse files where they do not. There, a message that reached the intake after a newer one was
@@ -128,27 +179,59 @@ class RecordingSession:
         log_time = message.log_time_ns
         if self._monotonic_log_times:
             log_time = self._last_log_time = max(log_time, self._last_log_time)
-        try:
-            self.writer.write(message.topic, data, log_time, message.publish_time_ns)
-            self.handed[message.topic] += 1
-            self._latencies.append(time.time_ns() - message.log_time_ns)
-        except BagWriteError as exc:
-            self._fail(exc)
-            return False
-        finally:
-            self.cache.release(message)
-        return True
+        self.writer.write(message.topic, data, log_time, message.publish_time_ns)
+        self.handed[message.topic] += 1
+        self._latencies.append(time.time_ns() - message.log_time_ns)
+        self.cache.release(message)
 
-    def _fail(self, exc: BagWriteError) -> None:
-        if self.error is None:
-            self.error = str(exc)
-            self._logger.error(f"Recording to {self.writer.path} stopped: {exc}. The bag holds what was written "
-                               "before the failure; later messages are counted as dropped.")
+    def _drop_unserializable(self, message: CachedMessage, exc: Exception) -> None:
+        reason = f"{type(exc).__name__}: {exc}"
+        with self._stats_lock:
+            self._writer_drops[message.topic][SERIALIZE_FAILED] += 1
+            first = self.serialize_errors.setdefault(message.topic, reason) is reason
+        self.cache.release(message)
+        if first:  # once per topic: a publisher that keeps sending broken messages must not flood the log
+            self._logger.error(f"Dropped a message on {message.topic} that cannot be serialized ({reason}); "
+                               "recording goes on, further failures on this topic are counted in ~/get_stats")
+
+    def _discard(self, messages: list[CachedMessage], reason: str) -> None:
+        """Count messages that will never be written, and free their room in the cache."""
+        with self._stats_lock:
+            for message in messages:
+                self._writer_drops[message.topic][reason] += 1
+        for message in messages:
+            self.cache.release(message)
+
+    def _fail(self, exc: BaseException | str) -> None:
+        """End the session: keep and log the first error; the cache refuses everything from now on."""
+        reason = exc if isinstance(exc, str) else _describe(exc)
+        with self._stats_lock:
+            first, self.error = self.error is None, self.error or reason
+        if not first:
+            self._logger.warning(f"Recording to {self.writer.path}, after the failure: {reason}")
+        elif isinstance(exc, (str, BagWriteError)):
+            self._logger.error(f"Recording to {self.writer.path} stopped: {reason}. The bag holds what was "
+                               "written before the failure; later messages are counted as dropped.")
+        else:
+            self._logger.error(f"Recording to {self.writer.path} stopped: {reason}. The bag is closed with what "
+                               "was written; later messages are counted as dropped.\n" + traceback.format_exc())
         self.cache.close()
 
+    def _close_writer(self) -> None:
+        """Close the bag (summary, metadata.yaml); a failure to do so is recorded like any storage failure."""
+        try:
+            self.writer.close()
+        except Exception as exc:  # noqa: BLE001 - recorded and logged; closing must not raise into finish()
+            self._fail(exc)
+
     # --- end --------------------------------------------------------------------------------------------
-    def finish(self) -> None:
-        """Flush the cache, close the bag (summary, metadata.yaml) and log the counts. Idempotent."""
+    def finish(self, timeout: float | None = None) -> None:
+        """Flush the cache, close the bag (summary, metadata.yaml) and log the counts. Idempotent.
+
+        Waits at most ``timeout`` seconds (None: as long as it takes) for the writer thread. One still busy
+        then is stuck on its storage: it is abandoned with the bag unfinalized, and nothing that would wait on
+        that storage (closing the bag, its counts) is attempted.
+        """
         with self._finish_lock:
             if self._finished:
                 return
@@ -157,32 +240,45 @@ class RecordingSession:
             for message in self.cache.drain():  # a ring that was never snapshotted is simply discarded
                 self.cache.release(message)
         self.cache.close()
-        self._thread.join()
-        for message in self.cache.drain():  # left behind by a failed writer: counted, not written
-            self.write_dropped[message.topic] += 1
-        try:
-            self.writer.close()
-        except BagWriteError as exc:
-            self._fail(exc)
+        self._thread.join(timeout)
+        self._discard(self.cache.drain(), STORAGE_FAILED)  # left behind by a failed or stuck writer
+        if self._thread.is_alive():
+            self._fail(f"the writer did not finish within {timeout:.1f} s (a hung disk?): the bag was not "
+                       "finalized; it can be repaired (ipc-component bag recover)")
+        else:
+            self._close_writer()
         self._logger.info(self.summary())
 
     def stats(self) -> dict[str, Any]:
-        """Live counts per topic, for the ``~/get_stats`` service and the closing log line."""
-        written = self.writer.topic_message_counts
+        """Live counts per topic, with the reasons of every drop; never waits on the storage."""
+        idle = not self._thread.is_alive()  # only then is the writer's lock free for sure
+        handed = dict(self.handed)
+        written = self.writer.topic_message_counts if idle else handed
+        received, cache_full, refused = self.cache.counts()
         queue = Counter(self._queue_drops() if self._queue_drops else {})
-        topics = sorted(set(written) | set(self.cache.received) | set(queue))
+        with self._stats_lock:
+            reasons = defaultdict(Counter, {t: Counter(c) for t, c in self._writer_drops.items()})
+            serialize_errors = dict(self.serialize_errors)
+            error = self.error
         # Only a failure loses accepted messages (the writer thread has stopped then, so the counts are still).
-        lost_in_storage = Counter({t: n - written.get(t, 0) for t, n in self.handed.items()} if self.error else {})
-        dropped = self.cache.dropped + self.write_dropped + queue + lost_in_storage
+        lost_in_storage = {t: n - written.get(t, 0) for t, n in handed.items()} if error and idle else {}
+        for reason, counts in ((CACHE_FULL, cache_full), (RECORDING_STOPPED, refused), (QUEUE_FULL, queue),
+                               (STORAGE_FAILED, lost_in_storage)):
+            for topic, count in counts.items():
+                if count:
+                    reasons[topic][reason] += count
+        topics = sorted(set(written) | self._topics | set(received) | set(queue))
         return {
             "bag": str(self.writer.path),
             "current_file": str(self.writer.current_file or ""),
-            "bytes_written": self.writer.bytes_written,
+            "bytes_written": self.writer.bytes_written if idle else self._bytes_written,
             "cache_bytes": self.cache.bytes,
-            "error": self.error,
+            "error": error,
+            "serialize_errors": serialize_errors,
             "write_latency_ms": _percentiles(list(self._latencies)),
-            "topics": {t: {"received": self.cache.received[t], "written": written.get(t, 0),
-                           "dropped": dropped[t], "queue_dropped": queue[t]} for t in topics},
+            "topics": {t: {"received": received[t], "written": written.get(t, 0),
+                           "dropped": sum(reasons[t].values()), "queue_dropped": queue[t]} for t in topics},
+            "drop_reasons": {t: dict(reasons[t]) for t in topics if reasons[t]},
         }
 
     def summary(self) -> str:
@@ -192,6 +288,10 @@ class RecordingSession:
         for topic, counts in stats["topics"].items():
             lines.append(f"  {topic}: received {counts['received']}, written {counts['written']}, "
                          f"dropped {counts['dropped']}")
+        if stats["drop_reasons"]:
+            lines.append("  dropped by reason: " + "; ".join(
+                f"{topic} " + ", ".join(f"{reason} {n}" for reason, n in reasons.items())
+                for topic, reasons in stats["drop_reasons"].items()))
         return "\n".join(lines)
 
 
