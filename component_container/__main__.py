@@ -22,8 +22,8 @@ from rclpy.utilities import remove_ros_args
 
 from component_container.component_executors import (
     EXECUTOR_KINDS,
+    SpinThread,
     SupervisedSingleThreadedExecutor,
-    spin_in_thread,
 )
 from component_container.component_manager import ComponentManager
 from component_container.startup_file import StartupFileError, load_requests
@@ -100,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     manager_executor = SupervisedSingleThreadedExecutor(
         on_error=lambda _node, exc: manager.supervisor.thread_died("component_manager", exc))
     manager_executor.add_node(manager)
-    manager.service_thread = spin_in_thread(manager_executor, "component_manager", manager.supervisor.thread_died)
+    service = SpinThread(manager_executor, "component_manager", manager.supervisor.thread_died)
+    manager.service_thread = service.thread
     while not exit_request.wait(0.5):  # a timed wait keeps the main thread responsive to signals
         pass
     manager.get_logger().info(f"Shutting down ({exit_request.reason}): unloading all components")
@@ -109,8 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     def shut_down() -> None:
         if not manager.shutdown(args.shutdown_timeout):
             status[0] = max(status[0], 1)
-        manager_executor.shutdown(timeout_sec=1.0)
-        manager.service_thread.join(timeout=1.0)  # never finalize the interpreter under a waiting executor
+        service.stop(1.0)  # never finalize the interpreter under a waiting executor
         manager.destroy_node()
         rclpy.try_shutdown()
 

@@ -118,21 +118,35 @@ class SupervisedMultiThreadedExecutor(SupervisedExecutor, MultiThreadedExecutor)
     """rclpy's MultiThreadedExecutor, supervised."""
 
 
-def spin_in_thread(executor: Executor, name: str, on_fatal: FatalHandler | None = None) -> threading.Thread:
-    """Spin ``executor`` on a daemon thread until it is shut down; an escaping exception goes to ``on_fatal``."""
+class SpinThread:
+    """A daemon thread spinning one executor until :meth:`stop`; what escapes ``spin()`` before that goes to
+    ``on_fatal`` (without one it is raised). Escapes while stopping are expected and ignored: rclpy's
+    MultiThreadedExecutor can raise InvalidHandle from a worker that triggers the guard condition that
+    ``shutdown()`` just destroyed."""
 
-    def spin() -> None:
+    def __init__(self, executor: Executor, name: str, on_fatal: FatalHandler | None = None) -> None:
+        self.executor = executor
+        self.name = name
+        self._on_fatal = on_fatal
+        self._stopping = False
+        self.thread = threading.Thread(target=self._spin, name=name, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
         try:
-            executor.spin()
+            self.executor.spin()
         except BaseException as exc:  # noqa: BLE001 - whatever ends this thread must be reported
-            if executor.context.ok() and on_fatal is not None:
-                on_fatal(name, exc)
-            elif executor.context.ok():
+            if self._stopping or not self.executor.context.ok():
+                return
+            if self._on_fatal is None:
                 raise
+            self._on_fatal(self.name, exc)
 
-    thread = threading.Thread(target=spin, name=name, daemon=True)
-    thread.start()
-    return thread
+    def stop(self, timeout: float) -> None:
+        """Shut the executor down and wait up to ``timeout`` s for the thread."""
+        self._stopping = True
+        self.executor.shutdown(timeout_sec=timeout)
+        self.thread.join(timeout)
 
 
 class ComponentExecutor(Protocol):
@@ -157,7 +171,7 @@ class SharedExecutor:
 
     def __init__(self, executor: SupervisedExecutor, on_fatal: FatalHandler | None = None) -> None:
         self._executor = executor
-        self._thread = spin_in_thread(executor, "components", on_fatal)
+        self._spinner = SpinThread(executor, "components", on_fatal)
 
     def add(self, node: Node) -> None:
         self._executor.add_node(node)
@@ -168,11 +182,10 @@ class SharedExecutor:
         return drained
 
     def threads(self) -> list[threading.Thread]:
-        return [self._thread]
+        return [self._spinner.thread]
 
     def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
-        self._executor.shutdown(timeout_sec=timeout)
-        self._thread.join(timeout=timeout)
+        self._spinner.stop(timeout)
 
 
 class IsolatedExecutors:
@@ -183,29 +196,28 @@ class IsolatedExecutors:
         self._context = context
         self._on_error = on_error
         self._on_fatal = on_fatal
-        self._running: dict[Node, tuple[SupervisedSingleThreadedExecutor, threading.Thread]] = {}
+        self._running: dict[Node, SpinThread] = {}
         self._lock = threading.Lock()
 
     def add(self, node: Node) -> None:
         executor = SupervisedSingleThreadedExecutor(context=self._context, on_error=self._on_error)
         executor.add_node(node)
-        thread = spin_in_thread(executor, f"component:{node.get_name()}", self._on_fatal)
+        spinner = SpinThread(executor, f"component:{node.get_name()}", self._on_fatal)
         with self._lock:
-            self._running[node] = (executor, thread)
+            self._running[node] = spinner
 
     def remove(self, node: Node, timeout: float = DRAIN_TIMEOUT) -> bool:
         with self._lock:
-            executor, thread = self._running.pop(node, (None, None))
-        if executor is None or thread is None:
+            spinner = self._running.pop(node, None)
+        if spinner is None:
             return True
-        drained = executor.gate.close(node, timeout)
-        executor.shutdown(timeout_sec=0.0 if not drained else timeout)
-        thread.join(timeout=timeout if drained else 0.0)
+        drained = spinner.executor.gate.close(node, timeout)  # type: ignore[attr-defined]
+        spinner.stop(timeout if drained else 0.0)
         return drained
 
     def threads(self) -> list[threading.Thread]:
         with self._lock:
-            return [thread for _, thread in self._running.values()]
+            return [spinner.thread for spinner in self._running.values()]
 
     def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
         with self._lock:
