@@ -28,7 +28,7 @@ from component_container.intra_process import (
 
 # See IntraProcessPublisher: how many published objects are watched for reuse (and copied while watching).
 REUSE_WATCH = 3
-_OWN_REFERENCES = 3
+_OWN_REFERENCES = 2
 
 
 class ComponentNode(Node):
@@ -133,7 +133,7 @@ class IntraProcessPublisher:
         self._publication: IntraProcessPublication = manager.add_publication(publisher.topic_name,
                                                                              publisher.qos_profile)
         self._always_dds = publisher.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-        self._recent: list[Any] = []
+        self._recent: list[Any] = [None] * REUSE_WATCH
         self._published = 0
         self.reuses_messages = False
 
@@ -147,24 +147,27 @@ class IntraProcessPublisher:
     def _must_copy(self, msg: Any) -> bool:
         if self.reuses_messages:
             return True
-        if any(recent is msg for recent in self._recent):
-            self.reuses_messages = True
-            self._logger.warning(
-                f"Publisher on {self.publisher.topic_name} publishes a message object it published before: "
-                "in-process subscribers get copies from now on (publish a new object each time to keep "
-                "delivery zero-copy)")
-            return True
-        # Forget objects nobody else holds any more (so this costs no memory): the entry in the list, the
-        # comprehension's variable and getrefcount's argument are this publisher's own three references.
-        self._recent = [recent for recent in self._recent if sys.getrefcount(recent) > _OWN_REFERENCES]
-        self._recent.append(msg)
-        del self._recent[:-REUSE_WATCH]
+        recent = self._recent  # a ring of REUSE_WATCH slots; written in place (this runs on every publish)
+        for held in recent:
+            if held is msg:
+                self.reuses_messages = True
+                self._logger.warning(
+                    f"Publisher on {self.publisher.topic_name} publishes a message object it published before: "
+                    "in-process subscribers get copies from now on (publish a new object each time to keep "
+                    "delivery zero-copy)")
+                return True
+        # Forget objects nobody else holds any more, so that watching costs no memory: the slot and
+        # getrefcount's argument are this publisher's own two references.
+        for index in range(REUSE_WATCH):
+            if recent[index] is not None and sys.getrefcount(recent[index]) <= _OWN_REFERENCES:
+                recent[index] = None
+        recent[self._published % REUSE_WATCH] = msg
         self._published += 1
         return self._published <= REUSE_WATCH
 
     def unregister(self) -> None:
         self._manager.remove_publication(self._publication)
-        self._recent.clear()
+        self._recent = [None] * REUSE_WATCH
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)  # topic_name, qos_profile, get_subscription_count, ...
