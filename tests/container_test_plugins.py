@@ -14,8 +14,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from component_container.component_node import ComponentNode
-from components.recorder.bag_writer import BagWriter
-from components.recorder.cdr_fast import CdrData
+from baglib.writer import BagWriter
+from baglib.cdr_fast import CdrData
 from components.recorder.recorder import Recorder
 
 

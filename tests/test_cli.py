@@ -411,8 +411,8 @@ def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: pathlib.Path) -> No
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from components.recorder.bag_writer import BagWriter
-    from components.recorder.metadata import TopicInfo
+    from baglib.writer import BagWriter
+    from baglib.metadata import TopicInfo
 
     writer = BagWriter(tmp_path / "info_bag")
     writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String"))

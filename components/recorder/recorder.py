@@ -33,9 +33,9 @@ from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
 from component_container.health import Health
-from components.recorder.bag_writer import BagWriter
-from components.recorder.message_definitions import message_definition
-from components.recorder.metadata import TopicInfo, qos_profile_dict
+from baglib.writer import BagWriter
+from baglib.message_definitions import message_definition
+from baglib.metadata import TopicInfo, qos_profile_dict
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
 from components.recorder.recording_session import RecordingSession

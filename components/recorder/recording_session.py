@@ -24,11 +24,11 @@ import traceback
 from collections import Counter, defaultdict, deque
 from typing import Any, Callable
 
-from components.recorder import cdr_fast
-from components.recorder.cdr_fast import CdrData
-from components.recorder.bag_writer import BagWriteError, BagWriter
+from baglib import cdr_fast
+from baglib.cdr_fast import CdrData
+from baglib.writer import BagWriteError, BagWriter
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
-from components.recorder.metadata import TopicInfo
+from baglib.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
 Serializer = Callable[[Any], CdrData]
