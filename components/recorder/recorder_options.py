@@ -52,6 +52,9 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     "storage_preset_profile": "",
     "snapshot_mode": False,
     "custom_data": [""],
+    # Not in rosbag2: the loss bounds (README "Crash and power-loss guarantees").
+    "flush_interval": 1.0,
+    "sync_interval": 1.0,
 }
 DEFAULTS: dict[str, Any] = {**{f"record.{k}": v for k, v in RECORD_DEFAULTS.items()},
                              **{f"storage.{k}": v for k, v in STORAGE_DEFAULTS.items()}}
@@ -103,6 +106,10 @@ class RecordOptions:
     storage_preset_profile: str = ""
     snapshot_mode: bool = False
     custom_data: dict[str, str] = field(default_factory=dict)
+    #: seconds after which a received message is a complete record in the file (0: chunks close by size only)
+    flush_interval: float = 1.0
+    #: seconds between fsyncs of the current file (0: only when a file is closed)
+    sync_interval: float = 1.0
 
 
 def _clean(values: list[str]) -> list[str]:
@@ -186,6 +193,9 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     for name in ("storage.max_bagfile_size", "storage.max_bagfile_duration"):
         if values[name] < 0:
             raise ValueError(f"parameter {labels[name]} must not be negative, got {values[name]}")
+    for name in ("storage.flush_interval", "storage.sync_interval"):
+        if not 0.0 <= values[name] <= 3600.0:
+            raise ValueError(f"parameter {labels[name]} must be between 0 (off) and 3600 seconds, got {values[name]}")
     if values["storage.max_cache_size"] <= 0:
         raise ValueError(f"parameter {labels['storage.max_cache_size']} must be positive: the recorder needs a cache "
                          f"to hand messages to its writer thread, got {values['storage.max_cache_size']}")
@@ -226,4 +236,6 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         storage_preset_profile=values["storage.storage_preset_profile"],
         snapshot_mode=values["storage.snapshot_mode"],
         custom_data=custom,
+        flush_interval=float(values["storage.flush_interval"]),
+        sync_interval=float(values["storage.sync_interval"]),
     )

@@ -35,6 +35,8 @@ Serializer = Callable[[Any], CdrData]
 #: Per topic, messages lost before the intake during this session (the subscriptions' queue overflows).
 QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
+#: Longest the writer thread sleeps without new messages (it then checks the flush and sync deadlines).
+WAKE_PERIOD = 0.2
 
 # Why a message was dropped: the keys of ``drop_reasons`` in the stats.
 CACHE_FULL = "cache_full"                # the cache was full: the writer fell behind
@@ -88,6 +90,13 @@ class RecordingSession:
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
         self._snapshot_mode = options.snapshot_mode
+        # Loss bounds: flush/sync deadlines, checked after every batch and at least every wake-up period.
+        self._flush_ns = round(options.flush_interval * 1e9)
+        self._sync_ns = round(options.sync_interval * 1e9)
+        self._wake_ns = round(min(WAKE_PERIOD, (options.flush_interval or WAKE_PERIOD) / 4) * 1e9)
+        self._oldest_unflushed_ns: int | None = None
+        self._last_sync_ns = time.time_ns()
+        self._unsynced = False
         self._snapshot_requested = threading.Event()
         self._snapshots: deque[list[CachedMessage]] = deque()  # taken from the ring, waiting to be written
         self._finish_lock = threading.Lock()
@@ -149,6 +158,7 @@ class RecordingSession:
                 for message in batch:
                     self._write(message)
                     written += 1
+                self._keep_loss_bounds()
                 self._bytes_written = self.writer.bytes_written
                 if self.cache.closed and not batch:
                     return
@@ -157,10 +167,24 @@ class RecordingSession:
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
 
+    def _keep_loss_bounds(self) -> None:
+        """The two promises of README "Crash and power-loss guarantees": a message received more than
+        ``flush_interval`` ago is a complete record in the file (handed to the OS), and what was written more
+        than ``sync_interval`` ago is on the disk. Flushing starts one wake-up early so the bound holds."""
+        now = time.time_ns()
+        oldest = self._oldest_unflushed_ns
+        if self._flush_ns and oldest is not None and now - oldest >= self._flush_ns - self._wake_ns:
+            self.writer.flush()
+            self._oldest_unflushed_ns = None
+        if self._sync_ns and self._unsynced and now - self._last_sync_ns >= self._sync_ns:
+            self.writer.sync()
+            self._last_sync_ns, self._unsynced = now, False
+
     def _next_batch(self) -> list[CachedMessage]:
+        wake = self._wake_ns / 1e9
         if not self._snapshot_mode:
-            return self.cache.take_all(timeout=0.2)
-        self._snapshot_requested.wait(0.2)
+            return self.cache.take_all(timeout=wake)
+        self._snapshot_requested.wait(wake)
         self._snapshot_requested.clear()
         return self._snapshots.popleft() if self._snapshots else []
 
@@ -180,6 +204,9 @@ class RecordingSession:
         if self._monotonic_log_times:
             log_time = self._last_log_time = max(log_time, self._last_log_time)
         self.writer.write(message.topic, data, log_time, message.publish_time_ns)
+        if self._oldest_unflushed_ns is None:
+            self._oldest_unflushed_ns = message.log_time_ns  # the receive time
+        self._unsynced = True
         self.handed[message.topic] += 1
         self._latencies.append(time.time_ns() - message.log_time_ns)
         self.cache.release(message)
