@@ -256,7 +256,8 @@ class Recorder(ComponentNode):
         session = self._session
         refusal = "not recording" if session is None else session.snapshot()
         if refusal is not None:
-            self.get_logger().warning(f"snapshot refused: {refusal}")
+            # throttled: anyone on the domain may call ~/snapshot in a loop
+            self.get_logger().warning(f"snapshot refused: {refusal}", throttle_duration_sec=1.0)
         response.success = refusal is None
         return response
 
