@@ -12,8 +12,10 @@ from dataclasses import dataclass
 
 
 def _number(value: float) -> str:
-    """A bound or value as users type it: integers without a decimal point, others as short as exact."""
-    return str(int(value)) if float(value).is_integer() and abs(value) < 1e18 else f"{value:g}"
+    """A bound or value as users type it: integers in full, whole floats without a point, others short."""
+    if isinstance(value, int):
+        return str(value)
+    return str(int(value)) if value.is_integer() and abs(value) < 1e15 else f"{value:g}"
 
 
 @dataclass(frozen=True)
