@@ -134,17 +134,6 @@ def _mem_available() -> int:
     raise AssertionError("no MemAvailable in /proc/meminfo")
 
 
-def test_recorder_numbers_in_range_load(rig: Rig, tmp_path: Path) -> None:
-    """The bounds themselves are allowed: the smallest split size, duration and polling interval."""
-    uri = tmp_path / "edges"
-    response = rig.load("components::Recorder", "recorder_edges", {
-        "storage.uri": str(uri), "record.topics": ["/imu/imu"], "storage.max_bagfile_size": 86016,
-        "storage.max_bagfile_duration": 1, "record.topic_polling_interval.nsec": 10_000_000,
-        "storage.max_cache_size": 1})
-    assert response.success, response.error_message
-    assert rig.client.unload(response.unique_id).success
-
-
 @pytest.mark.parametrize("plugin, parameters, expected", [
     ("components::CameraDriver", {"width": 8192, "height": 8192},
      "parameter 'width' x 'height' x 3 bytes per pixel (rgb8), the frame size, must be in [8, 67108864] bytes, "
