@@ -7,9 +7,9 @@
   allowed range when a value is wrong (the component container reports constructor exceptions to the user);
 * bounds what one driver may ask of the container: a frame of at most :data:`MAX_FRAME_BYTES`, a rate in
   :data:`RATE`, and at most :data:`MAX_BYTES_PER_SECOND` (the load service answers anyone on the domain);
-* lets the rate, ``frame_id`` and any parameter a subclass declares as dynamic be changed at run time
-  (``ros2 param set``), validated with the same bounds: a refused value answers ``successful=false`` with the
-  reason. The others are read-only and their descriptions say why;
+* lets the rate and ``frame_id`` be changed at run time (``ros2 param set``), validated with the same bounds: a
+  refused value answers ``successful=false`` with the reason. The others are read-only and their descriptions
+  say why;
 * keeps a sequence counter per publisher (:meth:`SensorDriver.next_sequence`);
 * runs a drift-free rate loop that calls the subclass's :meth:`SensorDriver.publish_frame` once per frame.
 
