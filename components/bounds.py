@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 
 def _number(value: float) -> str:
@@ -32,13 +33,15 @@ class Bounds:
     def contains(self, value: float) -> bool:
         return math.isfinite(value) and self.minimum <= value <= self.maximum
 
-    def check(self, label: str, value: float, *, zero_means: str = "") -> None:
-        """Raise ValueError naming the parameter (``label``, already quoted) unless ``value`` is in range.
+    def check(self, label: str, value: Any, *, zero_means: str = "") -> None:
+        """Raise ValueError naming the parameter (``label``, already quoted) unless ``value`` is a number in range.
 
         ``zero_means``: 0 is also accepted, as the switch-off value it documents (e.g. "no splitting").
         """
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"parameter {label} must be a number, got {value!r}")
         if zero_means and value == 0:
             return
         if not self.contains(value):
             allowed = f"0 ({zero_means}) or in {self}" if zero_means else f"in {self}"
-            raise ValueError(f"parameter {label} must be {allowed}, got {_number(value)}")
+            raise ValueError(f"parameter {label} must be {allowed}, got {value!r}")

@@ -280,20 +280,14 @@ class SensorDriver(ComponentNode):
 
     def _checked_rate(self, value: Any) -> float:
         """The rate parameter: in :data:`RATE`, and frames of ``frame_bytes`` at most MAX_BYTES_PER_SECOND."""
-        rate = self._number(self.RATE_PARAMETER, value)
-        RATE.check(f"'{self.RATE_PARAMETER}'", rate)
+        RATE.check(f"'{self.RATE_PARAMETER}'", value)
+        rate = float(value)
         if self.frame_bytes * rate > MAX_BYTES_PER_SECOND:
             highest = Bounds(RATE.minimum, MAX_BYTES_PER_SECOND / self.frame_bytes, "Hz")
             raise ValueError(
                 f"parameter '{self.RATE_PARAMETER}' must be in {highest} for frames of {self.frame_bytes} bytes "
-                f"(at most {MAX_BYTES_PER_SECOND / 1e6:g} MB/s per driver), got {rate:g}")
+                f"(at most {MAX_BYTES_PER_SECOND / 1e6:g} MB/s per driver), got {rate!r}")
         return rate
-
-    @staticmethod
-    def _number(name: str, value: Any) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"parameter '{name}' must be a number, got {value!r}")
-        return float(value)
 
     def declare_int_parameter(self, name: str, default: int, description: str, bounds: Bounds, *,
                               fixed: str = FIXED_GEOMETRY) -> int:

@@ -8,6 +8,7 @@ being written, and ``ros2 param set`` (rclpy's SetParameters service) on the loa
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -18,6 +19,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbag2_interfaces.srv import Snapshot
+from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger
 
@@ -141,16 +143,16 @@ def _mem_available() -> int:
     ("components::CameraDriver", {"width": 100000, "height": 1, "encoding": "mono8"},
      "parameter 'width' must be in [1, 16384] pixels, got 100000"),
     ("components::CameraDriver", {"width": 8, "height": 8, "fps": 5000.0},
-     "parameter 'fps' must be in [0.01, 2000] Hz, got 5000"),
+     "parameter 'fps' must be in [0.01, 2000] Hz, got 5000.0"),
     ("components::CameraDriver", {"width": 1920, "height": 1080, "fps": 1000.0},
      "parameter 'fps' must be in [0.01, 160.751] Hz for frames of 6220800 bytes (at most 1000 MB/s per driver), "
-     "got 1000"),
+     "got 1000.0"),
     ("components::CameraDriver", {"fps": 1e-300}, "parameter 'fps' must be in [0.01, 2000] Hz, got 1e-300"),
     ("components::LidarDriver", {"points_per_scan": 4_000_000},
      "parameter 'points_per_scan' must be in [1, 2796202] points, got 4000000"),
     ("components::LidarDriver", {"rings": 4096}, "parameter 'rings' must be in [1, 1024] rings, got 4096"),
-    ("components::ImuDriver", {"rate": 10_000.0}, "parameter 'rate' must be in [0.01, 2000] Hz, got 10000"),
-    ("components::Talker", {"rate": 1e9}, "parameter 'rate' must be in [0.01, 2000] Hz, got 1000000000"),
+    ("components::ImuDriver", {"rate": 10_000.0}, "parameter 'rate' must be in [0.01, 2000] Hz, got 10000.0"),
+    ("components::Talker", {"rate": 1e9}, "parameter 'rate' must be in [0.01, 2000] Hz, got 1000000000.0"),
 ], ids=["camera_200MB_frame", "camera_width", "camera_5kHz", "camera_6GBps", "camera_slowest", "lidar_points",
         "lidar_rings", "imu_10kHz", "talker_1GHz"])
 def test_driver_numbers_are_bounded(rig: Rig, plugin: str, parameters: dict[str, Any], expected: str) -> None:
@@ -185,11 +187,15 @@ def test_snapshot_while_one_is_pending_is_refused(rig: Rig, tmp_path: Path) -> N
         assert snapshot() is False
     assert counts()["written"] == 0
     gate.unlink()
+    released = time.time_ns()
+    received = counts()["received"]
+    assert wait_until(lambda: counts()["received"] > received + 5, 10.0)  # in the ring, after the first snapshot
     assert wait_until(snapshot, 10.0), "no snapshot taken after the first one was written"
-    first = counts()["written"]  # all of the first snapshot (the second is taken only once it is written)
-    assert first > 0
-    assert wait_until(lambda: counts()["written"] > first, 10.0), "the second snapshot was not written"
-    assert rig.client.unload(recorder.unique_id).success
+    assert rig.client.unload(recorder.unique_id).success  # finalizes the bag after writing the pending snapshot
+    with Reader(uri) as bag:
+        log_times = [log_time for _, log_time, _ in bag.messages()]
+    assert log_times and min(log_times) < released, "the first snapshot is not in the bag"
+    assert max(log_times) > released, "the second snapshot is not in the bag"
     assert rig.client.unload(imu.unique_id).success
     assert "snapshot refused: the previous snapshot is still being written" in rig.process.output
 
@@ -222,8 +228,8 @@ def test_driver_rate_and_frame_id_change_at_run_time(rig: Rig) -> None:
 
 
 @pytest.mark.parametrize("plugin, parameters, name, value, expected", [
-    ("components::ImuDriver", {}, "rate", 5000.0, "parameter 'rate' must be in [0.01, 2000] Hz, got 5000"),
-    ("components::ImuDriver", {}, "rate", 0.0, "parameter 'rate' must be in [0.01, 2000] Hz, got 0"),
+    ("components::ImuDriver", {}, "rate", 5000.0, "parameter 'rate' must be in [0.01, 2000] Hz, got 5000.0"),
+    ("components::ImuDriver", {}, "rate", 0.0, "parameter 'rate' must be in [0.01, 2000] Hz, got 0.0"),
     ("components::ImuDriver", {}, "rate", "fast", "parameter 'rate' must be a number, got 'fast'"),
     ("components::ImuDriver", {}, "frame_id", "", "parameter 'frame_id' must not be empty"),
     ("components::CameraDriver", {"width": 1920, "height": 1080, "fps": 1.0}, "fps", 500.0,

@@ -414,7 +414,7 @@ def test_rate_change_restarts_the_schedule_without_a_burst(ros, monkeypatch):
     assert (imu.published_count, imu.skipped_count) == (52 + 10 * 2, 0)  # 20 ms at 1 kHz
 
     result = imu.set_parameters([Parameter("rate", value=5000.0)])[0]  # refused: the schedule is untouched
-    assert not result.successful and "parameter 'rate' must be in [0.01, 2000] Hz, got 5000" in result.reason
+    assert not result.successful and "parameter 'rate' must be in [0.01, 2000] Hz, got 5000.0" in result.reason
     assert imu.rate == 1000.0 and imu.get_parameter("rate").value == 1000.0
 
 
