@@ -309,7 +309,7 @@ def test_load_extra_argument_must_be_a_boolean(clients: dict[str, ContainerClien
 def test_load_constructor_failure(clients: dict[str, ContainerClient]) -> None:
     result = cli("load", OTHER, "components", TALKER, "-p", "rate:=-1.0")
     assert_fails(result, lines("Failed to load component: Component constructor threw an exception: "
-                               "parameter 'rate' must be positive, got -1.0"))
+                               "parameter 'rate' must be in [0.01, 2000] Hz, got -1.0"))
 
 
 @pytest.mark.parametrize(("args", "message"), [

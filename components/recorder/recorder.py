@@ -252,8 +252,13 @@ class Recorder(ComponentNode):
         return response
 
     def _on_snapshot(self, request: Snapshot.Request, response: Snapshot.Response) -> Snapshot.Response:
+        """Write the ring; success=false (with the reason in the log) when the snapshot would not be written."""
         session = self._session
-        response.success = session is not None and session.snapshot()
+        refusal = "not recording" if session is None else session.snapshot()
+        if refusal is not None:
+            # throttled: anyone on the domain may call ~/snapshot in a loop
+            self.get_logger().warning(f"snapshot refused: {refusal}", throttle_duration_sec=1.0)
+        response.success = refusal is None
         return response
 
     def _on_start_recording(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -11,6 +11,10 @@ The writer thread is supervised, so one bad message or one bad disk never silent
 * a storage failure (disk full, file removed), and anything else the writer thread did not expect, ends the
   session: the error is kept and logged, the bag is closed with what was written, and further messages are
   counted as dropped;
+* snapshot mode holds at most one snapshot waiting for the writer: another ``~/snapshot`` meanwhile is refused,
+  so requests cannot queue copies of the ring without bound (memory stays within twice ``max_cache_size``:
+  the ring refilling plus the snapshot being written); a snapshot taken is always written, even when the
+  session finishes right after, and one that cannot be written any more is refused;
 * :meth:`finish` is bounded: a writer that does not finish in time (a hung disk) is abandoned, its bag left
   unfinalized (repairable) and the error recorded.
 
@@ -98,7 +102,9 @@ class RecordingSession:
         self._last_sync_ns = time.time_ns()
         self._unsynced = False
         self._snapshot_requested = threading.Event()
-        self._snapshots: deque[list[CachedMessage]] = deque()  # taken from the ring, waiting to be written
+        # Taken from the ring and not yet written; guarded by _finish_lock, so that a snapshot is never taken
+        # once finish() has begun (the writer then would not be waiting for it any more).
+        self._snapshot: list[CachedMessage] | None = None
         self._finish_lock = threading.Lock()
         self._finished = False
         # A daemon: a writer stuck on a hung disk is abandoned by finish() and must not keep the process alive.
@@ -126,13 +132,22 @@ class RecordingSession:
         """Intake: hand one message to the writer thread. Never blocks on I/O, never raises."""
         self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
 
-    def snapshot(self) -> bool:
-        """Snapshot mode: write what the ring cache holds now. False outside snapshot mode or when failed."""
-        if not self._snapshot_mode or not self.active:
-            return False
-        self._snapshots.append(self.cache.drain())  # the ring as it is now, not when the writer wakes
+    def snapshot(self) -> str | None:
+        """Snapshot mode: write what the ring cache holds now. None when taken, else why it was refused.
+
+        Refused outside snapshot mode, once the session is finishing or failed (the snapshot would be lost),
+        and while the previous snapshot is still being written (see the module docstring).
+        """
+        if not self._snapshot_mode:
+            return "not in snapshot mode (storage.snapshot_mode is false)"
+        with self._finish_lock:
+            if self._finished or self.error is not None:
+                return "the bag is finishing or has failed"
+            if self._snapshot is not None:
+                return "the previous snapshot is still being written"
+            self._snapshot = self.cache.drain()  # the ring as it is now, not when the writer wakes
         self._snapshot_requested.set()
-        return True
+        return None
 
     def split(self) -> bool:
         if not self.active:
@@ -153,6 +168,8 @@ class RecordingSession:
         written = 0
         try:
             while True:
+                # Read before taking: whatever was handed over before the close is in this batch or a later one.
+                closed = self.cache.closed
                 batch, written = self._next_batch(), 0
                 batch.sort(key=_log_time)  # stable: each topic keeps its order
                 for message in batch:
@@ -160,7 +177,9 @@ class RecordingSession:
                     written += 1
                 self._keep_loss_bounds()
                 self._bytes_written = self.writer.bytes_written
-                if self.cache.closed and not batch:
+                if self._snapshot is batch:
+                    self._snapshot = None  # written: the next snapshot may be taken
+                if closed and not batch:
                     return
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
@@ -186,7 +205,7 @@ class RecordingSession:
             return self.cache.take_all(timeout=wake)
         self._snapshot_requested.wait(wake)
         self._snapshot_requested.clear()
-        return self._snapshots.popleft() if self._snapshots else []
+        return self._snapshot if self._snapshot is not None else []  # pending until written
 
     def _write(self, message: CachedMessage) -> None:
         """Serialize and write one message; raises what the storage raised (the caller ends the session)."""
