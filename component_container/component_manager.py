@@ -139,6 +139,8 @@ class ComponentManager(Node):
     # --- the load path -----------------------------------------------------------------------------------
     def load(self, request: LoadNode.Request) -> LoadedComponent:
         """Construct the requested component and start executing it; raises with the caller's message."""
+        if self.exit_request.requested:
+            raise LoadRequestError(f"The container is shutting down ({self.exit_request.reason}): load refused")
         node_class = self._registry.resolve(request.package_name, request.plugin_name)
         options = options_from_request(request, self._default_intra_process)
         kwargs = dict(options.node_kwargs, context=self.context)
