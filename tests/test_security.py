@@ -8,7 +8,6 @@ contents; ``--allow-plugins`` narrows which plugins load, and module plugins sti
 from __future__ import annotations
 
 import json
-import os
 import pathlib
 import subprocess
 import sys
