@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -104,6 +105,7 @@ class BagWriter:
         storage_preset_profile: str = "",
         custom_data: dict[str, str] | None = None,
         on_split: SplitCallback | None = None,
+        max_bag_files: int = 0,
     ) -> None:
         storage_id = storage_id or "mcap"
         if storage_id not in _STORAGES:
@@ -118,12 +120,19 @@ class BagWriter:
             )
         if max_bagfile_size < 0 or max_bagfile_duration < 0:
             raise ValueError("max_bagfile_size and max_bagfile_duration must not be negative")
+        if max_bag_files < 0 or (max_bag_files and not (max_bagfile_size or max_bagfile_duration)):
+            raise ValueError("max_bag_files needs splitting (max_bagfile_size or max_bagfile_duration) and must "
+                             "not be negative")
         if custom_data is not None and not all(
             isinstance(key, str) and isinstance(value, str) for key, value in custom_data.items()
         ):
             raise ValueError("custom_data keys and values must be strings")
 
         self._preset = storage_preset_profile
+        self._max_bag_files = int(max_bag_files)
+        #: Files deleted by circular recording (max_bag_files), oldest first.
+        self.deleted_files: list[str] = []
+        self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the current file
         self._max_size = int(max_bagfile_size)
         self._max_duration_ns = round(max_bagfile_duration * _NS_PER_S)
         self._on_split = on_split
@@ -302,6 +311,24 @@ class BagWriter:
             except OSError as error:
                 self._fail(error)
 
+    def check_files(self) -> None:
+        """Raise BagWriteError (and close the bag) if the current file was deleted or replaced on disk: writes
+        would go on into an unlinked file or a stranger's, and nothing of them would ever be readable."""
+        with self._lock:
+            if self._closed or self._failure is not None or self._storage is None:
+                return
+            try:
+                status = os.stat(self._storage.path)
+                identity: tuple[int, int] | None = (status.st_dev, status.st_ino)
+            except FileNotFoundError:
+                identity = None
+            if identity != self._identity:
+                what = "deleted" if identity is None else "replaced by another file"
+                closed = self._storage.path
+                self._close_storage()  # into the unlinked or displaced file: none of it is readable by name
+                self._metadata.files = [info for info in self._metadata.files if info.path != closed.name]
+                self._stop(OSError(errno.ENOENT, f"the bag file was {what} while recording"), closed)
+
     def close(self) -> None:
         """Close the current file and write ``metadata.yaml``; further calls do nothing.
 
@@ -372,7 +399,17 @@ class BagWriter:
             raise self._error(error, "cannot create bag file", path) from error
         self._file_counts = dict.fromkeys(self._topics, 0)
         self._file_first_ns = self._file_last_ns = None
+        status = os.stat(path)
+        self._identity = (status.st_dev, status.st_ino)
         return storage
+
+    def _delete_oldest_files(self) -> None:
+        """Circular recording: keep the newest ``max_bag_files`` files (the current one included)."""
+        while self._max_bag_files and len(self._metadata.files) + 1 > self._max_bag_files:
+            oldest = self._metadata.files.pop(0)
+            with contextlib.suppress(FileNotFoundError):
+                (self._path / oldest.path).unlink()
+            self.deleted_files.append(oldest.path)
 
     def _split_due(self, log_time_ns: int) -> bool:
         if self._file_first_ns is None:
@@ -397,6 +434,7 @@ class BagWriter:
             if self._on_split is not None:
                 self._on_split(str(closed), "")
             raise
+        self._delete_oldest_files()
         self._write_metadata_quietly()
         if self._on_split is not None:
             self._on_split(str(closed), str(self._storage.path))

@@ -1,6 +1,7 @@
 """Start a real container process the way a user would, and always stop it by its pid."""
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import signal
@@ -8,7 +9,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.executors import SingleThreadedExecutor
@@ -213,3 +214,20 @@ class Containers:
             print(f"--- output of container {process.pid} (exit code {process.process.returncode}):\n"
                   f"{process.output}")  # shown by pytest when the test failed
             assert not process.alive() and not pid_alive(process.pid), f"container {process.pid} still runs"
+
+
+@contextlib.contextmanager
+def small_filesystem(directory: pathlib.Path, size: int) -> Iterator[bool]:
+    """A tmpfs of ``size`` bytes at ``directory`` if this process may mount one (yields True), else False."""
+    directory.mkdir()
+    if os.environ.get("RECORDER_TEST_NO_TMPFS") or os.geteuid() != 0:
+        yield False
+        return
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(directory)],
+                             capture_output=True).returncode == 0
+    try:
+        yield mounted
+    finally:
+        if mounted:
+            if subprocess.run(["umount", str(directory)], capture_output=True).returncode != 0:
+                subprocess.run(["umount", "-l", str(directory)], capture_output=True)

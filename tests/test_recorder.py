@@ -53,7 +53,7 @@ from components.camera_driver import CameraDriver
 from components.imu_driver import ImuDriver
 from components.lidar_driver import LidarDriver
 
-from container_process import ContainerClient
+from container_process import ContainerClient, small_filesystem
 
 REPO = Path(__file__).resolve().parents[1]
 IPC = {"use_intra_process_comms": True}
@@ -968,23 +968,6 @@ def test_unwritable_uri_is_refused(rig: Rig, tmp_path: Path, where: str) -> None
     assert "/recorder_unwritable" not in rig.listed()
 
 
-@contextlib.contextmanager
-def small_filesystem(directory: Path, size: int) -> Iterator[bool]:
-    """A tmpfs of ``size`` bytes at ``directory`` if this process may mount one (yields True), else False."""
-    directory.mkdir()
-    if os.environ.get("RECORDER_TEST_NO_TMPFS") or os.geteuid() != 0:
-        yield False
-        return
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(directory)],
-                             capture_output=True).returncode == 0
-    try:
-        yield mounted
-    finally:
-        if mounted:
-            if subprocess.run(["umount", str(directory)], capture_output=True).returncode != 0:
-                subprocess.run(["umount", "-l", str(directory)], capture_output=True)
-
-
 def test_disk_full_stops_recording_cleanly(probe: Node, rig: Rig, log_dir: Path, tmp_path: Path) -> None:
     size = 3 * 1024 * 1024
     with small_filesystem(tmp_path / "small", size) as mounted, contextlib.ExitStack() as stack:
@@ -999,7 +982,8 @@ def test_disk_full_stops_recording_cleanly(probe: Node, rig: Rig, log_dir: Path,
         drivers = {f"/{prefix}{name}" for name in ("camera", "imu", "lidar")}
         imu = f"/{prefix}imu/imu"
         uri = tmp_path / "small" / "full"
-        recorder = target.record("recorder_full", uri, **{"record.topics": topics})
+        # No free-space guard: this test is about the disk really running full (test_disk_guard.py is the guard)
+        recorder = target.record("recorder_full", uri, **{"record.topics": topics, "storage.min_free_space": 0})
         error = wait_until(lambda: recorder.stats()["current"]["error"], 15.0, interval=0.2)
         assert error, "the recorder never noticed the full disk"
         assert re.search(r"No space left on device|File too large", error), error

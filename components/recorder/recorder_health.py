@@ -4,7 +4,6 @@ Rates and "dropped recently" are measured between two samples (the container tak
 """
 from __future__ import annotations
 
-import os
 import threading
 import time
 from typing import Any
@@ -42,7 +41,9 @@ class HealthMonitor:
             "received": str(sum(t["received"] for t in topics)),
             "written": str(sum(t["written"] for t in topics)),
             "dropped": str(dropped),
-            "free disk (MB)": _free_megabytes(stats["bag"]),
+            "free disk (MB)": f"{stats['free_bytes'] / 1e6:.0f}",
+            "time to min_free_space (s)": ("not writing" if stats["seconds_until_min_free"] is None
+                                           else f"{stats['seconds_until_min_free']:.0f}"),
         }
         if stats["error"]:
             return Health(ERROR, f"recording stopped: {stats['error']}", values)
@@ -53,10 +54,3 @@ class HealthMonitor:
             return Health(WARN, f"{recent_drops} messages dropped {since}", values)
         return Health(OK, "recording", values)
 
-
-def _free_megabytes(path: str) -> str:
-    try:
-        info = os.statvfs(path)
-    except OSError as exc:
-        return f"unknown ({exc.strerror})"
-    return f"{info.f_bavail * info.f_frsize / 1e6:.0f}"

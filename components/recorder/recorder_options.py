@@ -57,6 +57,9 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     # Not in rosbag2: the loss bounds (README "Crash and power-loss guarantees").
     "flush_interval": 1.0,
     "sync_interval": 1.0,
+    "min_free_space": 256 * 1024 * 1024,
+    # rosbag2 Rolling's circular recording (ros2/rosbag2#2218): keep the newest N split files
+    "max_bag_files": 0,
 }
 DEFAULTS: dict[str, Any] = {**{f"record.{k}": v for k, v in RECORD_DEFAULTS.items()},
                              **{f"storage.{k}": v for k, v in STORAGE_DEFAULTS.items()}}
@@ -94,6 +97,8 @@ BAGFILE_DURATION = Bounds(1, 365 * 86400, "s")
 POLLING_INTERVAL = Bounds(0.01, 60, "s")
 #: storage.flush_interval and storage.sync_interval: 0 switches one off; under 10 ms is a busy disk loop
 LOSS_BOUND_INTERVAL = Bounds(0.01, 3600, "s")
+MIN_FREE_SPACE = Bounds(1, 2**63 - 1, "bytes")
+MAX_BAG_FILES = Bounds(1, 1_000_000, "files")
 #: The cache may take at most this share of the memory available when the recorder is loaded.
 CACHE_MEMORY_SHARE = 0.5
 
@@ -140,6 +145,10 @@ class RecordOptions:
     flush_interval: float = 1.0
     #: seconds between fsyncs of the current file (0: only when a file is closed)
     sync_interval: float = 1.0
+    #: bytes to keep free on the bag's disk: below it the recorder stops (bag finalized) or refuses to start
+    min_free_space: int = 256 * 1024 * 1024
+    #: keep only the newest N split files (0: all)
+    max_bag_files: int = 0
 
 
 def _clean(values: list[str]) -> list[str]:
@@ -227,6 +236,12 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     cache_size_bounds().check(labels["storage.max_cache_size"], values["storage.max_cache_size"])
     for name in ("storage.flush_interval", "storage.sync_interval"):
         LOSS_BOUND_INTERVAL.check(labels[name], values[name], zero_means="off")
+    MIN_FREE_SPACE.check(labels["storage.min_free_space"], values["storage.min_free_space"], zero_means="no guard")
+    MAX_BAG_FILES.check(labels["storage.max_bag_files"], values["storage.max_bag_files"], zero_means="keep all")
+    if values["storage.max_bag_files"] and not (values["storage.max_bagfile_size"]
+                                                 or values["storage.max_bagfile_duration"]):
+        raise ValueError(f"parameter {labels['storage.max_bag_files']} needs splitting: set "
+                         "storage.max_bagfile_size or storage.max_bagfile_duration too")
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
     custom: dict[str, str] = {}
@@ -265,4 +280,6 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         custom_data=custom,
         flush_interval=float(values["storage.flush_interval"]),
         sync_interval=float(values["storage.sync_interval"]),
+        min_free_space=int(values["storage.min_free_space"]),
+        max_bag_files=int(values["storage.max_bag_files"]),
     )

@@ -26,11 +26,13 @@ import threading
 import time
 import traceback
 from collections import Counter, defaultdict, deque
+from pathlib import Path
 from typing import Any, Callable
 
 from baglib import cdr_fast
 from baglib.cdr_fast import CdrData
 from baglib.writer import BagWriteError, BagWriter
+from components.recorder.disk_guard import DiskGuard, refuse_start_below
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from baglib.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
@@ -41,6 +43,8 @@ QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
 #: Longest the writer thread sleeps without new messages (it then checks the flush and sync deadlines).
 WAKE_PERIOD = 0.2
+#: How often the writer thread checks the free disk space and the bag file (statvfs + stat: microseconds).
+DISK_CHECK_PERIOD = 0.05
 
 # Why a message was dropped: the keys of ``drop_reasons`` in the stats.
 CACHE_FULL = "cache_full"                # the cache was full: the writer fell behind
@@ -76,9 +80,12 @@ class RecordingSession:
         self._queue_drops = queue_drops
         self._last_log_time = 0
         self._monotonic_log_times = options.storage_preset_profile == "fastwrite"
+        refuse_start_below(Path(uri), options.min_free_space)
         self.writer = writer_class(uri, options.storage_id, options.max_bagfile_size,
                                    options.max_bagfile_duration, options.storage_preset_profile,
-                                   options.custom_data or None, on_split)
+                                   options.custom_data or None, on_split, options.max_bag_files)
+        self.disk = DiskGuard(self.writer.path, options.min_free_space)
+        self._next_disk_check = 0.0
         self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
         # The live counts are the session's own, not the writer's: reading the writer's would wait on its lock,
         # which a write to a hung disk holds forever (and ~/get_stats, health and unload must still answer).
@@ -175,8 +182,9 @@ class RecordingSession:
                 for message in batch:
                     self._write(message)
                     written += 1
-                self._keep_loss_bounds()
                 self._bytes_written = self.writer.bytes_written
+                self._check_storage()
+                self._keep_loss_bounds()
                 if self._snapshot is batch:
                     self._snapshot = None  # written: the next snapshot may be taken
                 if closed and not batch:
@@ -185,6 +193,16 @@ class RecordingSession:
             self._fail(exc)
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
+
+    def _check_storage(self) -> None:
+        """At most every DISK_CHECK_PERIOD: the free-space guard, and whether the bag file is still ours on
+        disk (deleted or replaced files are storage failures). Both raise BagWriteError, ending the session."""
+        now = time.monotonic()
+        if now < self._next_disk_check:
+            return
+        self._next_disk_check = now + DISK_CHECK_PERIOD
+        self.disk.check(self._bytes_written)
+        self.writer.check_files()
 
     def _keep_loss_bounds(self) -> None:
         """The two promises of README "Crash and power-loss guarantees": a message received more than
@@ -319,6 +337,9 @@ class RecordingSession:
             "current_file": str(self.writer.current_file or ""),
             "bytes_written": self.writer.bytes_written if idle else self._bytes_written,
             "cache_bytes": self.cache.bytes,
+            "free_bytes": self.disk.free,
+            "seconds_until_min_free": self.disk.seconds_left,
+            "deleted_files": list(self.writer.deleted_files),
             "error": error,
             "serialize_errors": serialize_errors,
             "write_latency_ms": _percentiles(list(self._latencies)),
