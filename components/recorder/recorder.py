@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from rclpy.duration import Duration
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import QoSProfile
 from rclpy.type_support import check_is_valid_msg_type
 from rosbag2_interfaces.msg import WriteSplitEvent
@@ -39,6 +40,7 @@ from baglib.message_definitions import message_definition
 from baglib.metadata import TopicInfo, qos_profile_dict
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
+from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
 from components.recorder.recording_session import RecordingSession
 from components.recorder.topic_selection import TopicFilter, adapt_qos, load_qos_overrides
 
@@ -73,7 +75,9 @@ class Recorder(ComponentNode):
             self._options = declare_options(self, overrides)
             self._qos_overrides = self._load_qos_overrides()
             self._split_events = self.create_publisher(WriteSplitEvent, SPLIT_EVENT_TOPIC, 10)
-            self._filter = TopicFilter(self._options, {self._split_events.topic_name})
+            self._loss_events = LossEvents(self, self._drops_of_current_bag)
+            self._filter = TopicFilter(self._options, {self._split_events.topic_name,
+                                                       self.resolve_topic_name(MESSAGES_LOST_TOPIC)})
             self._paused = self._options.start_paused
             self._topics: dict[str, TopicInfo] = {}
             self._topic_subscriptions: dict[str, Any] = {}
@@ -129,6 +133,7 @@ class Recorder(ComponentNode):
                                    writer_class=self.writer_class)
         for info in self._topics.values():
             session.add_topic(info)
+        self._loss_events.reset()
         self._session = session
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
                                + (" paused" if self._paused else ""))
@@ -196,7 +201,9 @@ class Recorder(ComponentNode):
                 self._topics[topic] = info
             self._topic_subscriptions[topic] = self.create_subscription(
                 msg_type, topic, functools.partial(self._intake, topic), qos, raw=True,
-                intra_process_inline=True)  # the intake only hands over to the writer thread: no executor hop
+                intra_process_inline=True,  # the intake only hands over to the writer thread: no executor hop
+                event_callbacks=SubscriptionEventCallbacks(
+                    message_lost=functools.partial(self._loss_events.dds_lost, topic)))
         except Exception as exc:  # noqa: BLE001 - as above; the bag may list the topic, without messages
             with self._lock:
                 self._topics.pop(topic, None)
@@ -221,6 +228,10 @@ class Recorder(ComponentNode):
         """Messages the in-process queues dropped (they never reached the intake) since ``baseline``."""
         return {topic: getattr(subscription, "dropped_count", 0) - baseline.get(topic, 0)
                 for topic, subscription in list(self._topic_subscriptions.items())}
+
+    def _drops_of_current_bag(self) -> dict[str, dict[str, int]]:
+        session = self._session
+        return session.stats()["drop_reasons"] if session is not None else {}
 
     def stats(self) -> dict[str, Any]:
         """Live counts of the current bag plus the final counts of bags already closed."""
