@@ -246,3 +246,29 @@ def test_rosbag2_write_split_event_between_two_nodes(pair: _Pair) -> None:
     while not received and time.monotonic() < deadline:
         time.sleep(0.01)
     assert received == [event]
+
+
+# From rosbag2 (Rolling) generated code: the hashes of the loss-event types the recorder publishes.
+LOSS_EVENT_HASHES = {
+    "rosbag2_interfaces/msg/MessagesLostEvent":
+        "RIHS01_b4a1d6322a232c78fbb68976bda0b2313d8083b29259eaf6c63848a4c47ae967",
+    "rosbag2_interfaces/msg/MessagesLostEventTopicStat":
+        "RIHS01_e46b2b211680a200b625f319b6318596e28f9ed3c5bc241d1b95b26028b917b7",
+}
+
+
+def test_messages_lost_event_types_are_rosbag2_rollings() -> None:
+    from rosbag2_interfaces.msg import MessagesLostEvent, MessagesLostEventTopicStat
+
+    assert MessagesLostEvent.get_fields_and_field_types() == {
+        "node_name": "string",
+        "messages_lost_statistics": "sequence<rosbag2_interfaces/MessagesLostEventTopicStat>"}
+    assert MessagesLostEventTopicStat.get_fields_and_field_types() == {
+        "topic_name": "string", "messages_lost_in_transport": "uint64", "messages_lost_in_recorder": "uint64"}
+    shares = [d for d in _installed_share_dirs() if (d / "rosbag2_interfaces" / "msg").is_dir()]
+    assert shares, "no installed share/rosbag2_interfaces/msg found"
+    for share in shares:
+        for name in ("MessagesLostEvent", "MessagesLostEventTopicStat"):
+            hashes = _hashes_in(share / "rosbag2_interfaces" / "msg" / f"{name}.json")
+            assert hashes[f"rosbag2_interfaces/msg/{name}"] == LOSS_EVENT_HASHES[f"rosbag2_interfaces/msg/{name}"]
+            assert all(hashes[t] == h for t, h in LOSS_EVENT_HASHES.items() if t in hashes)

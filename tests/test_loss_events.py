@@ -18,8 +18,9 @@ PLUGINS = "tests.container_test_plugins"
 
 def test_lost_messages_are_reported_live_and_only_then(containers: Containers, probe: Node, tmp_path) -> None:
     events: dict[str, list[MessagesLostEvent]] = {"/hanging": [], "/healthy": []}
-    for name, sink in events.items():
-        probe.create_subscription(MessagesLostEvent, f"{name}/events/messages_lost", sink.append, 100)
+    # A relative topic, as rosbag2's: both recorders publish on /events/messages_lost, node_name tells them apart
+    probe.create_subscription(MessagesLostEvent, "/events/messages_lost",
+                              lambda event: events.setdefault(event.node_name, []).append(event), 100)
     process, client = containers.start("--use-intra-process-comms", "--allow-module-plugins",
                                        "--shutdown-timeout", "2")
     assert client.load("components::CameraDriver", parameters={"width": 640, "height": 480}).success
