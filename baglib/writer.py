@@ -68,6 +68,9 @@ class _Storage(Protocol):
     def close(self, serialized_metadata: str = "") -> FileInfo: ...
 
 
+#: Share of the size or duration limit at which the next file is created ahead of the split.
+PREPARE_AT = 0.9
+
 _STORAGES: dict[str, type[McapStorage] | type[SqliteStorage]] = {
     McapStorage.storage_id: McapStorage,
     SqliteStorage.storage_id: SqliteStorage,
@@ -133,6 +136,8 @@ class BagWriter:
         #: Files deleted by circular recording (max_bag_files), oldest first.
         self.deleted_files: list[str] = []
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the current file
+        self._prepared: _Storage | None = None  # the next file, created ahead of the split
+        self._prepare_failed = False
         self._max_size = int(max_bagfile_size)
         self._max_duration_ns = round(max_bagfile_duration * _NS_PER_S)
         self._on_split = on_split
@@ -246,6 +251,11 @@ class BagWriter:
                 self._storage.add_topic(info, definition)
             except OSError as error:
                 self._fail(error)
+            if self._prepared is not None:
+                try:
+                    self._prepared.add_topic(info, definition)
+                except OSError:
+                    self._discard_prepared()  # the split will create the file itself, and report a failure
             self._definitions[info.type] = definition
             self._topics[info.name] = info
             self._metadata.topics.append(info)
@@ -279,6 +289,8 @@ class BagWriter:
                 self._file_first_ns = log_time_ns
             if self._file_last_ns is None or log_time_ns > self._file_last_ns:
                 self._file_last_ns = log_time_ns
+            if self._prepared is None and self._split_near(log_time_ns):
+                self._prepare_next()
 
     def split(self) -> None:
         """Close the current file (complete with its summary) and continue in the next one."""
@@ -340,6 +352,7 @@ class BagWriter:
             if self._closed:
                 return
             self._closed = True
+            self._discard_prepared()
             closed: Path | None = None
             error: BagWriteError | None = None
             cause: OSError | None = None
@@ -381,8 +394,18 @@ class BagWriter:
         return self._path / f"{self._path.name}_{self._file_index}{self._storage_class.extension}"
 
     def _open_storage(self) -> _Storage:
-        """Create the next storage file with every known topic in it."""
-        path = self._file_path()
+        """Make the next file current: the one prepared ahead (see :meth:`_prepare_next`), or a new one."""
+        storage, self._prepared = self._prepared, None
+        if storage is None:
+            storage = self._create_storage(self._file_path())
+        self._file_counts = dict.fromkeys(self._topics, 0)
+        self._file_first_ns = self._file_last_ns = None
+        status = os.stat(storage.path)
+        self._identity = (status.st_dev, status.st_ino)
+        return storage
+
+    def _create_storage(self, path: Path) -> _Storage:
+        """Create a storage file with every known topic in it."""
         opening = dataclasses.replace(self._metadata, files=[*self._metadata.files, FileInfo(path.name)])
         try:
             storage: _Storage = self._storage_class(path, self._preset, opening.to_yaml())
@@ -397,11 +420,35 @@ class BagWriter:
             storage.close()
             path.unlink(missing_ok=True)
             raise self._error(error, "cannot create bag file", path) from error
-        self._file_counts = dict.fromkeys(self._topics, 0)
-        self._file_first_ns = self._file_last_ns = None
-        status = os.stat(path)
-        self._identity = (status.st_dev, status.st_ino)
         return storage
+
+    def _split_near(self, log_time_ns: int) -> bool:
+        """The current file is at PREPARE_AT of its size or duration limit: time to prepare the next one."""
+        if self._file_first_ns is None or self._prepare_failed:
+            return False
+        assert self._storage is not None
+        if self._max_size and self._storage.size >= PREPARE_AT * self._max_size:
+            return True
+        return bool(self._max_duration_ns) and \
+            log_time_ns - self._file_first_ns > PREPARE_AT * self._max_duration_ns
+
+    def _prepare_next(self) -> None:
+        """Create the next file (header, opening metadata, topics) before the split needs it, so that the split
+        itself only closes the current file and switches. A failure here is left for the split to report."""
+        self._file_index += 1
+        try:
+            self._prepared = self._create_storage(self._file_path())
+        except BagWriteError:
+            self._prepare_failed = True
+        finally:
+            self._file_index -= 1
+
+    def _discard_prepared(self) -> None:
+        """Remove a prepared file that will not be used (the bag closes first, or it could not be completed)."""
+        prepared, self._prepared = self._prepared, None
+        if prepared is not None:
+            prepared.close()
+            prepared.path.unlink(missing_ok=True)
 
     def _delete_oldest_files(self) -> None:
         """Circular recording: keep the newest ``max_bag_files`` files (the current one included)."""
@@ -426,6 +473,7 @@ class BagWriter:
         if error is not None:
             self._stop(error, closed)
         self._file_index += 1
+        self._prepare_failed = False
         try:
             self._storage = self._open_storage()
         except BagWriteError as open_error:
@@ -466,6 +514,7 @@ class BagWriter:
 
     def _stop(self, error: OSError, closed: Path) -> NoReturn:
         """Record the failure, save ``metadata.yaml`` for the closed files and raise."""
+        self._discard_prepared()
         action = "cannot write bag file"
         if closed.name not in {info.path for info in self._metadata.files}:
             action += " (it could not be finalized and is left out of metadata.yaml)"

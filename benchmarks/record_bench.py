@@ -591,12 +591,17 @@ class Bench:
         return path
 
 
+#: The recorder modes: ipc, ipc splitting its files every --split-mb MiB, and dds.
+RECORDER_MODES = ("ipc", "split", "dds")
+
+
 def recorder_component(name: str, topics: list[str], uri: Path, args: argparse.Namespace,
-                       intra_process: bool) -> dict[str, Any]:
+                       intra_process: bool, split_bytes: int = 0) -> dict[str, Any]:
     return {"package": "components", "plugin": "components::Recorder", "name": name,
             "parameters": {"record": {"topics": topics},
                            "storage": {"uri": str(uri), "storage_id": args.storage,
-                                       "max_cache_size": int(args.cache_mb * 1024 * 1024)}},
+                                       "max_cache_size": int(args.cache_mb * 1024 * 1024),
+                                       "max_bagfile_size": split_bytes}},
             "extra_arguments": {"use_intra_process_comms": intra_process}}
 
 
@@ -608,14 +613,16 @@ def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, 
     uri = bench.workdir / tag
     recorder_name = f"rec_{tag}"
     drivers = scenario.components()
-    recorder = recorder_component(recorder_name, list(topics), uri, args, intra_process=(mode == "ipc"))
+    in_process = mode in ("ipc", "split")
+    recorder = recorder_component(recorder_name, list(topics), uri, args, intra_process=in_process,
+                                  split_bytes=int(args.split_mb * 1024 * 1024) if mode == "split" else 0)
     containers: list[Container] = []
     clients: list[Any] = []
     result: dict[str, Any] = {"mode": mode, "scenario": scenario.key, "cameras": scenario.cameras}
     try:
-        if mode == "ipc":
+        if in_process:
             files = [bench.write_yaml(f"{tag}_drivers", drivers), bench.write_yaml(f"{tag}_recorder", [recorder])]
-            containers.append(Container("ipc", f"bench_{tag}", files, bench.workdir / f"{tag}.log",
+            containers.append(Container(mode, f"bench_{tag}", files, bench.workdir / f"{tag}.log",
                                         args.executor, args.threads, bench.workdir))
             recorder_proc = containers[0]
         else:
@@ -684,6 +691,7 @@ def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, 
     logs = {c.label: c.log_text() for c in containers}
     result["source_skips_logged"] = sum(source_skips(text) for text in logs.values())
     bag = Path(f"{uri}_1")
+    result["bag_files"] = len(list(bag.glob("*.mcap")) + list(bag.glob("*.db3")))
     try:
         read = read_bag(bag, scenario, topics)
     finally:
@@ -868,7 +876,7 @@ def apply_recorder_cpu(results: dict[str, Any]) -> None:
 
 def topic_table(results: dict[str, Any]) -> str:
     rows = []
-    for mode in ("ipc", "dds"):
+    for mode in RECORDER_MODES:
         entry = results.get(mode)
         if not entry or "error" in entry:
             continue
@@ -881,7 +889,7 @@ def topic_table(results: dict[str, Any]) -> str:
 
 def mode_table(results: dict[str, Any]) -> str:
     rows = []
-    for mode in ("ipc", "dds", "drivers", "ceiling"):
+    for mode in (*RECORDER_MODES, "drivers", "ceiling"):
         e = results.get(mode)
         if not e:
             continue
@@ -906,7 +914,7 @@ def mode_table(results: dict[str, Any]) -> str:
 
 def notes(results: dict[str, Any]) -> list[str]:
     out = []
-    for mode in ("ipc", "dds"):
+    for mode in RECORDER_MODES:
         e = results.get(mode)
         if not e or "error" in e:
             continue
@@ -1033,6 +1041,15 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
         add("S1 ipc total CPU s/GB <= 1/2 of dds", a <= 0.5 * b, f"ipc {a:.2f} vs dds {b:.2f} s/GB (ratio {a / b:.2f})")
     else:
         add("S1 ipc total CPU s/GB <= 1/2 of dds", None, "not measured")
+    split = s1.get("split")
+    name = f"S1 split ({args.split_mb:g} MiB files) lossless, write latency p99 <= 2x unsplit"
+    if good(ipc) and good(split) and (ipc.get("latency_ms") or {}).get("p99") and (split.get("latency_ms") or {}).get("p99"):
+        a, b = split["latency_ms"]["p99"], ipc["latency_ms"]["p99"]
+        add(name, split["lost"] == 0 and a <= 2 * b,
+            f"lost {split['lost']} of {split['published']}, p99 {a:.1f} vs {b:.1f} ms unsplit (ratio {a / b:.2f}), "
+            f"{split.get('bag_files', '?')} files")
+    else:
+        add(name, None, "not measured")
     s2 = report.get("S2")
     if s2 and "ipc" in s2["largest_lossless"] and "dds" in s2["largest_lossless"]:
         a, b = s2["largest_lossless"]["ipc"], s2["largest_lossless"]["dds"]
@@ -1140,7 +1157,9 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true",
                    help="smoke run: S1 only, 3 s window, 3 s page pause, one ceiling run, no repeats")
     p.add_argument("--scenarios", default="s1,s2,s3", help="comma-separated subset of s1,s2,s3")
-    p.add_argument("--modes", default="ipc,dds,drivers,ceiling", help="S1/S3 modes to run (S2 always ipc,dds)")
+    p.add_argument("--modes", default="ipc,split,dds,drivers,ceiling",
+                   help="S1/S3 modes to run (S2 always ipc,dds); split = ipc with --split-mb files (S1 only)")
+    p.add_argument("--split-mb", type=float, default=256.0, help="storage.max_bagfile_size of the split mode, MiB")
     p.add_argument("--seconds", type=float, default=10.0, help="S1 measured window")
     p.add_argument("--cameras", type=int, default=2, help="S1 cameras")
     p.add_argument("--width", type=int, default=1920)
@@ -1189,7 +1208,7 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
         args.retries = 0
     args.scenario_set = {s.strip().lower() for s in args.scenarios.split(",") if s.strip()}
     args.mode_set = {m.strip().lower() for m in args.modes.split(",") if m.strip()}
-    unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {"ipc", "dds", "drivers", "ceiling"})
+    unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {*RECORDER_MODES, "drivers", "ceiling"})
     if unknown:
         p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
     return args
@@ -1287,7 +1306,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         if "s1" in args.scenario_set:
             scenario = s1_scenario(args)
             s1: dict[str, Any] = {}
-            for mode in ("ipc", "dds"):
+            for mode in RECORDER_MODES:
                 if mode in args.mode_set:
                     s1[mode] = guarded(bench, f"S1 {mode}", lambda: run_recorder_mode(bench, scenario, mode))
             if "drivers" in args.mode_set:

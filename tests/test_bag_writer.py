@@ -15,7 +15,7 @@ import sys
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pytest
@@ -813,3 +813,33 @@ def test_any_file_size_limit_leaves_a_consistent_bag(tmp_path: Path) -> None:
     # The sweep reached failures in write() and in close(), with empty and partial bags.
     assert {failed for failed, _ in outcomes} == {"write", "close", None}
     assert len({count for _, count in outcomes}) >= 4
+
+
+@pytest.mark.parametrize("storage_id", ["mcap", "sqlite3"])
+def test_the_next_file_is_prepared_before_the_split(tmp_path: Path, storage_id: str) -> None:
+    bag = tmp_path / "ahead"
+    ext = ".mcap" if storage_id == "mcap" else ".db3"
+    events: list[tuple[str, str]] = []
+    written: list[Written] = []
+
+    def write_until(topic: str, done: Callable[[], bool]) -> None:
+        for i in range(1000):
+            if done():
+                return
+            written.extend(write_messages(writer, [(topic, i)], start=T0 + len(written) * 10_000_000))
+        raise AssertionError("never happened")
+
+    writer = BagWriter(bag, storage_id=storage_id, max_bagfile_size=200_000,
+                       on_split=lambda a, b: events.append((a, b)))
+    writer.add_topic(topic_info("/points"))
+    write_until("/points", (bag / f"ahead_1{ext}").exists)
+    assert writer.files == [bag / f"ahead_0{ext}"] and not events  # not split yet, but the next file is ready
+    writer.add_topic(topic_info("/imu"))  # a topic added now goes into the prepared file too
+    write_until("/points", lambda: bool(events))
+    assert events[0] == (str(bag / f"ahead_0{ext}"), str(bag / f"ahead_1{ext}"))  # the prepared file
+    write_until("/imu", lambda: any(w.topic == "/imu" for w in written))
+    write_until("/points", (bag / f"ahead_2{ext}").exists)
+    writer.close()  # the prepared ahead_2 was never used: removed
+    meta = check_split_bag(bag, written, storage_id)
+    assert sorted(p.name for p in bag.glob(f"*{ext}")) == sorted(meta["relative_file_paths"])
+    assert not (bag / f"ahead_2{ext}").exists()
