@@ -265,6 +265,10 @@ def _top_level_unit(opcode: int, body: bytes, position: int, end: int, result: S
         channel_id, _sequence, log_time = struct.unpack_from("<HIQ", body)
         if channel_id not in result.channels:
             raise _Invalid(f"message on unknown channel {channel_id}")
+        if result.units and (previous := result.units[-1]).chunk_index is None and previous.last_ns is not None \
+                and log_time < previous.last_ns:
+            # Readers accept unindexed messages only in log time order; out of order here is damage.
+            raise _Invalid("log time going backwards in unindexed messages")
         unit.counts, unit.first_ns, unit.last_ns = {channel_id: 1}, log_time, log_time
     elif opcode == Opcode.METADATA:
         metadata = _parse(Metadata, body)

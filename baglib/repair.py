@@ -40,6 +40,9 @@ from .mcap_storage import METADATA_KEY, METADATA_NAME
 from .metadata import METADATA_FILENAME, BagMetadata, FileInfo, TopicInfo
 from .sqlite_storage import create_tables
 
+# libyaml's loader when PyYAML has it: a bag has a QoS document per topic and file.
+_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
 __all__ = ["RECOVER_COMMAND", "FileReport", "RecoveryReport", "recover_bag", "storage_files"]
 
 RECOVER_COMMAND = "ipc-component bag recover"
@@ -50,6 +53,7 @@ _ASIDE = ".recover-aside"     # suffix of a SQLite journal moved aside while its
 _SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
 _COPY_BLOCK = 1 << 20
 _ROW_BATCH = 1000
+_MESSAGES_AFTER = "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? ORDER BY id LIMIT ?"
 _FOOTER_LENGTH = 1 + 8 + 8 + 8 + 4
 
 
@@ -208,7 +212,7 @@ def _bag_metadata(bag: Path, storage: str, recovered: list[_Recovered]) -> BagMe
 
 def _old_custom_data(bag: Path) -> dict[str, str] | None:
     with contextlib.suppress(Exception):  # whatever the old file holds, it is only a hint
-        document = yaml.safe_load((bag / METADATA_FILENAME).read_text())
+        document = _load((bag / METADATA_FILENAME).read_text())
         return _custom_data(document.get("rosbag2_bagfile_information", document))
     return None
 
@@ -218,6 +222,10 @@ def _custom_data(document: Any) -> dict[str, str] | None:
     if isinstance(custom, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in custom.items()):
         return custom or None
     return None
+
+
+def _load(text: str) -> Any:
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 (a safe loader)
 
 
 def _storage_of(path: Path) -> str:
@@ -235,7 +243,7 @@ def _topic(report: FileReport, name: str, type_name: str, serialization_format: 
            type_hash: str) -> TopicInfo | None:
     """The topic as the file describes it, or ``None`` (and a note) if the description is unusable."""
     with contextlib.suppress(yaml.YAMLError, TypeError):
-        qos = yaml.safe_load(qos) if isinstance(qos, str) else qos
+        qos = _load(qos) if isinstance(qos, str) else qos
     profiles = qos if isinstance(qos, list) and all(isinstance(p, dict) for p in qos) else []
     try:
         return TopicInfo(name, type_name, serialization_format, profiles, type_hash)
@@ -281,7 +289,7 @@ def _recover_mcap(path: Path) -> _Recovered:
         counts[topic_name] = counts.get(topic_name, 0) + count
     custom_data = None
     with contextlib.suppress(yaml.YAMLError, AttributeError):
-        custom_data = _custom_data(yaml.safe_load(found.metadata.get(METADATA_NAME, {}).get(METADATA_KEY, "")))
+        custom_data = _custom_data(_load(found.metadata.get(METADATA_NAME, {}).get(METADATA_KEY, "")))
     info = FileInfo.from_log_times(path.name, totals.first_ns, totals.last_ns, counts)
 
     def write(temporary: Path, serialized_metadata: str) -> None:
@@ -462,28 +470,37 @@ def _copy_rows(source: sqlite3.Connection, temporary: Path, report: FileReport) 
 
 
 def _readable_messages(source: sqlite3.Connection, topic_ids: set[int], report: FileReport) -> Any:
-    """Rows in id order up to the first unreadable page; rows that are not messages are skipped.
+    """Rows in id order, past unreadable pages; rows that are not messages are skipped.
 
     Read in batches by id range: Python's cursor reads one row ahead, so the row before an
-    unreadable page would be lost with the error. The batch that meets the error is read again
-    row by row.
+    unreadable page would be lost with the error. The batch that meets the error is read again row
+    by row, and then reading resumes at the first id sqlite can reach again.
     """
     skipped = 0
     last_id = -(2**63)
     batch = _ROW_BATCH
     while True:
         try:
-            rows = source.execute("SELECT id, topic_id, timestamp, data FROM messages WHERE id > ?"
-                                  " ORDER BY id LIMIT ?", (last_id, batch)).fetchall()
+            rows = source.execute(_MESSAGES_AFTER, (last_id, batch)).fetchall()
+            if rows and rows[-1][0] <= last_id:  # a damaged page sqlite did not notice
+                raise sqlite3.DatabaseError("row ids out of order")
         except sqlite3.DatabaseError as error:
             if batch > 1:
                 batch = 1
                 continue
-            report.reasons.append(f"messages end after row {last_id}: {error} (rows after it cut)")
-            break
+            resume = _next_readable(source, last_id)
+            if resume is None:
+                report.reasons.append(f"messages end after row {last_id}: {error} (rows after it cut)")
+                break
+            report.reasons.append(f"rows {last_id + 1}..{resume} unreadable: {error} (cut)")
+            last_id = resume
+            continue
         if not rows:
             break
         for row in rows:
+            if row[0] <= last_id:  # ids must increase: anything else is damage
+                skipped += 1
+                continue
             last_id, topic_id, timestamp, data = row
             if topic_id in topic_ids and isinstance(timestamp, int) and isinstance(data, bytes):
                 yield row
@@ -491,6 +508,27 @@ def _readable_messages(source: sqlite3.Connection, topic_ids: set[int], report: 
                 skipped += 1
     if skipped:
         report.reasons.append(f"{skipped} damaged rows skipped")
+
+
+def _next_readable(source: sqlite3.Connection, after: int) -> int | None:
+    """The smallest id past ``after`` from which sqlite can seek on (``None``: nowhere)."""
+    def readable(start: int) -> bool:
+        try:
+            rows = source.execute(_MESSAGES_AFTER, (start, 1)).fetchall()
+            return not rows or rows[0][0] > start
+        except sqlite3.DatabaseError:
+            return False
+
+    low, jump = after, 1
+    while not readable(low + jump):  # doubling steps past the unreadable page ...
+        low, jump = low + jump, jump * 2
+        if low + jump >= 2**63:
+            return None
+    high = low + jump
+    while high - low > 1:  # ... then back to where it ends
+        middle = (low + high) // 2
+        low, high = (low, middle) if readable(middle) else (middle, high)
+    return high
 
 
 def _sqlite_content(db: sqlite3.Connection, name: str, report: FileReport
@@ -515,7 +553,7 @@ def _sqlite_content(db: sqlite3.Connection, name: str, report: FileReport
         custom_data = None
         for (text,) in db.execute("SELECT metadata FROM metadata ORDER BY id"):
             with contextlib.suppress(yaml.YAMLError):
-                custom_data = _custom_data(yaml.safe_load(text)) or custom_data
+                custom_data = _custom_data(_load(text)) or custom_data
     finally:
         db.close()
     report.messages = sum(counts.values())

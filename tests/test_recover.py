@@ -15,7 +15,9 @@ import sqlite3
 import struct
 import subprocess
 import sys
+import tempfile
 import textwrap
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -27,12 +29,13 @@ from rosbags.rosbag2 import Reader
 from baglib import mcap_storage
 from baglib.info import BagInfoError, format_bag_info
 from baglib.metadata import TopicInfo
-from baglib.repair import recover_bag
+from baglib.repair import RecoveryReport, recover_bag
 from component_container.cli import main as cli_main
 
 T0 = 1_718_000_000_000_000_000
-MESSAGES = 2000
+MESSAGES = 1200
 CUTS = 200
+LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 SEED = int(os.environ.get("IPC_RECOVER_SEED") or random.randrange(2**32))
 QOS = {"history": "keep_last", "depth": 7, "reliability": "reliable", "durability": "volatile",
        "deadline": {"sec": 9223372036, "nsec": 854775807}, "lifespan": {"sec": 9223372036, "nsec": 854775807},
@@ -71,6 +74,20 @@ def write_bag(path: Path, storage_id: str, preset: str, monkeypatch: pytest.Monk
     return path
 
 
+@pytest.fixture()
+def work(tmp_path: Path) -> Iterator[Path]:
+    """Where the damaged copies are recovered: tmpfs if there is one (hundreds of fsyncs per test)."""
+    shm = Path("/dev/shm")
+    if not (shm.is_dir() and os.access(shm, os.W_OK)):
+        yield tmp_path
+        return
+    path = Path(tempfile.mkdtemp(prefix="test_recover_", dir=shm))
+    try:
+        yield path
+    finally:
+        shutil.rmtree(path, ignore_errors=True)
+
+
 @pytest.fixture(scope="module")
 def sources(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("sources")
@@ -96,7 +113,7 @@ def read_mcap(path: Path) -> list[tuple[str, int, bytes]]:
 def check_readable(bag: Path) -> list[tuple[str, int, bytes]]:
     """Everything both readers see (the same), with metadata.yaml agreeing; in log time order."""
     messages = read_rosbags(bag)
-    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    meta = yaml.load((bag / "metadata.yaml").read_text(), Loader=LOADER)["rosbag2_bagfile_information"]
     assert meta["version"] == 9 and meta["message_count"] == len(messages)
     assert sum(entry["message_count"] for entry in meta["files"]) == len(messages)
     if meta["storage_identifier"] == "mcap":
@@ -114,8 +131,8 @@ def original(n: int) -> tuple[str, int, bytes]:
 
 
 @functools.cache
-def mcap_units(path: Path) -> list[tuple[int, set[int]]]:
-    """(end offset, sequence numbers) of each chunk or unchunked message record of an intact file."""
+def mcap_units(path: Path) -> list[tuple[int, int, set[int]]]:
+    """(start, end offset, sequence numbers) of each chunk or unchunked message record of an intact file."""
     raw = path.read_bytes()
     units, position = [], 8
     while True:
@@ -125,10 +142,10 @@ def mcap_units(path: Path) -> list[tuple[int, set[int]]]:
             return units
         if opcode == 0x06:  # chunk: its messages are those in its log time range
             start_ns, end_ns = struct.unpack_from("<QQ", raw, position + 9)
-            units.append((end, set(range((start_ns - T0) // 1000, (end_ns - T0) // 1000 + 1))))
+            units.append((position, end, set(range((start_ns - T0) // 1000, (end_ns - T0) // 1000 + 1))))
         elif opcode == 0x05:
             (log_time,) = struct.unpack_from("<Q", raw, position + 9 + 6)
-            units.append((end, {(log_time - T0) // 1000}))
+            units.append((position, end, {(log_time - T0) // 1000}))
         position = end
 
 
@@ -145,8 +162,8 @@ def _varint(data: bytes, offset: int) -> tuple[int, int]:
 
 
 @functools.cache
-def sqlite_leaf_rows(path: Path) -> list[tuple[int, set[int]]]:
-    """(end offset of its page, row ids) of each table leaf page holding message rows."""
+def sqlite_leaf_rows(path: Path) -> list[tuple[int, int, set[int]]]:
+    """(start, end offset of its page, sequence numbers) of each table leaf page holding message rows."""
     raw = path.read_bytes()
     page_size = struct.unpack_from(">H", raw, 16)[0]
     pages = []
@@ -169,7 +186,7 @@ def sqlite_leaf_rows(path: Path) -> list[tuple[int, set[int]]]:
             if len(types) == 4 and types[3] >= 12 and types[3] % 2 == 0:  # (id, topic, time, blob)
                 rows.add(rowid - 1)  # ids start at 1, sequence numbers at 0
         if rows:
-            pages.append((base + page_size, rows))
+            pages.append((base, base + page_size, rows))
     return pages
 
 
@@ -182,8 +199,8 @@ class Expectation:
 def expected(kind: str, source: Path, cut: int) -> Expectation:
     if kind == "sqlite3":
         pages = sqlite_leaf_rows(source)
-        return Expectation({n for end, rows in pages if end <= cut for n in rows}, set(range(MESSAGES)))
-    kept = {n for end, numbers in mcap_units(source) if end <= cut for n in numbers}
+        return Expectation({n for _, end, rows in pages if end <= cut for n in rows}, set(range(MESSAGES)))
+    kept = {n for _, end, numbers in mcap_units(source) if end <= cut for n in numbers}
     return Expectation(kept, kept)  # MCAP: exactly the complete chunks / records
 
 
@@ -191,13 +208,14 @@ def storage_file(bag: Path) -> Path:
     return next(path for path in bag.iterdir() if path.suffix in (".mcap", ".db3"))
 
 
-def recover_copy(source: Path, tmp: Path, damage: callable, keep_metadata: bool = False) -> tuple[Path, object]:
+def recover_copy(source: Path, tmp: Path, damage: Callable[[Path], None]) -> tuple[Path, RecoveryReport]:
+    """A copy of the bag without its metadata.yaml, damaged, recovered in place."""
     bag = tmp / "bag"
     shutil.rmtree(bag, ignore_errors=True)
-    shutil.copytree(source, bag)
-    if not keep_metadata:
-        (bag / "metadata.yaml").unlink()
-    damage(storage_file(bag))
+    bag.mkdir()
+    path = bag / storage_file(source).name
+    shutil.copyfile(storage_file(source), path)
+    damage(path)
     return bag, recover_bag(bag)
 
 
@@ -205,13 +223,13 @@ def recover_copy(source: Path, tmp: Path, damage: callable, keep_metadata: bool 
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_truncated_anywhere(kind: str, sources: dict[str, Path], tmp_path: Path) -> None:
+def test_truncated_anywhere(kind: str, sources: dict[str, Path], work: Path) -> None:
     source = sources[kind]
     size = storage_file(source).stat().st_size
     generator = random.Random(f"{SEED}-{kind}")
     cuts = sorted(generator.randrange(size) for _ in range(CUTS))
     for cut in cuts:
-        bag, report = recover_copy(source, tmp_path, lambda path: os.truncate(path, cut))
+        bag, report = recover_copy(source, work, lambda path: os.truncate(path, cut))
         expect = expected(kind, storage_file(source), cut)
         context = f"{kind} cut at {cut} (seed {SEED}):\n{report.text()}"
         if not report.readable:  # cut inside the magic or header: nothing there to keep
@@ -225,7 +243,7 @@ def test_truncated_anywhere(kind: str, sources: dict[str, Path], tmp_path: Path)
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], tmp_path: Path) -> None:
+def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], work: Path) -> None:
     source = sources[kind]
     size = storage_file(source).stat().st_size
     generator = random.Random(f"{SEED}-{kind}-zero")
@@ -234,7 +252,7 @@ def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], 
         with open(path, "ab") as file:
             file.write(generator.randbytes(5000))
 
-    bag, report = recover_copy(source, tmp_path, append)
+    bag, report = recover_copy(source, work, append)
     assert report.readable, report.text()
     assert check_readable(bag) == [original(n) for n in range(MESSAGES)], report.text()
     for _ in range(8):
@@ -245,19 +263,24 @@ def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], 
                 file.seek(start)
                 file.write(bytes(4096))
 
-        bag, report = recover_copy(source, tmp_path, zero)
+        bag, report = recover_copy(source, work, zero)
         context = f"{kind} zeroed at {start} (seed {SEED}):\n{report.text()}"
         assert report.readable, context
         kept = check_readable(bag)
-        numbers = {(timestamp - T0) // 1000 for _, timestamp, _ in kept}
-        assert kept == [original(n) for n in sorted(numbers)], context
-        if kind != "sqlite3":  # the intact records before the block, and nothing after it
-            assert numbers == expected(kind, storage_file(source), start).must_keep, context
+        # Whatever lies wholly before the block is kept intact. Without CRCs (this writer's MCAP files
+        # and SQLite pages have none) a block inside a record whose length survived cannot be seen:
+        # that record (chunk, page) may come back zeroed, and the records after it are kept.
+        units = (sqlite_leaf_rows if kind == "sqlite3" else mcap_units)(storage_file(source))
+        hit = {n for begin, end, numbers in units if begin < start + 4096 and end > start for n in numbers}
+        originals = {original(n): n for n in range(MESSAGES)}
+        intact = {originals[message] for message in kept if message in originals}
+        assert expected(kind, storage_file(source), start).must_keep <= intact, context
+        assert len(kept) - len(intact) <= len(hit), context
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_missing_metadata_on_intact_bag(kind: str, sources: dict[str, Path], tmp_path: Path) -> None:
-    bag, report = recover_copy(sources[kind], tmp_path, lambda path: None)
+def test_missing_metadata_on_intact_bag(kind: str, sources: dict[str, Path], work: Path) -> None:
+    bag, report = recover_copy(sources[kind], work, lambda path: None)
     assert report.readable and report.files[0].action == "intact", report.text()
     assert storage_file(bag).read_bytes() == storage_file(sources[kind]).read_bytes()  # untouched
     assert check_readable(bag) == [original(n) for n in range(MESSAGES)]
@@ -299,8 +322,8 @@ def test_empty_and_garbage_files(tmp_path: Path, capsys: pytest.CaptureFixture[s
         assert (bag / name).read_bytes() == content and sorted(os.listdir(bag)) == [name]
 
 
-def test_info_names_the_recover_command(sources: dict[str, Path], tmp_path: Path) -> None:
-    bag, _ = recover_copy(sources["chunked"], tmp_path, lambda path: None)
+def test_info_names_the_recover_command(sources: dict[str, Path], work: Path) -> None:
+    bag, _ = recover_copy(sources["chunked"], work, lambda path: None)
     (bag / "metadata.yaml").unlink()
     with pytest.raises(BagInfoError, match="unfinished bag.*ipc-component bag recover"):
         format_bag_info(bag)
@@ -335,7 +358,7 @@ def test_sqlite_killed_mid_transaction(mode: str, sources: dict[str, Path], tmp_
     assert side.exists() and side.stat().st_size
     report = recover_bag(bag)
     assert report.readable, report.text()
-    assert not side.exists() and sorted(os.listdir(bag)) == ["bag_0.db3", "metadata.yaml"]
+    assert not side.exists() and sorted(os.listdir(bag)) == sorted([path.name, "metadata.yaml"])
     kept = check_readable(bag)
     added = 300 if mode == "WAL" else 0  # the committed log's rows count, the rolled-back ones do not
     assert len(kept) == MESSAGES + added
@@ -363,4 +386,4 @@ def test_interrupted_recover_is_finished_by_the_next(sources: dict[str, Path], t
     report = recover_bag(bag)
     assert report.readable, report.text()
     assert check_readable(bag) == [original(n) for n in range(MESSAGES)]
-    assert sorted(os.listdir(bag)) == ["bag_0.db3", "metadata.yaml"]
+    assert sorted(os.listdir(bag)) == sorted([path.name, "metadata.yaml"])
