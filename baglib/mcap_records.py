@@ -310,7 +310,8 @@ def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: boo
         raise _Invalid("chunk content of the wrong size")
     if chunk.crc and zlib.crc32(data) != chunk.crc:
         raise _Invalid("chunk CRC mismatch")
-    entries, schemas, channels = _chunk_records(data, result, check_references)
+    entries, schemas, channels = _chunk_records(data, result, check_references,
+                                                (index.message_start_time, index.message_end_time))
     result.schemas.update(schemas)
     result.channels.update(channels)
     builder = RecordBuilder()
@@ -326,9 +327,13 @@ def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: boo
 
 
 def _chunk_records(
-    data: bytes, result: Scan, check_references: bool
+    data: bytes, result: Scan, check_references: bool, time_range: tuple[int, int]
 ) -> tuple[dict[int, list[tuple[int, int]]], dict[int, Schema], dict[int, Channel]]:
-    """Message index entries per channel, and the schemas and channels, of a chunk's content."""
+    """Message index entries per channel, and the schemas and channels, of a chunk's content.
+
+    A message outside the chunk header's ``time_range`` is damage (writers set the range from the
+    messages; readers may skip messages outside it).
+    """
     entries: dict[int, list[tuple[int, int]]] = {}
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -347,6 +352,8 @@ def _chunk_records(
             channel_id, _sequence, log_time = struct.unpack_from("<HIQ", body)
             if check_references and channel_id not in channels and channel_id not in result.channels:
                 raise _Invalid(f"message on unknown channel {channel_id}")
+            if not time_range[0] <= log_time <= time_range[1]:
+                raise _Invalid("message log time outside the chunk's range")
             entries.setdefault(channel_id, []).append((log_time, offset))
         elif opcode == Opcode.SCHEMA:
             schema = _parse(Schema, body)
