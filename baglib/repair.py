@@ -355,9 +355,10 @@ def _recover_sqlite(path: Path, temporary: Path) -> _Recovered:
     report = FileReport(path.name)
     side_files = [suffix for suffix in _SQLITE_SIDE_FILES if path.with_name(path.name + suffix).exists()]
     if not side_files and _sqlite_intact(path):
-        topics, info, custom_data = _sqlite_content(sqlite3.connect(f"file:{path}?mode=ro", uri=True),
-                                                    path.name, report)
-        return _Recovered(report, info, topics, custom_data, None)
+        with contextlib.suppress(sqlite3.Error, ValueError):  # else rebuilt, or left out with the reason
+            topics, info, custom_data = _sqlite_content(_connect(f"file:{path}?mode=ro", uri=True),
+                                                        path.name, report)
+            return _Recovered(report, info, topics, custom_data, None)
     work = temporary.with_name(temporary.name + ".work")
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir()
@@ -373,7 +374,7 @@ def _recover_sqlite(path: Path, temporary: Path) -> _Recovered:
             report.reasons.append("write-ahead log replayed (its committed transactions are kept)")
         _cut_partial_page(copy, report)
         try:
-            source = sqlite3.connect(copy)
+            source = _connect(copy)
             try:
                 # A file shorter than its header says is "malformed" unless sqlite may trust the
                 # file size instead; nothing is written through this connection.
@@ -383,7 +384,8 @@ def _recover_sqlite(path: Path, temporary: Path) -> _Recovered:
             finally:
                 source.close()
             topics, info, custom_data = _sqlite_content(sqlite3.connect(temporary), path.name, report)
-        except (sqlite3.Error, IndexError) as error:  # IndexError: a topics table without a column
+        # IndexError: a topics table without a column; ValueError: a column name that is not UTF-8
+        except (sqlite3.Error, IndexError, ValueError) as error:
             temporary.unlink(missing_ok=True)
             report.action = "left out"
             report.reasons.append(f"not a readable rosbag2 database: {error}")
@@ -395,8 +397,17 @@ def _recover_sqlite(path: Path, temporary: Path) -> _Recovered:
     return _Recovered(report, info, topics, custom_data, lambda _temporary, _metadata: None)
 
 
+def _connect(database: str | Path, uri: bool = False) -> sqlite3.Connection:
+    """A connection whose damaged text comes back with replacement characters instead of ending
+    the reading with a ``UnicodeDecodeError``."""
+    db = sqlite3.connect(database, uri=uri)
+    db.text_factory = lambda data: data.decode(errors="replace")
+    return db
+
+
 def _sqlite_intact(path: Path) -> bool:
-    """Whether sqlite reads the file as it is: whole pages, as many as its header says, checked.
+    """Whether sqlite reads the file as it is: whole pages, as many as its header says, checked
+    (``integrity_check``: readers sort by the timestamp index, which ``quick_check`` does not compare).
 
     The size is checked first: a file cut inside its last page passes ``quick_check`` (sqlite reads
     the missing bytes as zeros), and rows there would come back silently cut.
@@ -405,9 +416,9 @@ def _sqlite_intact(path: Path) -> bool:
     if not page_size or path.stat().st_size != page_size * pages:
         return False
     try:
-        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        db = _connect(f"file:{path}?mode=ro", uri=True)
         try:
-            return db.execute("PRAGMA quick_check").fetchall() == [("ok",)] and bool(
+            return db.execute("PRAGMA integrity_check").fetchall() == [("ok",)] and bool(
                 db.execute("SELECT 1 FROM sqlite_master WHERE name = 'messages'").fetchone())
         finally:
             db.close()
