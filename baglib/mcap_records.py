@@ -86,7 +86,8 @@ class Unit:
 
 @dataclass
 class Damage:
-    """Where the usable part of the file ends and why; ``lost_messages`` is ``None`` when unknown."""
+    """Where the usable part of the file ends and why; ``lost_messages`` is a lower bound (``None``:
+    unknown), since a chunk cut short holds more messages than its written part shows."""
 
     offset: int
     reason: str
@@ -241,7 +242,8 @@ def _cut_record(file: BinaryIO, opcode: int, position: int, size: int) -> Damage
     where = f"file ends inside a {_name(opcode)} record at offset {position}"
     if opcode == Opcode.CHUNK:
         lost = _partial_chunk_messages(file, position, size)
-        return Damage(position, f"{where}: 1 chunk ({'?' if lost is None else lost} messages) cut", lost)
+        count = f"at least {lost}" if lost else "an unknown number of"
+        return Damage(position, f"{where}: 1 chunk ({count} messages) cut", lost)
     if opcode == Opcode.MESSAGE:
         return Damage(position, f"{where}: 1 message cut", 1)
     return Damage(position, where)
@@ -373,7 +375,8 @@ def _chunk_records(
 
 
 def _partial_chunk_messages(file: BinaryIO, position: int, size: int) -> int | None:
-    """How many whole messages the cut chunk at ``position`` holds (``None`` when unknown)."""
+    """How many whole messages the written part of the cut chunk at ``position`` holds (``None``
+    when it cannot be read, e.g. a compressed frame cut before its first block ends)."""
     file.seek(position + 9)
     body = file.read(size - position - 9)
     try:
