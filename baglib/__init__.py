@@ -6,6 +6,8 @@ recorder, the player and ``ipc-component bag ...`` all share one implementation:
 * ``writer``: :class:`~baglib.writer.BagWriter`, a bag directory being written (split files, metadata);
 * ``mcap_storage`` / ``sqlite_storage``: the two storage back-ends (MCAP with the ros2 profile, SQLite3);
 * ``metadata``: ``metadata.yaml`` (rosbag2's BagMetadata) and the topic/file records it holds;
+* ``mcap_records``: an MCAP file as complete records up to its first damage, and its summary;
+* ``repair``: ``bag recover``, making a bag a crash left unfinished readable again;
 * ``info``: what ``ros2 bag info`` prints;
 * ``cdr_fast`` / ``cdr_size``: message objects to the exact CDR bytes a DDS reader receives;
 * ``message_definitions``: the ``.msg`` text and RIHS01 type hash of installed types;

@@ -1,7 +1,8 @@
 """``ipc-component bag info``: what ``ros2 bag info`` prints, for users of the PyPI wheels (no ``ros2 bag``).
 
 It reads ``metadata.yaml`` (version 9) and the sizes of the files it lists, and formats them the way
-rosbag2_cpp's ``format_bag_meta_data`` does.
+rosbag2_cpp's ``format_bag_meta_data`` does. A bag a crash left unfinished (no ``metadata.yaml``, a
+file it does not list, an MCAP file without footer) is named as such, with the command that repairs it.
 """
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ from typing import Any
 
 import yaml
 
+from baglib.mcap_records import MAGIC
 from baglib.metadata import METADATA_FILENAME
+from baglib.repair import RECOVER_COMMAND, storage_files
 
 _LABEL_WIDTH = 19  # "Topic information: " and the padding of every other label
 
@@ -26,6 +29,13 @@ def read_metadata(bag_dir: str | Path) -> dict[str, Any]:
         document = yaml.safe_load(path.read_text())
         return document["rosbag2_bagfile_information"]
     except FileNotFoundError as exc:
+        files = storage_files(Path(bag_dir)) if Path(bag_dir).is_dir() else []
+        if files:
+            raise BagInfoError(
+                f"'{bag_dir}' is an unfinished bag: no {METADATA_FILENAME} next to "
+                f"{', '.join(file.name for file in files)} (was the recording interrupted?). "
+                f"Run `{RECOVER_COMMAND} {bag_dir}` to make it readable."
+            ) from exc
         raise BagInfoError(f"'{bag_dir}' is not a bag: no {METADATA_FILENAME}") from exc
     except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
         raise BagInfoError(f"cannot read {path}: {exc}") from exc
@@ -51,6 +61,22 @@ def _block(label: str, lines: list[str]) -> list[str]:
     return [first + (lines[0] if lines else "")] + [pad + line for line in lines[1:]]
 
 
+def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
+    """Warnings about storage files a crash left behind: unlisted ones, MCAP files without footer."""
+    notes = []
+    for path in storage_files(bag_dir) if bag_dir.is_dir() else []:
+        if path.name not in listed:
+            notes.append(f"{path.name} is not listed in {METADATA_FILENAME} (recording interrupted?)")
+        elif path.suffix == ".mcap":
+            with open(path, "rb") as file:
+                file.seek(max(0, path.stat().st_size - len(MAGIC)))
+                if file.read() != MAGIC:
+                    notes.append(f"{path.name} is unfinished: no MCAP footer")
+    if notes:
+        notes.append(f"Run `{RECOVER_COMMAND} {bag_dir}` to make the whole bag readable.")
+    return [f"Warning: {note}" for note in notes]
+
+
 def format_bag_info(bag_dir: str | Path) -> str:
     """The ``ros2 bag info`` text for ``bag_dir``."""
     meta = read_metadata(bag_dir)
@@ -74,5 +100,6 @@ def format_bag_info(bag_dir: str | Path) -> str:
         *_block("Topic information:", topics),
         *_block("Services:", ["0"]),
         *_block("Service information:", []),
+        *_unfinished(Path(bag_dir), files),
     ]
     return "\n".join(line.rstrip() for line in lines)

@@ -19,7 +19,8 @@ An MCAP file without its summary cannot be opened by ``rosbags`` (ros2/rosbag2#1
 the disk filling up is exactly when the summary fails to be written. So when a write fails, this
 storage repairs the file on close instead: it cuts the file after the last complete record (which
 also frees the space the failed chunk took), rebuilds the message indexes of the last chunk and
-appends a fresh summary, dropping trailing records only if even that does not fit.
+appends a fresh summary, dropping trailing records only if even that does not fit. Finding the
+complete records is :mod:`.mcap_records`, shared with ``bag recover``.
 """
 from __future__ import annotations
 
@@ -27,9 +28,7 @@ import contextlib
 import os
 import io
 import struct
-import zlib
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Protocol
 
@@ -37,34 +36,23 @@ import lz4.frame
 import zstandard
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import (
-    Channel,
-    ChunkIndex,
-    DataEnd,
-    Footer,
-    Header,
-    McapRecord,
-    MessageIndex,
-    Metadata,
-    MetadataIndex,
-    Schema,
-    Statistics,
-    SummaryOffset,
-)
+from mcap.records import Channel, ChunkIndex, Header, McapRecord, Metadata, MetadataIndex, Schema
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 
 from .direct_file import DirectFile, open_exclusive
+
+from .mcap_records import MAGIC, Totals, scan, summary_tail
 from .metadata import ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
-__all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "McapStorage", "MessageBuffers"]
+__all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "METADATA_KEY", "METADATA_NAME", "McapStorage",
+           "MessageBuffers"]
 
 #: rosbag2_storage_mcap's (libmcap's) default chunk size.
 DEFAULT_CHUNK_SIZE = 786_432
 LIBRARY = f"{LIBRARY_IDENTIFIER}; rosbag2_storage_mcap layout ({ROS_DISTRO})"
 PROFILE = "ros2"
-_METADATA_NAME = "rosbag2"
-_METADATA_KEY = "serialized_metadata"
-_MAGIC = b"\x89MCAP0\r\n"
+METADATA_NAME = "rosbag2"
+METADATA_KEY = "serialized_metadata"
 # Unchunked files (fastwrite) get one record per message, batched by this buffer; chunked files
 # are written a chunk at a time anyway, and a small buffer keeps what a failure can lose small.
 _UNCHUNKED_BUFFER = 1 << 20
@@ -177,7 +165,7 @@ class McapStorage:
         self._chunk_end_ns = 0
         self._info: FileInfo | None = None
         try:
-            self._file.write(_MAGIC)
+            self._file.write(MAGIC)
             self._file.write(_header_record())
             if serialized_metadata:
                 self._write_metadata(serialized_metadata)
@@ -304,9 +292,10 @@ class McapStorage:
             try:
                 self._finish_chunk()
                 counts = {self._channel_ids[topic]: count for topic, count in self._counts.items() if count}
-                self._file.write(_tail(
-                    self._file.tell(), self._schemas, self._channels, serialized_metadata, counts,
-                    self._first_ns, self._last_ns, self._chunk_indexes, self._metadata_indexes,
+                self._file.write(summary_tail(
+                    self._file.tell(), self._schemas, self._channels,
+                    {METADATA_NAME: {METADATA_KEY: serialized_metadata}} if serialized_metadata else None,
+                    Totals(counts, self._first_ns, self._last_ns), self._chunk_indexes, self._metadata_indexes,
                 ))
                 _close_synced(self._file)  # before metadata.yaml can name this file
             except OSError as error:
@@ -320,8 +309,8 @@ class McapStorage:
     # --- records ----------------------------------------------------------------------------------
 
     def _write_metadata(self, serialized_metadata: str) -> None:
-        record = _record(Metadata(name=_METADATA_NAME, metadata={_METADATA_KEY: serialized_metadata}))
-        self._metadata_indexes.append(MetadataIndex(self._file.tell(), len(record), _METADATA_NAME))
+        record = _record(Metadata(name=METADATA_NAME, metadata={METADATA_KEY: serialized_metadata}))
+        self._metadata_indexes.append(MetadataIndex(self._file.tell(), len(record), METADATA_NAME))
         self._file.write(record)
 
     def _add_to_chunk(
@@ -450,55 +439,37 @@ def _compress(compression: str, parts: list[_Buffer], size: int) -> bytes:
 # --- repair after a failed write -------------------------------------------------------------
 
 
-@dataclass
-class _Unit:
-    """A complete top-level record (a chunk counts with its message indexes) found in the file."""
-
-    end: int
-    rewrite: bytes = b""  # appended at ``end - len(rewrite)``: rebuilt indexes of the last chunk
-    counts: dict[int, int] = field(default_factory=dict)
-    first_ns: int | None = None
-    last_ns: int | None = None
-    chunk_index: ChunkIndex | None = None
-    metadata_index: MetadataIndex | None = None
-
-
-@dataclass
-class _RepairResult:
-    counts: dict[int, int]
-    first_ns: int | None
-    last_ns: int | None
-
-
 def _repair_file(
     path: Path, schemas: list[Schema], channels: list[Channel], serialized_metadata: str
-) -> _RepairResult | None:
+) -> Totals | None:
     """Cut ``path`` after its last complete record and append a summary; ``None`` if impossible."""
     try:
         # Unbuffered, so a failed write leaves nothing behind that a later flush could append.
         with open(path, "r+b", buffering=0) as file:
-            start, units = _scan(file, file.seek(0, io.SEEK_END))
+            found = scan(file, file.seek(0, io.SEEK_END))
+            units = found.units
             keep = len(units)
             metadata = serialized_metadata
             for _ in range(_REPAIR_ATTEMPTS):
                 kept = units[:keep]
-                if not start:  # not even the header made it: begin the file anew
-                    base, head = 0, _MAGIC + _header_record()
-                elif kept:
-                    base, head = kept[-1].end - len(kept[-1].rewrite), kept[-1].rewrite
+                if not found.start:  # not even the header made it: begin the file anew
+                    base, head = 0, MAGIC + _header_record()
+                elif kept and kept[-1].indexes is not None:  # the last chunk, with rebuilt indexes
+                    base, head = kept[-1].record_end, kept[-1].indexes
                 else:
-                    base, head = start, b""
-                result = _summarize(kept)
-                tail = head + _tail(
-                    base + len(head), schemas, channels, metadata, result.counts, result.first_ns,
-                    result.last_ns, [unit.chunk_index for unit in kept if unit.chunk_index is not None],
+                    base, head = kept[-1].end if kept else found.start, b""
+                totals = Totals.of(kept)
+                tail = head + summary_tail(
+                    base + len(head), schemas, channels,
+                    {METADATA_NAME: {METADATA_KEY: metadata}} if metadata else None, totals,
+                    [unit.chunk_index for unit in kept if unit.chunk_index is not None],
                     [unit.metadata_index for unit in kept if unit.metadata_index is not None],
                 )
                 try:
                     file.truncate(base)
                     file.seek(base)
                     _write_all(file, tail)
-                    return _summarize(kept)
+                    return totals
                 except OSError:
                     file.truncate(base)
                 # Out of space: drop the closing metadata record first, then trailing records
@@ -528,171 +499,3 @@ def _header_record() -> bytes:
     builder = RecordBuilder()
     Header(PROFILE, LIBRARY).write(builder)
     return builder.end()
-
-
-def _read_record_start(file: BinaryIO, position: int, size: int) -> tuple[int, int] | None:
-    """Opcode and end offset of the record at ``position``, or ``None`` if it is incomplete."""
-    if position + 9 > size:
-        return None
-    file.seek(position)
-    opcode, length = struct.unpack("<BQ", file.read(9))
-    end = position + 9 + length
-    return (opcode, end) if end <= size else None
-
-
-def _scan(file: BinaryIO, size: int) -> tuple[int, list[_Unit]]:
-    """Offset where records begin (0 if even the header is incomplete) and the complete units."""
-    file.seek(0)
-    if file.read(8) != _MAGIC:
-        return 0, []
-    header = _read_record_start(file, 8, size)
-    if header is None or header[0] != Opcode.HEADER:
-        return 0, []
-    start = position = header[1]
-    units: list[_Unit] = []
-    chunk: _Unit | None = None  # the latest chunk, while its message indexes are read
-    while (record := _read_record_start(file, position, size)) is not None:
-        opcode, end = record
-        body = end - position - 9
-        if opcode == Opcode.MESSAGE_INDEX and chunk is not None:
-            channel_id, length = struct.unpack("<HI", file.read(6))
-            index = chunk.chunk_index
-            assert index is not None
-            index.message_index_offsets[channel_id] = position
-            index.message_index_length = end - index.chunk_start_offset - index.chunk_length
-            chunk.counts[channel_id] = length // 16
-            chunk.end = end
-            position = end
-            continue
-        if chunk is not None:  # a record follows, so the chunk's indexes are all there
-            units.append(chunk)
-            chunk = None
-        if opcode == Opcode.DATA_END:
-            break
-        if opcode == Opcode.CHUNK:
-            chunk = _chunk_unit(file, position, end)
-        elif opcode == Opcode.MESSAGE:
-            channel_id, _sequence, log_time = struct.unpack("<HIQ", file.read(14))
-            units.append(_Unit(end, counts={channel_id: 1}, first_ns=log_time, last_ns=log_time))
-        elif opcode == Opcode.METADATA:
-            (name_length,) = struct.unpack("<I", file.read(4))
-            name = file.read(name_length).decode()
-            units.append(_Unit(end, metadata_index=MetadataIndex(position, body + 9, name)))
-        else:
-            units.append(_Unit(end))
-        position = end
-    if chunk is not None:
-        # Nothing follows the last chunk, so its indexes may be cut short: rebuild them.
-        rebuilt = _rebuild_indexes(file, chunk)
-        if rebuilt is not None:
-            units.append(rebuilt)
-    return start, units
-
-
-def _chunk_unit(file: BinaryIO, position: int, end: int) -> _Unit:
-    start_ns, end_ns, uncompressed_size, _crc, name_length = struct.unpack("<QQQII", file.read(32))
-    compression = file.read(name_length).decode()
-    (compressed_size,) = struct.unpack("<Q", file.read(8))
-    index = ChunkIndex(
-        chunk_length=end - position, chunk_start_offset=position, compression=compression,
-        compressed_size=compressed_size, message_end_time=end_ns, message_index_length=0,
-        message_index_offsets={}, message_start_time=start_ns, uncompressed_size=uncompressed_size,
-    )
-    return _Unit(end, first_ns=start_ns, last_ns=end_ns, chunk_index=index)
-
-
-def _rebuild_indexes(file: BinaryIO, chunk: _Unit) -> _Unit | None:
-    """The chunk with message indexes recomputed from its content; ``None`` if it is unreadable."""
-    index = chunk.chunk_index
-    assert index is not None
-    header_length = 9 + 32 + len(index.compression.encode()) + 8
-    file.seek(index.chunk_start_offset + header_length)
-    try:
-        data = _decompress(index.compression, file.read(index.compressed_size), index.uncompressed_size)
-    except (RuntimeError, ValueError, zstandard.ZstdError):
-        return None
-    entries: dict[int, list[tuple[int, int]]] = {}
-    offset = 0
-    while offset + 9 <= len(data):
-        opcode, length = struct.unpack_from("<BQ", data, offset)
-        if opcode == Opcode.MESSAGE:
-            channel_id, _sequence, log_time = struct.unpack_from("<HIQ", data, offset + 9)
-            entries.setdefault(channel_id, []).append((log_time, offset))
-        offset += 9 + length
-    chunk_end = index.chunk_start_offset + index.chunk_length
-    builder = RecordBuilder()
-    index.message_index_offsets = {}
-    for channel_id, records in entries.items():
-        index.message_index_offsets[channel_id] = chunk_end + builder.count
-        MessageIndex(channel_id=channel_id, records=records).write(builder)
-    rewrite = builder.end()
-    index.message_index_length = len(rewrite)
-    counts = {channel_id: len(records) for channel_id, records in entries.items()}
-    return _Unit(chunk_end + len(rewrite), rewrite, counts, chunk.first_ns, chunk.last_ns, index)
-
-
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
-    if compression == "":
-        return data
-    if compression == "zstd":
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if compression == "lz4":
-        return bytes(lz4.frame.decompress(data))
-    raise ValueError(f"unknown chunk compression {compression!r}")
-
-
-def _summarize(units: list[_Unit]) -> _RepairResult:
-    counts: dict[int, int] = {}
-    first: int | None = None
-    last: int | None = None
-    for unit in units:
-        for channel_id, count in unit.counts.items():
-            counts[channel_id] = counts.get(channel_id, 0) + count
-        if unit.counts and unit.first_ns is not None and unit.last_ns is not None:
-            first = unit.first_ns if first is None else min(first, unit.first_ns)
-            last = unit.last_ns if last is None else max(last, unit.last_ns)
-    return _RepairResult(counts, first, last)
-
-
-def _tail(
-    position: int, schemas: list[Schema], channels: list[Channel], metadata: str, counts: dict[int, int],
-    first_ns: int | None, last_ns: int | None, chunk_indexes: list[ChunkIndex],
-    metadata_indexes: list[MetadataIndex],
-) -> bytes:
-    """Closing metadata, data end, summary, footer and magic for a file that ends at ``position``."""
-    data = RecordBuilder()
-    metadata_indexes = list(metadata_indexes)
-    if metadata:
-        record = Metadata(name=_METADATA_NAME, metadata={_METADATA_KEY: metadata})
-        record.write(data)
-        metadata_indexes.append(MetadataIndex(position, data.count, _METADATA_NAME))
-    DataEnd(0).write(data)
-    summary_start = position + data.count
-    summary = RecordBuilder()
-    offsets: list[SummaryOffset] = []
-
-    def group(opcode: Opcode, records: Sequence[McapRecord]) -> None:
-        begin = summary.count
-        for record in records:
-            record.write(summary)
-        offsets.append(SummaryOffset(opcode, summary_start + begin, summary.count - begin))
-
-    group(Opcode.SCHEMA, schemas)
-    group(Opcode.CHANNEL, channels)
-    group(Opcode.STATISTICS, [Statistics(
-        attachment_count=0, channel_count=len(channels), channel_message_counts=counts,
-        chunk_count=len(chunk_indexes), message_count=sum(counts.values()),
-        message_end_time=last_ns or 0, message_start_time=first_ns or 0,
-        metadata_count=len(metadata_indexes), schema_count=len(schemas),
-    )])
-    group(Opcode.CHUNK_INDEX, chunk_indexes)
-    group(Opcode.METADATA_INDEX, metadata_indexes)
-    summary_offset_start = summary_start + summary.count
-    for offset in offsets:
-        offset.write(summary)
-    summary_bytes = summary.end()
-    crc = zlib.crc32(summary_bytes)
-    crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
-    footer = RecordBuilder()
-    Footer(summary_start, summary_offset_start, crc).write(footer)
-    return data.end() + summary_bytes + footer.end() + _MAGIC

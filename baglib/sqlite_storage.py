@@ -18,7 +18,7 @@ from .cdr_fast import CdrData
 from .message_definitions import MessageDefinitionNotFoundError, type_hash
 from .metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
-__all__ = ["SQLITE_PRESETS", "SqliteStorage"]
+__all__ = ["SQLITE_PRESETS", "SqliteStorage", "create_tables"]
 
 SCHEMA_VERSION = 4
 _SCHEMA = f"""
@@ -50,6 +50,15 @@ SQLITE_PRESETS: dict[str, tuple[str, str]] = {
     "none": ("DELETE", "OFF"),
     "resilient": ("DELETE", "FULL"),
 }
+
+
+
+def create_tables(db: sqlite3.Connection) -> None:
+    """Create rosbag2's tables (schema version 4) in an empty database; shared with ``bag recover``."""
+    for statement in _SCHEMA.split(";"):
+        if statement.strip():
+            db.execute(statement)
+
 
 # A batch is committed when it holds this many bytes or messages.
 _BATCH_BYTES = 8 * 1024 * 1024
@@ -118,7 +127,7 @@ class SqliteStorage:
             self._db.execute(f"PRAGMA synchronous={synchronous}")
             with self._db:
                 self._db.execute("BEGIN")
-                self._create_tables()
+                create_tables(self._db)
         except sqlite3.Error as error:
             self._db.close()
             raise _os_error(error, path) from error
@@ -131,11 +140,6 @@ class SqliteStorage:
         self._first_ns: int | None = None
         self._last_ns: int | None = None
         self._info: FileInfo | None = None
-
-    def _create_tables(self) -> None:
-        for statement in _SCHEMA.split(";"):
-            if statement.strip():
-                self._db.execute(statement)
 
     @property
     def size(self) -> int:

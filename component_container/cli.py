@@ -311,6 +311,17 @@ def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     return 0
 
 
+def run_bag_recover(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
+    """Recover a bag a crash left unfinished; exit 1 unless the result is readable."""
+    from baglib.repair import recover_bag
+
+    report = recover_bag(args.bag_path, args.output)
+    print(report.text(), flush=True)
+    if not report.readable:
+        raise CliError(f"cannot recover {args.bag_path}: {report.error}")
+    return 0
+
+
 # --- command line ---------------------------------------------------------------------------------------
 def _print_lines(lines: Sequence[str]) -> None:
     if lines:
@@ -394,6 +405,15 @@ def build_parser() -> argparse.ArgumentParser:
                              description="Print information about a bag (like `ros2 bag info`).")
     p.add_argument("bag_path", help="Bag directory (with metadata.yaml)")
     p.set_defaults(handler=run_bag_info)
+    p = bag_verbs.add_parser(
+        "recover", aliases=["reindex"], help="Make a bag a crash left unfinished readable again",
+        description="Keep every intact record (MCAP) or committed row (SQLite3) of every file, rebuild "
+                    "indexes and summaries, regenerate metadata.yaml, and report what was cut. "
+                    "Crash-safe: files are replaced only once their repaired version is on disk.")
+    p.add_argument("bag_path", help="Bag directory (metadata.yaml may be missing)")
+    p.add_argument("-o", "--output", default=None,
+                   help="Write the recovered bag to this new directory instead of in place")
+    p.set_defaults(handler=run_bag_recover)
     return parser
 
 
