@@ -18,6 +18,7 @@ import sys
 import time
 
 import pytest
+import yaml
 from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
@@ -48,7 +49,8 @@ def read_recovered(uri: pathlib.Path, storage: str) -> dict[str, list[tuple[int,
             if connection.topic in found:
                 found[connection.topic].append(sequence_and_stamp(connection.topic, connection.msgtype, raw))
     if storage == "mcap":
-        for path in sorted(uri.glob("*.mcap")):
+        listed = yaml.safe_load((uri / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        for path in [uri / name for name in listed["relative_file_paths"]]:
             with open(path, "rb") as stream:
                 mcap = make_reader(stream)
                 assert mcap.get_summary() is not None, f"{path.name}: no summary after recover"
@@ -78,6 +80,7 @@ def test_sigkill_then_recover_keeps_everything_older_than_the_flush_interval(
     recovered = subprocess.run([str(CLI), "bag", "recover", str(uri)], capture_output=True, text=True,
                                timeout=120)
     assert recovered.returncode == 0, recovered.stdout + recovered.stderr
+    print(recovered.stdout)
     found = read_recovered(uri, storage)
     for topic, rate in RATES.items():
         seqs = [seq for seq, _ in found[topic]]
