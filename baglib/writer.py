@@ -305,21 +305,18 @@ class BagWriter:
         Raises:
             BagWriteError: the storage failed (the bag is then closed, see class doc).
         """
-        with self._lock:
-            self._require_writable()
-            assert self._storage is not None
-            try:
-                self._storage.flush()
-            except OSError as error:
-                self._fail(error)
+        self._on_current_file(lambda storage: storage.flush())
 
     def sync(self) -> None:
         """:meth:`flush`, then fsync the current file: what was written survives a power loss too."""
+        self._on_current_file(lambda storage: storage.sync())
+
+    def _on_current_file(self, action: Callable[[_Storage], None]) -> None:
         with self._lock:
             self._require_writable()
             assert self._storage is not None
             try:
-                self._storage.sync()
+                action(self._storage)
             except OSError as error:
                 self._fail(error)
 

@@ -46,9 +46,14 @@ def bag_messages(uri: pathlib.Path) -> int:
         return sum(1 for _ in reader.messages())
 
 
-def rig(client: ContainerClient) -> None:
+def recording_rig(containers: Containers, **recorder: Any) -> tuple[Any, ContainerClient]:
+    """A container with a camera and an IMU, and a recorder with these parameters next to them."""
+    process, client = containers.start("--use-intra-process-comms")
     assert client.load("components::CameraDriver", parameters=CAMERA).success
     assert client.load("components::ImuDriver", parameters={"rate": 100.0}).success
+    loaded = client.load("components::Recorder", parameters=recorder)
+    assert loaded.success, loaded
+    return process, client
 
 
 @pytest.fixture()
@@ -61,13 +66,9 @@ def small_disk(tmp_path: pathlib.Path):
 
 def test_free_space_guard_stops_cleanly_before_the_disk_is_full(containers: Containers, probe: Node,
                                                                small_disk: pathlib.Path) -> None:
-    process, client = containers.start("--use-intra-process-comms")
-    rig(client)
     uri = small_disk / "guarded"
-    recorder = client.load("components::Recorder", parameters={
-        "storage.uri": str(uri), "storage.min_free_space": 32 * MIB,
-        "record.topics": ["/camera/image_raw", "/imu/imu"]})
-    assert recorder.success, recorder
+    process, client = recording_rig(containers, **{"storage.uri": str(uri), "storage.min_free_space": 32 * MIB,
+                                                   "record.topics": ["/camera/image_raw", "/imu/imu"]})
     early = wait_until(lambda: get_stats(probe)["current"]["seconds_until_min_free"], 5.0)
     assert early and 0 < early < 60, early  # ~16 MiB to go at ~7 MB/s
     stats = wait_until(lambda: (s := get_stats(probe)["current"])["error"] and s, 20.0)
@@ -78,7 +79,7 @@ def test_free_space_guard_stops_cleanly_before_the_disk_is_full(containers: Cont
     assert wait_until((uri / "metadata.yaml").exists, 5.0)  # finalized at once, not at unload
     assert bag_messages(uri) > 0
     assert [name for _, name in listing(client)] == ["/camera", "/imu", "/recorder"]
-    assert client.unload(recorder.unique_id).success
+    assert client.unload(3).success
     refused = client.load("components::Recorder", name="second", parameters={
         "storage.uri": str(small_disk / "refused"), "storage.min_free_space": 64 * MIB})
     assert not refused.success and "parameter 'storage.min_free_space'" in refused.error_message, refused
@@ -88,15 +89,11 @@ def test_free_space_guard_stops_cleanly_before_the_disk_is_full(containers: Cont
 
 def test_circular_recording_keeps_the_newest_files(containers: Containers, probe: Node,
                                                    tmp_path: pathlib.Path) -> None:
-    process, client = containers.start("--use-intra-process-comms")
-    rig(client)
     uri = tmp_path / "circular"
-    recorder = client.load("components::Recorder", parameters={
-        "storage.uri": str(uri), "storage.max_bagfile_duration": 1, "storage.max_bag_files": 2,
-        "record.topics": ["/imu/imu"]})
-    assert recorder.success, recorder
+    process, client = recording_rig(containers, **{"storage.uri": str(uri), "storage.max_bagfile_duration": 1,
+                                                   "storage.max_bag_files": 2, "record.topics": ["/imu/imu"]})
     assert wait_until(lambda: len(get_stats(probe)["current"]["deleted_files"]) >= 2, 15.0)
-    assert client.unload(recorder.unique_id).success
+    assert client.unload(3).success
     meta = yaml.safe_load((uri / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     on_disk = sorted(p.name for p in uri.glob("*.mcap"))
     assert sorted(meta["relative_file_paths"]) == on_disk and len(on_disk) == 2
@@ -108,12 +105,8 @@ def test_circular_recording_keeps_the_newest_files(containers: Containers, probe
 
 def test_a_deleted_bag_file_is_a_storage_failure(containers: Containers, probe: Node,
                                                  tmp_path: pathlib.Path) -> None:
-    process, client = containers.start("--use-intra-process-comms")
-    rig(client)
     uri = tmp_path / "deleted"
-    recorder = client.load("components::Recorder", parameters={
-        "storage.uri": str(uri), "record.topics": ["/imu/imu"]})
-    assert recorder.success, recorder
+    process, client = recording_rig(containers, **{"storage.uri": str(uri), "record.topics": ["/imu/imu"]})
     current = pathlib.Path(wait_until(lambda: get_stats(probe)["current"]["current_file"], 5.0))
     time.sleep(0.5)
     current.unlink()
