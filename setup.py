@@ -45,7 +45,7 @@ for _name in INTERFACE_PACKAGES:  # setuptools checks package folders exist befo
     (ROOT / BUILD_DIR / "python" / _name.replace(".", "/")).mkdir(parents=True, exist_ok=True)
 
 setup(
-    packages=["component_container", "components", "components.recorder", *INTERFACE_PACKAGES],
+    packages=["component_container", "components", "components.recorder", "baglib", *INTERFACE_PACKAGES],
     package_dir={name: str(BUILD_DIR / "python" / name.replace(".", "/")) for name in INTERFACE_PACKAGES},
     package_data={**{name: ["*.so"] for name in INTERFACES}, "component_container": ["*.xml"]},
     cmdclass={"build_py": BuildPyWithInterfaces},

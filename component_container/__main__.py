@@ -1,8 +1,8 @@
 """``python -m component_container``: run a component container process.
 
 Usage: ``python -m component_container [--executor single|multi|isolated] [--use-intra-process-comms]
-[--allow-module-plugins] [--on-component-error unload|exit] [--shutdown-timeout SECONDS] [--load FILE.yaml]...
-[--ros-args ...]``
+[--allow-module-plugins] [--allow-plugins PATTERN]... [--bag-root DIR] [--on-component-error unload|exit]
+[--shutdown-timeout SECONDS] [--load FILE.yaml]... [--ros-args ...]``
 
 SIGINT and SIGTERM unload every component (newest first, so a recorder finalizes its bag) within the shutdown
 timeout and exit 0; a second signal, or a shutdown that overruns, exits at once with status 1. A component
@@ -15,11 +15,13 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 
 import rclpy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
+from component_container.bag_root import bag_root_directory
 from component_container.component_executors import (
     EXECUTOR_KINDS,
     SpinThread,
@@ -41,6 +43,14 @@ def positive_seconds(text: str) -> float:
     return value
 
 
+def existing_directory(text: str) -> Path:
+    """``--bag-root``: argparse prints the reason only for an ArgumentTypeError."""
+    try:
+        return bag_root_directory(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m component_container", description=__doc__.splitlines()[0])
     parser.add_argument("--executor", choices=EXECUTOR_KINDS, default="single",
@@ -49,6 +59,12 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
                         help="components use intra-process communication unless a load request says false")
     parser.add_argument("--allow-module-plugins", action="store_true",
                         help="also accept plugin names of the form 'python.module:ClassName'")
+    parser.add_argument("--allow-plugins", action="append", default=[], metavar="PATTERN",
+                        help="load only plugins whose name matches this fnmatch pattern, e.g. 'components::*' "
+                             "(repeatable; default: every registered plugin)")
+    parser.add_argument("--bag-root", type=existing_directory, metavar="DIR",
+                        help="every path a request names (storage.uri, QoS override files) must resolve inside "
+                             "DIR; relative paths are taken inside it (default: no limit, relative to the cwd)")
     parser.add_argument("--on-component-error", choices=ERROR_POLICIES, default="unload",
                         help="a component callback raised: unload only that component (default), or finalize "
                              "every bag and exit with status 1 so that launch can respawn the container")
@@ -88,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         manager = ComponentManager(args.executor, use_intra_process_comms=args.use_intra_process_comms,
                                    allow_module_plugins=args.allow_module_plugins,
+                                   allow_plugins=args.allow_plugins, bag_root=args.bag_root,
                                    on_component_error=args.on_component_error,
                                    shutdown_timeout=args.shutdown_timeout, exit_request=exit_request)
     except Exception as exc:  # bad thread_num and the like: say so and exit non-zero

@@ -316,7 +316,7 @@ def run_types(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
 # --- bag info -------------------------------------------------------------------------------------------
 def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     # Reads files only, like `ros2 bag info`: no rclpy session.
-    from components.recorder.bag_info import BagInfoError, format_bag_info
+    from baglib.info import BagInfoError, format_bag_info
 
     try:
         print(format_bag_info(args.bag_path), flush=True)

@@ -10,7 +10,9 @@ import os
 import threading
 import time
 import traceback
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
@@ -61,16 +63,22 @@ class ComponentManager(Node):
     Supervision (see component_container.supervisor): component callbacks that raise are reported to
     :meth:`_component_raised`, which takes the component out of ListNodes at once and hands it to the
     error policy; dying executor threads end the container. Unloading is bounded by ``shutdown_timeout``.
+
+    Limits on what a request may do (the load service answers anyone on the ROS domain): ``allow_plugins``
+    (fnmatch patterns over plugin names; empty: every registered plugin) and ``bag_root`` (a resolved
+    directory every path parameter of a component must stay in; None: no limit), see README "Security model".
     """
 
     def __init__(self, executor_kind: str = "single", *, use_intra_process_comms: bool = False,
-                 allow_module_plugins: bool = False, node_name: str = "ComponentManager",
+                 allow_module_plugins: bool = False, allow_plugins: Sequence[str] = (),
+                 bag_root: Path | None = None, node_name: str = "ComponentManager",
                  on_component_error: str = "unload", shutdown_timeout: float = 10.0,
                  exit_request: ExitRequest | None = None, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        self._registry = PluginRegistry(allow_module_plugins)
+        self._registry = PluginRegistry(allow_module_plugins, allow_plugins)
         self._default_intra_process = use_intra_process_comms
         self.shutdown_timeout = shutdown_timeout
+        self.bag_root = bag_root
         self.exit_request = exit_request or ExitRequest()
         self.supervisor = Supervisor(on_component_error, self.get_logger(), self._unload_failed,
                                      self.exit_request)
@@ -139,6 +147,8 @@ class ComponentManager(Node):
     # --- the load path -----------------------------------------------------------------------------------
     def load(self, request: LoadNode.Request) -> LoadedComponent:
         """Construct the requested component and start executing it; raises with the caller's message."""
+        if self.exit_request.requested:
+            raise LoadRequestError(f"The container is shutting down ({self.exit_request.reason}): load refused")
         node_class = self._registry.resolve(request.package_name, request.plugin_name)
         options = options_from_request(request, self._default_intra_process)
         kwargs = dict(options.node_kwargs, context=self.context)
@@ -157,6 +167,7 @@ class ComponentManager(Node):
         # graph (publishers, parameter services) until the garbage collector happened to break its cycles.
         node = node_class.__new__(node_class)
         node.shutdown_timeout = self.shutdown_timeout
+        node.bag_root = self.bag_root
         try:
             node.__init__(**kwargs)
         except COMPONENT_ERRORS as exc:  # a component's constructor may raise anything; report it, stay up

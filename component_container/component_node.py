@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import functools
 import inspect
+import pathlib
 import sys
 from typing import Any, Callable
 
@@ -18,6 +19,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.subscription import Subscription
 
+from component_container.bag_root import confine
 from component_container.health import Health
 from component_container.intra_process import (
     IntraProcessManager,
@@ -44,6 +46,10 @@ class ComponentNode(Node):
     #: must give up within it; the container abandons a destroy that takes longer.
     shutdown_timeout: float = 10.0
 
+    #: The container's ``--bag-root`` (resolved), set at load before ``__init__`` runs; None without one. Every
+    #: path a component takes from a request or a service call goes through :meth:`resolve_path`.
+    bag_root: pathlib.Path | None = None
+
     def __init__(self, node_name: str, *, intra_process_manager: IntraProcessManager | None = None,
                  **kwargs: Any) -> None:
         self._ipm = intra_process_manager
@@ -54,6 +60,15 @@ class ComponentNode(Node):
     @property
     def uses_intra_process(self) -> bool:
         return self._ipm is not None
+
+    def resolve_path(self, parameter: str, value: str) -> pathlib.Path:
+        """The path that ``parameter`` names, confined to the container's bag root if it has one.
+
+        Without a bag root, ``Path(value)`` (relative to the working directory, as rosbag2 does). With one,
+        relative values are taken inside the root and anything resolving outside it (``..``, absolute paths,
+        symlinks) raises ValueError naming ``parameter``: the load service answers anyone on the ROS domain.
+        """
+        return pathlib.Path(value) if self.bag_root is None else confine(self.bag_root, parameter, value)
 
     def health(self) -> Health | None:
         """This component's status for ``/diagnostics``; None means "running" with no details.

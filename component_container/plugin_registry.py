@@ -8,7 +8,9 @@ users and tools that match on them keep working.
 """
 from __future__ import annotations
 
+import fnmatch
 import importlib
+from collections.abc import Sequence
 from importlib.metadata import EntryPoint, entry_points
 
 from rclpy.node import Node
@@ -32,11 +34,15 @@ class PluginRegistry:
 
     ``allow_module_plugins`` additionally accepts ``module.path:ClassName`` plugin names. It is off by
     default because the load service answers anyone on the ROS domain, who must not be able to make the
-    container import arbitrary code.
+    container import arbitrary code. For the same reason ``allow_plugins`` (fnmatch patterns over plugin
+    names, e.g. ``components::*``) narrows what may be loaded at all: when given, a plugin name (module plugins
+    included) must match one of them. It is checked before anything is looked up, so a refused caller learns
+    nothing about which plugins are installed.
     """
 
-    def __init__(self, allow_module_plugins: bool = False) -> None:
+    def __init__(self, allow_module_plugins: bool = False, allow_plugins: Sequence[str] = ()) -> None:
         self._allow_module_plugins = allow_module_plugins
+        self._allow_plugins = tuple(allow_plugins)
 
     @staticmethod
     def _entry_points() -> list[EntryPoint]:
@@ -53,6 +59,9 @@ class PluginRegistry:
 
     def resolve(self, package_name: str, plugin_name: str) -> type[Node]:
         """Import and return the component class, or raise :class:`PluginError` with rclcpp's message."""
+        if self._allow_plugins and not any(fnmatch.fnmatchcase(plugin_name, p) for p in self._allow_plugins):
+            raise PluginError(f"{UNKNOWN_PLUGIN} Plugin '{plugin_name}' is not allowed by this container "
+                              "(--allow-plugins)")
         if ":" in plugin_name and "::" not in plugin_name:
             return self._resolve_module_plugin(package_name, plugin_name)
         in_package = [ep for ep in self._entry_points() if _package_of(ep) == package_name]

@@ -55,6 +55,10 @@ class ExitRequest:
     def wait(self, timeout: float | None = None) -> bool:
         return self._event.wait(timeout)
 
+    @property
+    def requested(self) -> bool:
+        return self._event.is_set()
+
 
 class Supervisor:
     """Applies the error policy to failed components and turns dead container threads into an exit."""

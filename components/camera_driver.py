@@ -1,14 +1,15 @@
 """Simulated camera: publishes ``sensor_msgs/Image`` plus ``sensor_msgs/CameraInfo`` at ``fps``.
 
-Parameters (all read-only, validated at construction; a bad value raises ValueError naming the parameter):
+Parameters (validated at construction; a bad value raises ValueError naming the parameter and its range).
+``fps`` and ``frame_id`` can be changed at run time (``ros2 param set``); the others are read-only:
 
 ==============  ===============  =====================================================================
-``width``       640              image width in pixels
-``height``      480              image height in pixels
+``width``       640              image width in pixels (1 ... 16384)
+``height``      480              image height in pixels (1 ... 16384); a frame is at most 64 MiB
 ``encoding``    ``'rgb8'``       see :data:`ENCODINGS` (rgb8, bgr8, rgba8, bgra8, rgb16 ..., mono8, mono16,
                                  bayer_*8/16, yuv422 (UYVY), yuv422_yuy2, uyvy, yuyv) and the generic
                                  ``8UC1`` ... ``64FC4`` forms
-``fps``         30.0             frames per second (> 0)
+``fps``         30.0             frames per second (0.01 ... 2000, at most 1 GB/s of frames)
 ``frame_id``    ``'camera'``     header.frame_id of image and camera_info
 ``topic``       ``'~/image_raw'``  image topic; camera_info goes to the sibling topic (``~/camera_info``)
 ``qos``         ``'reliable'``   ``'reliable'`` or ``'sensor_data'`` (best effort), for both topics
@@ -33,7 +34,8 @@ import numpy as np
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
-from components.sensor_driver import SensorDriver, stamp_from_ns
+from components.bounds import Bounds
+from components.sensor_driver import FIXED_GEOMETRY, MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
 #: Named encodings: bytes per pixel, and the (width, height) divisors the image size must respect.
 ENCODINGS: dict[str, tuple[int, tuple[int, int]]] = {
@@ -49,8 +51,10 @@ ENCODINGS: dict[str, tuple[int, tuple[int, int]]] = {
 _GENERIC_ENCODING = re.compile(r"^(8U|8S|16U|16S|32S|32F|64F)C([1-4])$")
 _GENERIC_DEPTH_BYTES = {"8U": 1, "8S": 1, "16U": 2, "16S": 2, "32S": 4, "32F": 4, "64F": 8}
 
-#: Largest frame accepted, in bytes.
-MAX_FRAME_BYTES = 1 << 30
+#: Image width and height in pixels (16K); the frame size is bounded by MAX_FRAME_BYTES as well.
+SIDE = Bounds(1, 16384, "pixels")
+#: Frame sizes accepted, in bytes: room for the sequence number, and one driver's share of memory.
+FRAME_BYTES = Bounds(8, MAX_FRAME_BYTES, "bytes")
 #: Extra pool bytes beyond one frame, at most (the rolling offset ranges over them).
 MAX_POOL_EXTRA = 16 << 20
 #: Rolling-offset stride in bytes per frame.
@@ -90,9 +94,10 @@ class CameraDriver(SensorDriver):
         super().__init__(node_name, **kwargs)
 
     def configure(self) -> None:
-        self.width = self.declare_int_parameter("width", 640, "image width in pixels", minimum=1)
-        self.height = self.declare_int_parameter("height", 480, "image height in pixels", minimum=1)
-        requested = self.declare_string_parameter("encoding", "rgb8", "image encoding (sensor_msgs image_encodings)")
+        self.width = self.declare_int_parameter("width", 640, "image width in pixels", SIDE)
+        self.height = self.declare_int_parameter("height", 480, "image height in pixels", SIDE)
+        requested = self.declare_string_parameter("encoding", "rgb8", "image encoding (sensor_msgs image_encodings)",
+                                                  fixed=FIXED_GEOMETRY)
         info = encoding_info(requested)
         if info is None:
             raise ValueError(
@@ -106,15 +111,9 @@ class CameraDriver(SensorDriver):
             raise ValueError(f"parameter 'height' must be a multiple of {height_divisor} for encoding "
                              f"{self.encoding!r}, got {self.height}")
         self.step = self.width * self.bytes_per_pixel
-        if self.step > 0xFFFFFFFF:
-            raise ValueError(f"parameter 'width': row of {self.step} bytes does not fit Image.step (uint32)")
         self.frame_bytes = self.step * self.height
-        if self.frame_bytes > MAX_FRAME_BYTES:
-            raise ValueError(f"parameters 'width'/'height': frame of {self.frame_bytes} bytes exceeds "
-                             f"{MAX_FRAME_BYTES} bytes")
-        if self.frame_bytes < 8:
-            raise ValueError(f"parameters 'width'/'height': frame of {self.frame_bytes} bytes cannot hold the "
-                             "8-byte sequence number")
+        FRAME_BYTES.check(f"'width' x 'height' x {self.bytes_per_pixel} bytes per pixel ({self.encoding}), the "
+                          "frame size,", self.frame_bytes)
         self.camera_info_topic = camera_info_topic_for(self.topic)
         if self.camera_info_topic == self.topic:
             raise ValueError(f"parameter 'topic': {self.topic!r} collides with its camera_info topic")

@@ -1,9 +1,10 @@
 """Simulated IMU: publishes ``sensor_msgs/Imu`` at ``rate`` (default 200 Hz, up to 1 kHz and beyond).
 
-Parameters (all read-only, validated at construction; a bad value raises ValueError naming the parameter):
+Parameters (validated at construction; a bad value raises ValueError naming the parameter and its range).
+``rate`` and ``frame_id`` can be changed at run time (``ros2 param set``); ``topic`` and ``qos`` are read-only:
 
 ============  ==============  ============================================================
-``rate``      200.0           messages per second (> 0, at most 10 kHz)
+``rate``      200.0           messages per second (0.01 ... 2000)
 ``frame_id``  ``'imu'``       header.frame_id
 ``topic``     ``'~/imu'``
 ``qos``       ``'reliable'``  ``'reliable'`` or ``'sensor_data'`` (best effort)
@@ -20,6 +21,8 @@ Sequence number: ``orientation_covariance[1]`` holds the message sequence number
 exact up to 2**53. Since element 0 is -1 the rest of the orientation covariance carries no meaning, so this does
 not disturb REP 145 consumers.
 
+The yaw oscillation follows the capture time, so it stays continuous when the rate changes.
+
 Rate: above 500 Hz the base class's catch-up loop publishes several messages per 2 ms timer tick instead of
 asking the executor for one timer callback per message.
 """
@@ -30,6 +33,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import Quaternion, Vector3
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Imu
 from std_msgs.msg import Header
 
@@ -65,11 +69,12 @@ class ImuDriver(SensorDriver):
         self._gyro_cov = (gyro_var, 0.0, 0.0, 0.0, gyro_var, 0.0, 0.0, 0.0, gyro_var)
         self._accel_cov = (accel_var, 0.0, 0.0, 0.0, accel_var, 0.0, 0.0, 0.0, accel_var)
         self.publisher = self.create_publisher(Imu, self.topic, self.qos_profile)
+        self.frame_bytes = len(serialize_message(self.make_imu(0, 0)))
 
     def make_imu(self, sequence: int, stamp_ns: int) -> Imu:
         """A fresh Imu message; sequence number in orientation_covariance[1]."""
         gx, gy, gz, ax, ay, az = self._noise[(sequence * NOISE_STRIDE) % NOISE_POOL]
-        yaw_rate = YAW_RATE_AMPLITUDE * math.sin(2.0 * math.pi * YAW_RATE_FREQUENCY * sequence / self.rate)
+        yaw_rate = YAW_RATE_AMPLITUDE * math.sin(2.0 * math.pi * YAW_RATE_FREQUENCY * stamp_ns / 1e9)
         msg = Imu()
         msg.header = Header(stamp=stamp_from_ns(stamp_ns), frame_id=self.frame_id)
         msg.orientation = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)

@@ -1,11 +1,12 @@
 """Simulated spinning lidar: publishes ``sensor_msgs/PointCloud2`` scans at ``rate``.
 
-Parameters (all read-only, validated at construction; a bad value raises ValueError naming the parameter):
+Parameters (validated at construction; a bad value raises ValueError naming the parameter and its range).
+``rate`` and ``frame_id`` can be changed at run time (``ros2 param set``); the others are read-only:
 
 ===================  ============  ==========================================================================
-``points_per_scan``  32768         points per cloud (1 ... 4194304); benchmarks use e.g. 131072
+``points_per_scan``  32768         points per cloud (1 ... 2796202, a 64 MiB scan); benchmarks use 131072
 ``rings``            32            laser rings (1 ... 1024, at most points_per_scan)
-``rate``             10.0          scans per second (> 0)
+``rate``             10.0          scans per second (0.01 ... 2000, at most 1 GB/s of scans)
 ``frame_id``         ``'lidar'``   header.frame_id
 ``topic``            ``'~/points'``
 ``qos``              ``'reliable'``  ``'reliable'`` or ``'sensor_data'`` (best effort)
@@ -47,7 +48,8 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from components.sensor_driver import SensorDriver, stamp_from_ns
+from components.bounds import Bounds
+from components.sensor_driver import MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
 #: (name, offset, PointField datatype) of each field; see the module docstring.
 FIELDS = (
@@ -66,8 +68,8 @@ POINT_DTYPE = np.dtype({
     "offsets": [0, 4, 8, 12, 16, 20],
     "itemsize": POINT_STEP,
 })
-MAX_POINTS = 1 << 22
-MAX_RINGS = 1024
+POINTS = Bounds(1, MAX_FRAME_BYTES // POINT_STEP, "points")
+RINGS = Bounds(1, 1024, "rings")
 #: Rolling-offset stride in points per scan.
 OFFSET_STRIDE = 7919
 NOISE_SIGMA = 0.01
@@ -119,15 +121,13 @@ class LidarDriver(SensorDriver):
         super().__init__(node_name, **kwargs)
 
     def configure(self) -> None:
-        self.points_per_scan = self.declare_int_parameter(
-            "points_per_scan", 32768, "points per scan", minimum=1, maximum=MAX_POINTS)
-        self.rings = self.declare_int_parameter(
-            "rings", 32, "number of laser rings", minimum=1, maximum=MAX_RINGS)
+        self.points_per_scan = self.declare_int_parameter("points_per_scan", 32768, "points per scan", POINTS)
+        self.rings = self.declare_int_parameter("rings", 32, "number of laser rings", RINGS)
         if self.rings > self.points_per_scan:
             raise ValueError(f"parameter 'rings' ({self.rings}) must not exceed points_per_scan "
                              f"({self.points_per_scan})")
-        self.row_step = self.points_per_scan * POINT_STEP
-        self._template = scan_template(self.points_per_scan, self.rings, self.rate).tobytes()  # immutable
+        self.row_step = self.frame_bytes = self.points_per_scan * POINT_STEP
+        self.rate_changed()
         extra = self.points_per_scan
         self._noise = np.random.default_rng(0x401D).normal(
             0.0, NOISE_SIGMA, (self.points_per_scan + extra, 3)).astype(np.float32)
@@ -135,6 +135,10 @@ class LidarDriver(SensorDriver):
         self._offsets = extra + 1
         self._stride = OFFSET_STRIDE if OFFSET_STRIDE % self._offsets else 1
         self.publisher = self.create_publisher(PointCloud2, self.topic, self.qos_profile)
+
+    def rate_changed(self) -> None:
+        """The point times span one scan period: rebuild the noise-free scan for the (new) rate."""
+        self._template = scan_template(self.points_per_scan, self.rings, self.rate).tobytes()  # immutable
 
     def make_cloud(self, sequence: int, stamp_ns: int) -> PointCloud2:
         """A fresh PointCloud2 with its own data buffer; sequence number in data[0:8] (uint64 LE)."""

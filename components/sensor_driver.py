@@ -3,8 +3,13 @@
 :class:`SensorDriver` is a :class:`~component_container.component_node.ComponentNode` that
 
 * declares the parameters every driver has: ``qos``, ``frame_id``, ``topic`` and a rate parameter (``rate`` by
-  default, ``fps`` for the camera), validates them and raises :class:`ValueError` naming the parameter when a
-  value is wrong (the component container reports constructor exceptions to the user);
+  default, ``fps`` for the camera), validates them and raises :class:`ValueError` naming the parameter and its
+  allowed range when a value is wrong (the component container reports constructor exceptions to the user);
+* bounds what one driver may ask of the container: a frame of at most :data:`MAX_FRAME_BYTES`, a rate in
+  :data:`RATE`, and at most :data:`MAX_BYTES_PER_SECOND` (the load service answers anyone on the domain);
+* lets the rate and ``frame_id`` be changed at run time (``ros2 param set``), validated with the same bounds: a
+  refused value answers ``successful=false`` with the reason. The others are read-only and their descriptions
+  say why;
 * keeps a sequence counter per publisher (:meth:`SensorDriver.next_sequence`);
 * runs a drift-free rate loop that calls the subclass's :meth:`SensorDriver.publish_frame` once per frame.
 
@@ -24,6 +29,10 @@ dropped at the source and counted in :attr:`SensorDriver.skipped_count` instead 
 backlog. Skipped frames consume no sequence number: sequence numbers count published messages, so a gap seen
 by a subscriber always means a message lost after publish().
 
+A rate change restarts the schedule at the new rate from the moment of the change: the timer is reset to the
+new period and the next frame is due one new period later, so a change never publishes a burst of frames that
+the old or the new schedule would call overdue. The published and skipped counts go on.
+
 ``header.stamp`` of each message is the capture time: the node clock (``use_sim_time`` aware) read just before
 the frame is built, so frames published in one catch-up burst carry their real, slightly later, build times.
 
@@ -36,13 +45,15 @@ buffers, for every publish and never touch it afterwards; the precomputed pools 
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
-from typing import Any, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
 
 from builtin_interfaces.msg import Time
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
+from rclpy.parameter import Parameter
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -52,9 +63,23 @@ from rclpy.qos import (
 )
 
 from component_container.component_node import ComponentNode
+from components.bounds import Bounds
 
 #: Names accepted by the ``qos`` parameter.
 QOS_CHOICES = ("reliable", "sensor_data")
+#: Rates a driver may publish at, in Hz: above 2 kHz the executor does little else.
+RATE = Bounds(0.01, 2000.0, "Hz")
+#: Largest frame one driver may build, in bytes (a 4K rgba8 image is 33 MB).
+MAX_FRAME_BYTES = 64 << 20
+#: Most bytes per second one driver may publish (frame size times rate).
+MAX_BYTES_PER_SECOND = 1_000_000_000
+#: Why the parameters that shape the publishers cannot change at run time.
+FIXED_PUBLISHERS = "the publishers are created with it at load; reload the component to change it"
+#: Why the frame-geometry parameters cannot change at run time.
+FIXED_GEOMETRY = "the frame geometry sizes the buffers precomputed at load; reload the component to change it"
+
+#: Checks one parameter value and returns it in the type the driver uses; ValueError names the parameter.
+Validator = Callable[[Any], Any]
 
 
 def qos_profile_for(name: str) -> QoSProfile:
@@ -91,8 +116,6 @@ class SensorDriver(ComponentNode):
     #: Name of the rate parameter (``'fps'`` for cameras) and its default in Hz.
     RATE_PARAMETER = "rate"
     DEFAULT_RATE = 10.0
-    #: Highest rate accepted, in Hz.
-    MAX_RATE = 10_000.0
     #: Shortest timer period in seconds; faster rates publish several messages per tick.
     MIN_TIMER_PERIOD = 0.002
     #: How much backlog, in seconds of frames, one tick may catch up before older frames are skipped.
@@ -104,19 +127,27 @@ class SensorDriver(ComponentNode):
         self._skipped_count = 0
         self._sequences: dict[int, int] = {}
         self._timer = None
+        self._dynamic: dict[str, tuple[Validator, Callable[[Any], None]]] = {}
+        #: Bytes of one frame; the subclass's configure() sets it (until then the rate is checked alone).
+        self.frame_bytes = 0
         try:
             qos = self.declare_choice_parameter(
                 "qos", "reliable", QOS_CHOICES,
-                "'reliable' (reliable, keep last 10, volatile) or 'sensor_data' (best effort, keep last 5)")
+                "'reliable' (reliable, keep last 10, volatile) or 'sensor_data' (best effort, keep last 5)",
+                fixed=FIXED_PUBLISHERS)
             self.qos_name: str = qos
             self.qos_profile: QoSProfile = qos_profile_for(qos)
             self.frame_id: str = self.declare_string_parameter(
-                "frame_id", self.DEFAULT_FRAME_ID, "header.frame_id of the published messages", allow_empty=False)
+                "frame_id", self.DEFAULT_FRAME_ID, "header.frame_id of the published messages", allow_empty=False,
+                on_change=functools.partial(setattr, self, "frame_id"))
             self.topic: str = self.declare_topic_parameter("topic", self.DEFAULT_TOPIC, "topic to publish on")
-            self.rate: float = self.declare_float_parameter(
-                self.RATE_PARAMETER, self.DEFAULT_RATE, "publishing rate in Hz",
-                minimum=0.0, minimum_inclusive=False, maximum=self.MAX_RATE)
+            self.rate: float = self._declare(
+                self.RATE_PARAMETER, self.DEFAULT_RATE, f"publishing rate in Hz, in {RATE} and at most "
+                f"{MAX_BYTES_PER_SECOND / 1e6:g} MB/s of frames", self._checked_rate, on_change=self._change_rate)
             self.configure()
+            self._checked_rate(self.rate)  # now that the frame size is known
+            self.add_on_set_parameters_callback(self._validate_changes)
+            self.add_post_set_parameters_callback(self._apply_changes)
             self._start_rate_loop()
         except BaseException:
             # The container reports the exception; do not leave a half-built node in the graph.
@@ -130,6 +161,9 @@ class SensorDriver(ComponentNode):
     def publish_frame(self) -> None:
         """Build one fresh frame stamped with the capture time and publish it."""
         raise NotImplementedError
+
+    def rate_changed(self) -> None:
+        """Adapt precomputed content that depends on the rate (called on the executor after a change)."""
 
     # ------------------------------------------------------------------ public state
     @property
@@ -165,20 +199,34 @@ class SensorDriver(ComponentNode):
 
     # ------------------------------------------------------------------ rate loop
     def _start_rate_loop(self) -> None:
+        self._frames_due_done = 0  # published + skipped
+        self._schedule()
+        # A steady-clock timer: simulated hardware runs on wall time even when the node uses sim time.
+        self._timer = self.create_timer(
+            self._timer_period, self._on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _schedule(self) -> None:
+        """Start the schedule at ``self.rate``: the next tick publishes the first frame of it."""
         self._timer_period = max(1.0 / self.rate, self.MIN_TIMER_PERIOD)
         per_tick = math.ceil(self._timer_period * self.rate)
         self._max_burst = max(3, 2 * per_tick + 1, math.ceil(self.rate * self.MAX_CATCH_UP))
         self._rate_origin_ns: Optional[int] = None
-        self._frames_due_done = 0  # published + skipped
-        # A steady-clock timer: simulated hardware runs on wall time even when the node uses sim time.
-        self._timer = self.create_timer(
-            self._timer_period, self._on_tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._frames_before_origin = self._frames_due_done
+
+    def _change_rate(self, rate: float) -> None:
+        """A validated new rate: restart the schedule and the timer from now (see the module docstring)."""
+        self.rate = rate
+        self._schedule()
+        self._timer.timer_period_ns = round(self._timer_period * 1e9)
+        self._timer.reset()  # the next tick comes one new period from now, not on the old schedule
+        self.rate_changed()
+        self.get_logger().info(f"{self.RATE_PARAMETER} changed to {rate:g} Hz")
 
     def _on_tick(self) -> None:
         now_ns = time.monotonic_ns()
         if self._rate_origin_ns is None:
             self._rate_origin_ns = now_ns - int(self._timer_period * 5e8)  # half a timer period earlier
-        due_total = int((now_ns - self._rate_origin_ns) * self.rate / 1e9) + 1
+        due_total = self._frames_before_origin + int((now_ns - self._rate_origin_ns) * self.rate / 1e9) + 1
         due = due_total - self._frames_due_done
         if due <= 0:
             return
@@ -195,61 +243,85 @@ class SensorDriver(ComponentNode):
             self._published_count += 1
             self._frames_due_done += 1
 
-    # ------------------------------------------------------------------ parameter helpers
-    def _declare(self, name: str, default: Any, description: str) -> Any:
-        descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
-        return self.declare_parameter(name, default, descriptor).value
+    # ------------------------------------------------------------------ parameters
+    def _declare(self, name: str, default: Any, description: str, validate: Validator, *,
+                 fixed: str = "", on_change: Optional[Callable[[Any], None]] = None) -> Any:
+        """Declare ``name``, validate its value and return it.
 
-    def declare_int_parameter(self, name: str, default: int, description: str, *,
-                              minimum: Optional[int] = None, maximum: Optional[int] = None) -> int:
-        """Declare a read-only integer parameter and validate it, raising ValueError naming it."""
-        value = self._declare(name, default, description)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"parameter '{name}' must be an integer, got {value!r}")
-        if minimum is not None and value < minimum:
-            raise ValueError(f"parameter '{name}' must be >= {minimum}, got {value}")
-        if maximum is not None and value > maximum:
-            raise ValueError(f"parameter '{name}' must be <= {maximum}, got {value}")
+        With ``on_change`` the parameter is dynamic: a change is validated by ``validate`` and then handed to
+        ``on_change``. Without it, it is read-only, and ``fixed`` says why in the descriptor.
+        """
+        if on_change is None:
+            description = f"{description} (read-only: {fixed or 'set at load'})"
+        else:
+            description = f"{description} (can be changed at run time)"
+        descriptor = ParameterDescriptor(description=description, read_only=on_change is None, dynamic_typing=True)
+        value = validate(self.declare_parameter(name, default, descriptor).value)
+        if on_change is not None:
+            self._dynamic[name] = (validate, on_change)
         return value
 
-    def declare_float_parameter(self, name: str, default: float, description: str, *,
-                                minimum: Optional[float] = None, minimum_inclusive: bool = True,
-                                maximum: Optional[float] = None) -> float:
-        """Declare a read-only number parameter (integers accepted) and validate it."""
-        value = self._declare(name, default, description)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"parameter '{name}' must be a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise ValueError(f"parameter '{name}' must be finite, got {value}")
-        if minimum is not None and (value < minimum or (value == minimum and not minimum_inclusive)):
-            relation = ">=" if minimum_inclusive else ">"
-            raise ValueError(f"parameter '{name}' must be {relation} {minimum:g}, got {value:g}")
-        if maximum is not None and value > maximum:
-            raise ValueError(f"parameter '{name}' must be <= {maximum:g}, got {value:g}")
-        return value
+    def _validate_changes(self, parameters: list[Parameter]) -> SetParametersResult:
+        """rclpy's on-set callback: refuse a change that the declaring validator refuses, with its reason."""
+        try:
+            for parameter in parameters:
+                if parameter.name in self._dynamic:
+                    self._dynamic[parameter.name][0](parameter.value)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
 
-    def declare_string_parameter(self, name: str, default: str, description: str, *,
-                                 allow_empty: bool = True) -> str:
-        """Declare a read-only string parameter and validate it."""
-        value = self._declare(name, default, description)
-        if not isinstance(value, str):
-            raise ValueError(f"parameter '{name}' must be a string, got {value!r}")
-        if not allow_empty and not value:
-            raise ValueError(f"parameter '{name}' must not be empty")
-        return value
+    def _apply_changes(self, parameters: list[Parameter]) -> None:
+        """rclpy's post-set callback: every change is valid and stored; the driver now uses it."""
+        for parameter in parameters:
+            if parameter.name in self._dynamic:
+                validate, on_change = self._dynamic[parameter.name]
+                on_change(validate(parameter.value))
 
-    def declare_choice_parameter(self, name: str, default: str, choices: Iterable[str], description: str) -> str:
+    def _checked_rate(self, value: Any) -> float:
+        """The rate parameter: in :data:`RATE`, and frames of ``frame_bytes`` at most MAX_BYTES_PER_SECOND."""
+        RATE.check(f"'{self.RATE_PARAMETER}'", value)
+        rate = float(value)
+        if self.frame_bytes * rate > MAX_BYTES_PER_SECOND:
+            highest = Bounds(RATE.minimum, MAX_BYTES_PER_SECOND / self.frame_bytes, "Hz")
+            raise ValueError(
+                f"parameter '{self.RATE_PARAMETER}' must be in {highest} for frames of {self.frame_bytes} bytes "
+                f"(at most {MAX_BYTES_PER_SECOND / 1e6:g} MB/s per driver), got {rate!r}")
+        return rate
+
+    def declare_int_parameter(self, name: str, default: int, description: str, bounds: Bounds, *,
+                              fixed: str = FIXED_GEOMETRY) -> int:
+        """Declare a read-only integer parameter within ``bounds``, raising ValueError naming it."""
+        def validate(value: Any) -> int:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"parameter '{name}' must be an integer, got {value!r}")
+            bounds.check(f"'{name}'", value)
+            return value
+        return self._declare(name, default, f"{description}, in {bounds}", validate, fixed=fixed)
+
+    def declare_string_parameter(self, name: str, default: str, description: str, *, allow_empty: bool = True,
+                                 fixed: str = "", on_change: Optional[Callable[[Any], None]] = None) -> str:
+        """Declare a string parameter (dynamic with ``on_change``) and validate it."""
+        def validate(value: Any) -> str:
+            if not isinstance(value, str):
+                raise ValueError(f"parameter '{name}' must be a string, got {value!r}")
+            if not allow_empty and not value:
+                raise ValueError(f"parameter '{name}' must not be empty")
+            return value
+        return self._declare(name, default, description, validate, fixed=fixed, on_change=on_change)
+
+    def declare_choice_parameter(self, name: str, default: str, choices: Iterable[str], description: str, *,
+                                 fixed: str) -> str:
         """Declare a read-only string parameter that must be one of ``choices``."""
         choices = tuple(choices)
-        value = self.declare_string_parameter(name, default, description)
+        value = self.declare_string_parameter(name, default, description, fixed=fixed)
         if value not in choices:
             raise ValueError(f"parameter '{name}': unknown value {value!r}; expected one of {', '.join(choices)}")
         return value
 
     def declare_topic_parameter(self, name: str, default: str, description: str) -> str:
         """Declare a read-only topic-name parameter and check that the name is valid for this node."""
-        value = self.declare_string_parameter(name, default, description, allow_empty=False)
+        value = self.declare_string_parameter(name, default, description, allow_empty=False, fixed=FIXED_PUBLISHERS)
         self.check_topic_name(name, value)
         return value
 

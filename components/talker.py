@@ -6,6 +6,7 @@ from typing import Any
 from std_msgs.msg import String
 
 from component_container.component_node import ComponentNode
+from components.sensor_driver import RATE
 
 
 class Talker(ComponentNode):
@@ -14,8 +15,7 @@ class Talker(ComponentNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("talker", **kwargs)
         rate = self.declare_parameter("rate", 2.0).value
-        if not rate > 0:
-            raise ValueError(f"parameter 'rate' must be positive, got {rate}")
+        RATE.check("'rate'", rate)  # the drivers' bound: a LoadNode request must not set a 1 ns timer
         self.count = 0
         self._publisher = self.create_publisher(String, "chatter", 10)
         self._timer = self.create_timer(1.0 / rate, self._publish)

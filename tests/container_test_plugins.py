@@ -14,8 +14,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from component_container.component_node import ComponentNode
-from components.recorder.bag_writer import BagWriter
-from components.recorder.cdr_fast import CdrData
+from baglib.writer import BagWriter
+from baglib.cdr_fast import CdrData
 from components.recorder.recorder import Recorder
 
 
@@ -210,3 +210,20 @@ class CrashingWriterRecorder(Recorder):
     """The recorder, with a writer that has a bug (see CrashingBagWriter)."""
 
     writer_class = CrashingBagWriter
+
+
+class GatedBagWriter(BagWriter):
+    """A bag whose writes wait while a gate file ``<bag directory>.hold`` exists: a test holds the writer busy
+    for as long as it needs and lets it go by removing the file."""
+
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+        gate = self.path.with_name(self.path.name + ".hold")
+        while gate.exists():
+            time.sleep(0.01)
+        super().write(topic, data, log_time_ns, publish_time_ns)
+
+
+class GatedRecorder(Recorder):
+    """The recorder, writing through a GatedBagWriter."""
+
+    writer_class = GatedBagWriter

@@ -39,16 +39,16 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from sensor_msgs.msg import Image, Imu, PointCloud2, PointField
 from std_msgs.msg import String
 
-from components.recorder import message_definitions
-from components.recorder.bag_writer import BagExistsError, BagWriteError, BagWriter
-from components.recorder.cdr_fast import SerializedBuffers
-from components.recorder.mcap_storage import DEFAULT_CHUNK_SIZE
-from components.recorder.message_definitions import (
+from baglib import message_definitions
+from baglib.writer import BagExistsError, BagWriteError, BagWriter
+from baglib.cdr_fast import SerializedBuffers
+from baglib.mcap_storage import DEFAULT_CHUNK_SIZE
+from baglib.message_definitions import (
     MessageDefinitionNotFoundError,
     message_definition,
     type_hash,
 )
-from components.recorder.metadata import QOS_KEYS, TopicInfo, qos_profile_dict
+from baglib.metadata import QOS_KEYS, TopicInfo, qos_profile_dict
 
 T0 = 1_718_000_000_000_000_000
 REPO = Path(__file__).resolve().parent.parent
@@ -670,7 +670,7 @@ DISK_FULL_CHILD = textwrap.dedent("""
     sys.path.insert(0, {repo!r})
     from rclpy.serialization import serialize_message
     from tests.test_bag_writer import TOPICS, T0, topic_info
-    from components.recorder.bag_writer import BagWriter, BagWriteError
+    from baglib.writer import BagWriter, BagWriteError
 
     storage_id, preset, topic, limit, count, bag = {args!r}
     make = TOPICS[topic][1]
@@ -747,7 +747,7 @@ LIMIT_SWEEP_CHILD = textwrap.dedent("""
     sys.path.insert(0, {repo!r})
     from rclpy.serialization import serialize_message
     from tests.test_bag_writer import TOPICS, T0, topic_info
-    from components.recorder.bag_writer import BagWriter, BagWriteError
+    from baglib.writer import BagWriter, BagWriteError
 
     plan, limits, root = {args!r}
     payloads = [serialize_message(TOPICS[topic][1](n)) for n, topic in enumerate(plan)]

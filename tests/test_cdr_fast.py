@@ -28,12 +28,12 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import CompressedImage, Image, Imu, PointCloud2, PointField
 from std_msgs.msg import String
 
-from components.recorder import cdr_fast
-from components.recorder.bag_writer import BagWriter
-from components.recorder.cdr_fast import CDR_LE_HEADER, MIN_BUFFERS_SIZE, SerializedBuffers, serialize
-from components.recorder.cdr_size import serialized_size
-from components.recorder.message_definitions import type_hash
-from components.recorder.metadata import TopicInfo
+from baglib import cdr_fast
+from baglib.writer import BagWriter
+from baglib.cdr_fast import CDR_LE_HEADER, MIN_BUFFERS_SIZE, SerializedBuffers, serialize
+from baglib.cdr_size import serialized_size
+from baglib.message_definitions import type_hash
+from baglib.metadata import TopicInfo
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 RCLPY_RUNS = 8

@@ -309,7 +309,7 @@ def test_load_extra_argument_must_be_a_boolean(clients: dict[str, ContainerClien
 def test_load_constructor_failure(clients: dict[str, ContainerClient]) -> None:
     result = cli("load", OTHER, "components", TALKER, "-p", "rate:=-1.0")
     assert_fails(result, lines("Failed to load component: Component constructor threw an exception: "
-                               "parameter 'rate' must be positive, got -1.0"))
+                               "parameter 'rate' must be in [0.01, 2000] Hz, got -1.0"))
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -411,8 +411,8 @@ def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: pathlib.Path) -> No
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from components.recorder.bag_writer import BagWriter
-    from components.recorder.metadata import TopicInfo
+    from baglib.writer import BagWriter
+    from baglib.metadata import TopicInfo
 
     writer = BagWriter(tmp_path / "info_bag")
     writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String"))

@@ -237,7 +237,7 @@ LOAD_ERRORS = {
     "constructor raises": (dict(plugin=f"{PLUGINS}:ThrowingComponent", package="tests"),
                            CONSTRUCTOR + "deliberate failure in ThrowingComponent.__init__", None),
     "component rejects a parameter": (dict(plugin=TALKER, parameters={"rate": 0.0}),
-                                      CONSTRUCTOR + "parameter 'rate' must be positive, got 0.0", None),
+                                      CONSTRUCTOR + "parameter 'rate' must be in [0.01, 2000] Hz, got 0.0", None),
     "parameter of the wrong type": (dict(plugin=TALKER, parameters={"rate": "fast"}), None, CONSTRUCTOR),
     "use_intra_process_comms not a bool": (
         dict(plugin=TALKER, extra={"use_intra_process_comms": "yes"}),

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from components.recorder import direct_file
-from components.recorder.direct_file import BLOCK, STAGING, DirectFile, open_exclusive
+from baglib import direct_file
+from baglib.direct_file import BLOCK, STAGING, DirectFile, open_exclusive
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -386,6 +386,59 @@ def test_rate_loop_catches_up_and_caps_bursts(ros, monkeypatch):
     assert sequences == list(range(imu.published_count)), "sequence numbers must stay gap-free"
 
 
+def test_rate_change_restarts_the_schedule_without_a_burst(ros, monkeypatch):
+    """``rate`` set at run time: the next frame is due one new period after the change, never a catch-up burst."""
+    clock = FakeClock()
+    monkeypatch.setattr(sensor_driver, "time", types.SimpleNamespace(monotonic_ns=clock.monotonic_ns))
+    imu = ros.driver(ImuDriver, "imu", rate=1.0)
+    imu._on_tick()  # frame 0 of the 1 Hz schedule
+    clock.advance(0.9)  # almost a second later, 90 frames of a 100 Hz schedule would be overdue
+    result = imu.set_parameters([Parameter("rate", value=100.0)])[0]
+    assert result.successful, result.reason
+    assert (imu.rate, imu.get_parameter("rate").value) == (100.0, 100.0)
+    assert imu.timer_period == pytest.approx(0.01) and imu.max_burst == 10
+    clock.advance(0.01)
+    imu._on_tick()  # one new period after the change: one frame, not 90
+    assert (imu.published_count, imu.skipped_count) == (2, 0)
+    for _ in range(50):
+        clock.advance(0.01)
+        imu._on_tick()
+    assert (imu.published_count, imu.skipped_count) == (52, 0)
+
+    result = imu.set_parameters([Parameter("rate", value=1000.0)])[0]  # faster than the 2 ms timer: 2 per tick
+    assert result.successful, result.reason
+    assert imu.timer_period == pytest.approx(0.002)
+    for _ in range(10):
+        clock.advance(0.002)
+        imu._on_tick()
+    assert (imu.published_count, imu.skipped_count) == (52 + 10 * 2, 0)  # 20 ms at 1 kHz
+
+    result = imu.set_parameters([Parameter("rate", value=5000.0)])[0]  # refused: the schedule is untouched
+    assert not result.successful and "parameter 'rate' must be in [0.01, 2000] Hz, got 5000.0" in result.reason
+    assert imu.rate == 1000.0 and imu.get_parameter("rate").value == 1000.0
+
+
+def test_lidar_rate_change_rescales_point_times(ros):
+    """The ``time`` field spans one scan period, so a rate change rebuilds the scan for the new period."""
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=1024, rings=16, rate=10.0)
+    assert np.frombuffer(bytes(lidar.make_cloud(1, 0).data), dtype=POINT_DTYPE)["time"].max() > 0.09
+    result = lidar.set_parameters([Parameter("rate", value=20.0)])[0]
+    assert result.successful, result.reason
+    times = np.frombuffer(bytes(lidar.make_cloud(1, 0).data), dtype=POINT_DTYPE)["time"]
+    assert 0.045 < times.max() < 1 / 20.0
+
+
+def test_frame_id_change_is_used_by_the_next_frame(ros):
+    camera = ros.driver(CameraDriver, "cam", width=64, height=48)
+    result = camera.set_parameters([Parameter("frame_id", value="cam_left")])[0]
+    assert result.successful, result.reason
+    assert camera.make_image(0, 0).header.frame_id == "cam_left"
+    assert camera.make_camera_info(0).header.frame_id == "cam_left"
+    result = camera.set_parameters([Parameter("width", value=32)])[0]
+    assert not result.successful and "read-only" in result.reason
+    assert camera.make_image(1, 0).width == 64
+
+
 def test_next_sequence_is_per_publisher(ros):
     camera = ros.driver(CameraDriver, "cam", width=64, height=48)
     assert [camera.next_sequence(camera.image_publisher) for _ in range(3)] == [0, 1, 2]

@@ -1,1 +1,1 @@
-"""The rosbag2-compatible recorder: its storage layer writes standard bags from serialized messages."""
+"""The rosbag2-compatible recorder component: node, intake, writer thread; the files are baglib's."""

@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
-from components.recorder.cdr_size import serialized_size
+from baglib.cdr_size import serialized_size
 
 
 @dataclass(slots=True)

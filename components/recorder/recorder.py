@@ -22,6 +22,7 @@ import json
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from rclpy.duration import Duration
@@ -33,15 +34,17 @@ from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
 from component_container.health import Health
-from components.recorder.bag_writer import BagWriter
-from components.recorder.message_definitions import message_definition
-from components.recorder.metadata import TopicInfo, qos_profile_dict
+from baglib.writer import BagWriter
+from baglib.message_definitions import message_definition
+from baglib.metadata import TopicInfo, qos_profile_dict
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
 from components.recorder.recording_session import RecordingSession
 from components.recorder.topic_selection import TopicFilter, adapt_qos, load_qos_overrides
 
 SPLIT_EVENT_TOPIC = "events/write_split"
+URI_PARAMETER = "storage.uri"
+QOS_OVERRIDES_PARAMETER = "record.qos_profile_overrides_path"
 #: Share of the container's shutdown_timeout that finalizing a bag may take: the node must still be destroyed
 #: (its endpoints, the split event acknowledgement) within the rest.
 FINISH_SHARE = 0.8
@@ -68,7 +71,7 @@ class Recorder(ComponentNode):
         super().__init__("recorder", **kwargs)
         try:
             self._options = declare_options(self, overrides)
-            self._qos_overrides = load_qos_overrides(self._options.qos_profile_overrides_path)
+            self._qos_overrides = self._load_qos_overrides()
             self._split_events = self.create_publisher(WriteSplitEvent, SPLIT_EVENT_TOPIC, 10)
             self._filter = TopicFilter(self._options, {self._split_events.topic_name})
             self._paused = self._options.start_paused
@@ -97,21 +100,31 @@ class Recorder(ComponentNode):
         self._discover_topics()
         self._poll_timer = self.create_timer(self._options.polling_interval, self._discover_topics)
 
+    def _load_qos_overrides(self) -> dict[str, QoSProfile]:
+        """The override file, if any, read only after its path passed the container's bag root."""
+        path = self._options.qos_profile_overrides_path
+        return load_qos_overrides(
+            QOS_OVERRIDES_PARAMETER, self.resolve_path(QOS_OVERRIDES_PARAMETER, path) if path else None)
+
     # --- sessions -----------------------------------------------------------------------------------------
-    def _next_uri(self) -> str:
-        """storage.uri for the first bag; ``<uri>_1``, ``<uri>_2``... after a stop/start, never overwriting."""
+    def _next_uri(self) -> Path:
+        """storage.uri for the first bag; ``<uri>_1``, ``<uri>_2``... after a stop/start, never overwriting.
+
+        Every name, the default ``rosbag2_<time>`` one included, goes through ``resolve_path``: with a bag root
+        each must lie inside it (a ``<uri>_1`` symlink planted there after the first bag is refused too).
+        """
         base = self._options.uri or time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
-        uri = base if self._bag_count == 0 else f"{base}_{self._bag_count}"
-        while self._bag_count > 0 and os.path.exists(uri):
+        while True:
+            name = base if self._bag_count == 0 else f"{base}_{self._bag_count}"
             self._bag_count += 1
-            uri = f"{base}_{self._bag_count}"
-        self._bag_count += 1
-        return uri
+            path = self.resolve_path(URI_PARAMETER, name)
+            if self._bag_count == 1 or not os.path.lexists(path):
+                return path
 
     def _start_session(self) -> RecordingSession:
         # Queue drops count per subscription since it was created; a session counts only its own.
         baseline = {topic: getattr(sub, "dropped_count", 0) for topic, sub in self._topic_subscriptions.items()}
-        session = RecordingSession(self._options, self._next_uri(), self.get_logger(), self._publish_split,
+        session = RecordingSession(self._options, str(self._next_uri()), self.get_logger(), self._publish_split,
                                    queue_drops=functools.partial(self._queue_drops, baseline),
                                    writer_class=self.writer_class)
         for info in self._topics.values():
@@ -252,8 +265,13 @@ class Recorder(ComponentNode):
         return response
 
     def _on_snapshot(self, request: Snapshot.Request, response: Snapshot.Response) -> Snapshot.Response:
+        """Write the ring; success=false (with the reason in the log) when the snapshot would not be written."""
         session = self._session
-        response.success = session is not None and session.snapshot()
+        refusal = "not recording" if session is None else session.snapshot()
+        if refusal is not None:
+            # throttled: anyone on the domain may call ~/snapshot in a loop
+            self.get_logger().warning(f"snapshot refused: {refusal}", throttle_duration_sec=1.0)
+        response.success = refusal is None
         return response
 
     def _on_start_recording(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -27,6 +27,8 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from components.bounds import Bounds
+
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
     "topics": [""],
@@ -52,6 +54,9 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     "storage_preset_profile": "",
     "snapshot_mode": False,
     "custom_data": [""],
+    # Not in rosbag2: the loss bounds (README "Crash and power-loss guarantees").
+    "flush_interval": 1.0,
+    "sync_interval": 1.0,
 }
 DEFAULTS: dict[str, Any] = {**{f"record.{k}": v for k, v in RECORD_DEFAULTS.items()},
                              **{f"storage.{k}": v for k, v in STORAGE_DEFAULTS.items()}}
@@ -78,6 +83,34 @@ ALIASES: dict[str, str] = {
 INVERTED_ALIASES = frozenset({"start_recording_immediately"})
 STORAGE_IDS = ("mcap", "sqlite3")
 
+# Bounds of the numbers a LoadNode request sets (see components/bounds.py for why).
+#: rosbag2_cpp's writer refuses a split size below its storage plugin's get_minimum_split_file_size(): 86016
+#: bytes for sqlite3 (an empty database with rosbag2's schema), 1024 for mcap. Both storages use 86016 here: a
+#: 1 KiB limit would still close one file per message and let a request fill the disk with files.
+BAGFILE_SIZE = Bounds(86016, 2**63 - 1, "bytes")
+#: Shorter files than a second would also mean one file per few messages.
+BAGFILE_DURATION = Bounds(1, 365 * 86400, "s")
+#: rosbag2's default is 0.1 s; a shorter interval turns discovery into a busy loop on the executor.
+POLLING_INTERVAL = Bounds(0.01, 60, "s")
+#: storage.flush_interval and storage.sync_interval: 0 switches one off; under 10 ms is a busy disk loop
+LOSS_BOUND_INTERVAL = Bounds(0.01, 3600, "s")
+#: The cache may take at most this share of the memory available when the recorder is loaded.
+CACHE_MEMORY_SHARE = 0.5
+
+
+def memory_available() -> int:
+    """Bytes the kernel estimates can be allocated without swapping (MemAvailable of /proc/meminfo)."""
+    with open("/proc/meminfo", encoding="ascii") as meminfo:
+        for line in meminfo:
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    raise OSError("/proc/meminfo has no MemAvailable line")
+
+
+def cache_size_bounds() -> Bounds:
+    """storage.max_cache_size: at least one byte, at most half of the memory available now."""
+    return Bounds(1, int(memory_available() * CACHE_MEMORY_SHARE), "bytes (at most half the available memory)")
+
 
 @dataclass
 class RecordOptions:
@@ -103,6 +136,10 @@ class RecordOptions:
     storage_preset_profile: str = ""
     snapshot_mode: bool = False
     custom_data: dict[str, str] = field(default_factory=dict)
+    #: seconds after which a received message is a complete record in the file (0: chunks close by size only)
+    flush_interval: float = 1.0
+    #: seconds between fsyncs of the current file (0: only when a file is closed)
+    sync_interval: float = 1.0
 
 
 def _clean(values: list[str]) -> list[str]:
@@ -183,12 +220,13 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     if storage_id not in STORAGE_IDS:
         raise ValueError(f"parameter {labels['storage.storage_id']} must be one of {', '.join(STORAGE_IDS)}, "
                          f"got '{storage_id}'")
-    for name in ("storage.max_bagfile_size", "storage.max_bagfile_duration"):
-        if values[name] < 0:
-            raise ValueError(f"parameter {labels[name]} must not be negative, got {values[name]}")
-    if values["storage.max_cache_size"] <= 0:
-        raise ValueError(f"parameter {labels['storage.max_cache_size']} must be positive: the recorder needs a cache "
-                         f"to hand messages to its writer thread, got {values['storage.max_cache_size']}")
+    BAGFILE_SIZE.check(labels["storage.max_bagfile_size"], values["storage.max_bagfile_size"],
+                       zero_means="no splitting")
+    BAGFILE_DURATION.check(labels["storage.max_bagfile_duration"], values["storage.max_bagfile_duration"],
+                           zero_means="no splitting")
+    cache_size_bounds().check(labels["storage.max_cache_size"], values["storage.max_cache_size"])
+    for name in ("storage.flush_interval", "storage.sync_interval"):
+        LOSS_BOUND_INTERVAL.check(labels[name], values[name], zero_means="off")
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
     custom: dict[str, str] = {}
@@ -203,8 +241,7 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         except re.error as exc:
             raise ValueError(f"parameter {labels[name]} is not a valid regular expression: {exc}") from None
     interval = values["record.topic_polling_interval.sec"] + values["record.topic_polling_interval.nsec"] / 1e9
-    if interval <= 0:
-        raise ValueError("parameter 'record.topic_polling_interval' must be positive")
+    POLLING_INTERVAL.check("'record.topic_polling_interval' (.sec + .nsec)", interval)
     return RecordOptions(
         all_topics=values["record.all_topics"],
         topics=_clean(values["record.topics"]),
@@ -226,4 +263,6 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         storage_preset_profile=values["storage.storage_preset_profile"],
         snapshot_mode=values["storage.snapshot_mode"],
         custom_data=custom,
+        flush_interval=float(values["storage.flush_interval"]),
+        sync_interval=float(values["storage.sync_interval"]),
     )

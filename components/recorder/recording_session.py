@@ -11,6 +11,10 @@ The writer thread is supervised, so one bad message or one bad disk never silent
 * a storage failure (disk full, file removed), and anything else the writer thread did not expect, ends the
   session: the error is kept and logged, the bag is closed with what was written, and further messages are
   counted as dropped;
+* snapshot mode holds at most one snapshot waiting for the writer: another ``~/snapshot`` meanwhile is refused,
+  so requests cannot queue copies of the ring without bound (memory stays within twice ``max_cache_size``:
+  the ring refilling plus the snapshot being written); a snapshot taken is always written, even when the
+  session finishes right after, and one that cannot be written any more is refused;
 * :meth:`finish` is bounded: a writer that does not finish in time (a hung disk) is abandoned, its bag left
   unfinalized (repairable) and the error recorded.
 
@@ -24,17 +28,19 @@ import traceback
 from collections import Counter, defaultdict, deque
 from typing import Any, Callable
 
-from components.recorder import cdr_fast
-from components.recorder.cdr_fast import CdrData
-from components.recorder.bag_writer import BagWriteError, BagWriter
+from baglib import cdr_fast
+from baglib.cdr_fast import CdrData
+from baglib.writer import BagWriteError, BagWriter
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
-from components.recorder.metadata import TopicInfo
+from baglib.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
 Serializer = Callable[[Any], CdrData]
 #: Per topic, messages lost before the intake during this session (the subscriptions' queue overflows).
 QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
+#: Longest the writer thread sleeps without new messages (it then checks the flush and sync deadlines).
+WAKE_PERIOD = 0.2
 
 # Why a message was dropped: the keys of ``drop_reasons`` in the stats.
 CACHE_FULL = "cache_full"                # the cache was full: the writer fell behind
@@ -88,8 +94,17 @@ class RecordingSession:
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
         self._snapshot_mode = options.snapshot_mode
+        # Loss bounds: flush/sync deadlines, checked after every batch and at least every wake-up period.
+        self._flush_ns = round(options.flush_interval * 1e9)
+        self._sync_ns = round(options.sync_interval * 1e9)
+        self._wake_ns = round(min(WAKE_PERIOD, (options.flush_interval or WAKE_PERIOD) / 4) * 1e9)
+        self._oldest_unflushed_ns: int | None = None
+        self._last_sync_ns = time.time_ns()
+        self._unsynced = False
         self._snapshot_requested = threading.Event()
-        self._snapshots: deque[list[CachedMessage]] = deque()  # taken from the ring, waiting to be written
+        # Taken from the ring and not yet written; guarded by _finish_lock, so that a snapshot is never taken
+        # once finish() has begun (the writer then would not be waiting for it any more).
+        self._snapshot: list[CachedMessage] | None = None
         self._finish_lock = threading.Lock()
         self._finished = False
         # A daemon: a writer stuck on a hung disk is abandoned by finish() and must not keep the process alive.
@@ -117,13 +132,22 @@ class RecordingSession:
         """Intake: hand one message to the writer thread. Never blocks on I/O, never raises."""
         self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
 
-    def snapshot(self) -> bool:
-        """Snapshot mode: write what the ring cache holds now. False outside snapshot mode or when failed."""
-        if not self._snapshot_mode or not self.active:
-            return False
-        self._snapshots.append(self.cache.drain())  # the ring as it is now, not when the writer wakes
+    def snapshot(self) -> str | None:
+        """Snapshot mode: write what the ring cache holds now. None when taken, else why it was refused.
+
+        Refused outside snapshot mode, once the session is finishing or failed (the snapshot would be lost),
+        and while the previous snapshot is still being written (see the module docstring).
+        """
+        if not self._snapshot_mode:
+            return "not in snapshot mode (storage.snapshot_mode is false)"
+        with self._finish_lock:
+            if self._finished or self.error is not None:
+                return "the bag is finishing or has failed"
+            if self._snapshot is not None:
+                return "the previous snapshot is still being written"
+            self._snapshot = self.cache.drain()  # the ring as it is now, not when the writer wakes
         self._snapshot_requested.set()
-        return True
+        return None
 
     def split(self) -> bool:
         if not self.active:
@@ -144,25 +168,44 @@ class RecordingSession:
         written = 0
         try:
             while True:
+                # Read before taking: whatever was handed over before the close is in this batch or a later one.
+                closed = self.cache.closed
                 batch, written = self._next_batch(), 0
                 batch.sort(key=_log_time)  # stable: each topic keeps its order
                 for message in batch:
                     self._write(message)
                     written += 1
+                self._keep_loss_bounds()
                 self._bytes_written = self.writer.bytes_written
-                if self.cache.closed and not batch:
+                if self._snapshot is batch:
+                    self._snapshot = None  # written: the next snapshot may be taken
+                if closed and not batch:
                     return
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
 
+    def _keep_loss_bounds(self) -> None:
+        """The two promises of README "Crash and power-loss guarantees": a message received more than
+        ``flush_interval`` ago is a complete record in the file (handed to the OS), and what was written more
+        than ``sync_interval`` ago is on the disk. Flushing starts one wake-up early so the bound holds."""
+        now = time.time_ns()
+        oldest = self._oldest_unflushed_ns
+        if self._flush_ns and oldest is not None and now - oldest >= self._flush_ns - self._wake_ns:
+            self.writer.flush()
+            self._oldest_unflushed_ns = None
+        if self._sync_ns and self._unsynced and now - self._last_sync_ns >= self._sync_ns:
+            self.writer.sync()
+            self._last_sync_ns, self._unsynced = now, False
+
     def _next_batch(self) -> list[CachedMessage]:
+        wake = self._wake_ns / 1e9
         if not self._snapshot_mode:
-            return self.cache.take_all(timeout=0.2)
-        self._snapshot_requested.wait(0.2)
+            return self.cache.take_all(timeout=wake)
+        self._snapshot_requested.wait(wake)
         self._snapshot_requested.clear()
-        return self._snapshots.popleft() if self._snapshots else []
+        return self._snapshot if self._snapshot is not None else []  # pending until written
 
     def _write(self, message: CachedMessage) -> None:
         """Serialize and write one message; raises what the storage raised (the caller ends the session)."""
@@ -180,6 +223,9 @@ class RecordingSession:
         if self._monotonic_log_times:
             log_time = self._last_log_time = max(log_time, self._last_log_time)
         self.writer.write(message.topic, data, log_time, message.publish_time_ns)
+        if self._oldest_unflushed_ns is None:
+            self._oldest_unflushed_ns = message.log_time_ns  # the receive time
+        self._unsynced = True
         self.handed[message.topic] += 1
         self._latencies.append(time.time_ns() - message.log_time_ns)
         self.cache.release(message)

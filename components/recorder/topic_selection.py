@@ -11,9 +11,9 @@ keep_last with depth :data:`RECORDER_DEPTH`; an entry in the ``qos_profile_overr
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Any
 
-import yaml
 from rclpy.duration import Duration
 from rclpy.qos import (
     DurabilityPolicy,
@@ -23,6 +23,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
+from component_container.request_file import read_yaml
 from components.recorder.recorder_options import RecordOptions
 
 # rosbag2 uses 10. Here the subscription's queue is the only buffer between a publication and the intake
@@ -87,34 +88,45 @@ _POLICIES = {
 }
 
 
-def load_qos_overrides(path: str) -> dict[str, QoSProfile]:
-    """Parse a rosbag2 QoS override file: ``{topic: {history: keep_last, depth: 10, ...}}``."""
-    if not path:
+def load_qos_overrides(parameter: str, path: Path | None) -> dict[str, QoSProfile]:
+    """Parse a rosbag2 QoS override file: ``{topic: {history: keep_last, depth: 10, ...}}``.
+
+    ``path`` is what the node's ``resolve_path`` made of ``parameter`` (None: no file). The file may be anything
+    an anonymous caller pointed at, so errors give the parameter and the entry's position, never a key or a
+    value from the file.
+    """
+    if path is None:
         return {}
-    try:
-        with open(path, encoding="utf-8") as stream:
-            document = yaml.safe_load(stream) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"parameter 'record.qos_profile_overrides_path': cannot read '{path}': {exc}") from exc
-    if not isinstance(document, dict):
-        raise ValueError(f"QoS override file '{path}' must map topic names to QoS profiles")
-    return {_absolute(topic): _profile(topic, spec) for topic, spec in document.items()}
+    document = read_yaml(parameter, path) or {}
+    if not isinstance(document, dict) or not all(isinstance(topic, str) for topic in document):
+        raise ValueError(f"parameter '{parameter}': the file must map topic names to QoS profiles")
+    overrides: dict[str, QoSProfile] = {}
+    for position, (topic, spec) in enumerate(document.items(), 1):
+        try:
+            overrides[_absolute(topic)] = _profile(spec)
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
+            raise ValueError(
+                f"parameter '{parameter}': entry {position} is not a valid QoS profile (expected a mapping of "
+                f"{', '.join(_KEYS)} with rosbag2's values)") from None
+    return overrides
 
 
-def _profile(topic: str, spec: Any) -> QoSProfile:
+_DURATIONS = ("deadline", "lifespan", "liveliness_lease_duration")
+_KEYS = ("depth", *_POLICIES, *_DURATIONS, "avoid_ros_namespace_conventions")
+
+
+def _profile(spec: Any) -> QoSProfile:
+    """One entry as a QoSProfile; raises (without detail: see load_qos_overrides) on anything else."""
     if not isinstance(spec, dict):
-        raise ValueError(f"QoS override for '{topic}' must be a mapping, got {spec!r}")
+        raise TypeError("a QoS profile must be a mapping")
     kwargs: dict[str, Any] = {"depth": int(spec.get("depth", RECORDER_DEPTH))}
     for key, value in spec.items():
         if key in _POLICIES:
-            try:
-                kwargs[key] = _POLICIES[key][str(value).upper()]
-            except KeyError as exc:
-                raise ValueError(f"QoS override for '{topic}': unknown {key} '{value}'") from exc
-        elif key in ("deadline", "lifespan", "liveliness_lease_duration"):
+            kwargs[key] = _POLICIES[key][str(value).upper()]
+        elif key in _DURATIONS:
             kwargs[key] = Duration(seconds=int(value.get("sec", 0)), nanoseconds=int(value.get("nsec", 0)))
-        elif key in ("avoid_ros_namespace_conventions",):
+        elif key == "avoid_ros_namespace_conventions":
             kwargs[key] = bool(value)
         elif key != "depth":
-            raise ValueError(f"QoS override for '{topic}': unknown key '{key}'")
+            raise KeyError("unknown key")
     return QoSProfile(**kwargs)

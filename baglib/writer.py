@@ -60,6 +60,10 @@ class _Storage(Protocol):
         self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int
     ) -> None: ...
 
+    def flush(self) -> None: ...
+
+    def sync(self) -> None: ...
+
     def close(self, serialized_metadata: str = "") -> FileInfo: ...
 
 
@@ -272,6 +276,31 @@ class BagWriter:
         with self._lock:
             self._require_writable()
             self._split()
+
+    def flush(self) -> None:
+        """Make every message written so far a complete record in the current file, handed to the OS: a
+        crash of the process after this cannot lose them (the recorder calls it every flush_interval).
+
+        Raises:
+            BagWriteError: the storage failed (the bag is then closed, see class doc).
+        """
+        with self._lock:
+            self._require_writable()
+            assert self._storage is not None
+            try:
+                self._storage.flush()
+            except OSError as error:
+                self._fail(error)
+
+    def sync(self) -> None:
+        """:meth:`flush`, then fsync the current file: what was written survives a power loss too."""
+        with self._lock:
+            self._require_writable()
+            assert self._storage is not None
+            try:
+                self._storage.sync()
+            except OSError as error:
+                self._fail(error)
 
     def close(self) -> None:
         """Close the current file and write ``metadata.yaml``; further calls do nothing.

@@ -24,6 +24,7 @@ appends a fresh summary, dropping trailing records only if even that does not fi
 from __future__ import annotations
 
 import contextlib
+import os
 import io
 import struct
 import zlib
@@ -266,8 +267,32 @@ class McapStorage:
         if self._last_ns is None or log_time_ns > self._last_ns:
             self._last_ns = log_time_ns
 
+    def flush(self) -> None:
+        """Close the open chunk and hand every byte written so far to the OS: from now on a crash of the
+        process cannot lose or cut a message written before this call (a power loss can, until :meth:`sync`).
+        """
+        self._require_open()
+        try:
+            self._finish_chunk()
+            if isinstance(self._file, DirectFile):
+                self._file.write_through()
+            else:
+                self._file.flush()
+        except OSError as error:
+            self._fail(error)
+            raise
+
+    def sync(self) -> None:
+        """:meth:`flush`, then fsync: what was written survives a power loss too."""
+        self.flush()
+        try:
+            os.fsync(self._file.fileno())
+        except OSError as error:
+            self._fail(error)
+            raise
+
     def close(self, serialized_metadata: str = "") -> FileInfo:
-        """Finish the file (last chunk, closing metadata record, summary, footer) and describe it.
+        """Finish the file (last chunk, closing metadata record, summary, footer), fsync it and describe it.
 
         Never raises for I/O errors: after one (here or in an earlier call) the file is repaired to
         hold every complete record and the returned counts cover exactly those; :attr:`error` tells
@@ -283,7 +308,7 @@ class McapStorage:
                     self._file.tell(), self._schemas, self._channels, serialized_metadata, counts,
                     self._first_ns, self._last_ns, self._chunk_indexes, self._metadata_indexes,
                 ))
-                self._file.close()
+                _close_synced(self._file)  # before metadata.yaml can name this file
             except OSError as error:
                 self._fail(error)
         if self.error is None:
@@ -401,6 +426,15 @@ class McapStorage:
             return FileInfo(self.path.name)
         counts = {self._topics_by_channel[channel]: count for channel, count in result.counts.items()}
         return FileInfo.from_log_times(self.path.name, result.first_ns, result.last_ns, counts)
+
+
+def _close_synced(file: BinaryIO | DirectFile) -> None:
+    if isinstance(file, DirectFile):
+        file.close(sync=True)
+        return
+    file.flush()
+    os.fsync(file.fileno())
+    file.close()
 
 
 def _compress(compression: str, parts: list[_Buffer], size: int) -> bytes:

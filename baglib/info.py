@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from components.recorder.metadata import METADATA_FILENAME
+from baglib.metadata import METADATA_FILENAME
 
 _LABEL_WIDTH = 19  # "Topic information: " and the padding of every other label
 

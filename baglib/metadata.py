@@ -258,7 +258,16 @@ class BagMetadata:
                 file.flush()
                 os.fsync(file.fileno())
             os.replace(temporary, path)
+            _fsync_directory(path.parent)  # the rename itself must survive a power loss
         except BaseException:
             temporary.unlink(missing_ok=True)
             raise
         return path
+
+
+def _fsync_directory(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

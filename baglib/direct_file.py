@@ -84,11 +84,34 @@ class DirectFile:
         if aligned:
             self._write_staged(aligned)
 
+    def write_through(self) -> None:
+        """Hand every byte written so far to the OS, the last partial block too (zero-padded, written at its
+        offset with pwrite and rewritten whole by the next write), so that a crash of the process cannot cut
+        a record that was complete before this call. Leaves the file offset where the full blocks end."""
+        self.flush()
+        if not self._staged:
+            return
+        length = self._staged
+        if self._direct:
+            length = -(-self._staged // BLOCK) * BLOCK
+            self._view[self._staged:length] = bytes(length - self._staged)
+        done = 0
+        while done < length:
+            written = os.pwrite(self._fd, self._view[done:length], self._flushed + done)
+            if written <= 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            done += written
+
+    def fileno(self) -> int:
+        return self._fd
+
     def _buffered(self) -> None:
         fcntl.fcntl(self._fd, fcntl.F_SETFL, fcntl.fcntl(self._fd, fcntl.F_GETFL) & ~os.O_DIRECT)
         self._direct = False
 
-    def close(self) -> None:
+    def close(self, sync: bool = False) -> None:
+        """Write the rest (the last block padded, then the file cut to its length); with ``sync``, fsync
+        after the cut, so that a power loss cannot leave the padding behind the file's last record."""
         if self.closed:
             return
         self.closed = True
@@ -99,6 +122,8 @@ class DirectFile:
                 self._view[self._staged:padded] = bytes(padded - self._staged)
                 self._write_staged(padded)
                 os.ftruncate(self._fd, size)
+            if sync:
+                os.fsync(self._fd)
         finally:
             os.close(self._fd)
             self._view.release()

@@ -1,0 +1,13 @@
+"""The bag library: rosbag2 bags on disk, below every component and the CLI.
+
+Everything that knows the file formats lives here and nothing here knows about nodes or containers, so the
+recorder, the player and ``ipc-component bag ...`` all share one implementation:
+
+* ``writer``: :class:`~baglib.writer.BagWriter`, a bag directory being written (split files, metadata);
+* ``mcap_storage`` / ``sqlite_storage``: the two storage back-ends (MCAP with the ros2 profile, SQLite3);
+* ``metadata``: ``metadata.yaml`` (rosbag2's BagMetadata) and the topic/file records it holds;
+* ``info``: what ``ros2 bag info`` prints;
+* ``cdr_fast`` / ``cdr_size``: message objects to the exact CDR bytes a DDS reader receives;
+* ``message_definitions``: the ``.msg`` text and RIHS01 type hash of installed types;
+* ``direct_file``: ``O_DIRECT`` writes for big payloads.
+"""
