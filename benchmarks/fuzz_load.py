@@ -30,7 +30,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import rclpy  # noqa: E402
 
 from container_process import listing  # noqa: E402
-from fuzz_scene import RATES, FuzzScene, environment_seed, file_listing, marked_paths, rss_bytes  # noqa: E402
+from fuzz_scene import RATES, FuzzScene, environment_seed, file_listing, rss_bytes  # noqa: E402
 
 TMP = pathlib.Path("/tmp")
 
@@ -47,7 +47,7 @@ def main() -> int:
     healthy = True
     with tempfile.TemporaryDirectory() as workdir, FuzzScene(probe, pathlib.Path(workdir)) as scene:
         cwd_before = file_listing(scene.cwd)
-        tmp_before = marked_paths(TMP, scene.bag_root)
+        tmp_before = scene.escaped(TMP)
         rss_before = rss_bytes(scene.process.pid)
         print(f"seed {seed}, {args.requests} requests; machine load {os.getloadavg()[0]:.2f}", flush=True)
         report = scene.fuzz(seed, args.requests, fuzz_node)
@@ -69,7 +69,7 @@ def main() -> int:
         status = scene.process.stop(signal.SIGINT)
         print(f"container exit status: {status}; machine load {os.getloadavg()[0]:.2f}")
         escaped_cwd = file_listing(scene.cwd) - cwd_before
-        escaped_tmp = marked_paths(TMP, scene.bag_root) - tmp_before
+        escaped_tmp = scene.escaped(TMP) - tmp_before
         print(f"written outside the bag root: cwd {sorted(escaped_cwd)[:10]}, /tmp {sorted(escaped_tmp)[:10]}")
         healthy = alive and status == 0 and not escaped_cwd and not escaped_tmp and not report.internal_errors
     fuzz_node.destroy_node()

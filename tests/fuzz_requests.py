@@ -4,9 +4,10 @@ Everything comes from one ``random.Random``, so a seed replays a run exactly (as
 container's replies and their timing may differ). Plugin names are mostly valid ``components::*`` ones, so
 that component constructors really run with garbage names, remaps and parameters.
 
-Paths: every path-like value is relative garbage, an escape attempt (``../``, ``/tmp/...``) carrying
-:data:`MARKER` in its name, or an absolute path inside the bag root. A write outside the bag root therefore
-leaves a file whose name contains the marker, which the test looks for; random text is never absolute.
+Paths: every path-like value is relative garbage, an escape attempt (``../``, ``/tmp/...``) carrying the run's
+marker (:data:`MARKER` and a random suffix, so that runs side by side do not see each other's files) in its
+name, or an absolute path inside the bag root. A write outside the bag root therefore leaves a file whose
+name contains the marker, which the test looks for; random text is never absolute.
 """
 from __future__ import annotations
 
@@ -51,11 +52,12 @@ UNICODE_POOL = ("aZ_09-~.:=*?[]{}()$%@!\\\"' \t\n\x01\x7f\u00e9\u0301\u05d0\u062
 
 
 class RequestGenerator:
-    """Seeded requests; ``bag_root`` is where absolute, legitimate paths point."""
+    """Seeded requests; ``bag_root`` is where absolute, legitimate paths point, ``marker`` names escapes."""
 
-    def __init__(self, rng: random.Random, bag_root: pathlib.Path) -> None:
+    def __init__(self, rng: random.Random, bag_root: pathlib.Path, marker: str) -> None:
         self.rng = rng
         self.bag_root = bag_root
+        self.marker = marker
         self._paths = 0
 
     # --- text -------------------------------------------------------------------------------------------
@@ -81,7 +83,7 @@ class RequestGenerator:
         """A path-like parameter value (see the module docstring)."""
         rng = self.rng
         self._paths += 1
-        tag = f"{MARKER}_{self._paths}"
+        tag = f"{self.marker}_{self._paths}"
         return rng.choice([
             lambda: self.text(12).replace("/", "_").replace("\0", "") or tag,
             lambda: f"{tag}/sub",

@@ -12,6 +12,7 @@ import os
 import pathlib
 import random
 import time
+import uuid
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
@@ -50,9 +51,9 @@ def file_listing(root: pathlib.Path, skip: pathlib.Path | None = None) -> set[st
     return paths
 
 
-def marked_paths(root: pathlib.Path, skip: pathlib.Path) -> set[str]:
-    """Paths under ``root`` (outside ``skip``) whose name carries the fuzz marker: an escaped write."""
-    return {path for path in file_listing(root, skip) if MARKER in pathlib.Path(path).name}
+def marked_paths(root: pathlib.Path, skip: pathlib.Path, marker: str) -> set[str]:
+    """Paths under ``root`` (outside ``skip``) whose name carries ``marker``: an escaped write."""
+    return {path for path in file_listing(root, skip) if marker in pathlib.Path(path).name}
 
 
 def rss_bytes(pid: int) -> int:
@@ -94,6 +95,7 @@ class FuzzScene:
                                         cwd=str(self.cwd))
         self.client = ContainerClient(node)
         self.protected: dict[int, str] = {}
+        self.marker = f"{MARKER}{uuid.uuid4().hex[:8]}"
 
     def __enter__(self) -> "FuzzScene":
         self.process.__enter__()
@@ -119,7 +121,7 @@ class FuzzScene:
     def fuzz(self, seed: int, requests: int, fuzz_node: Node, max_in_flight: int = 32) -> FuzzReport:
         """Send ``requests`` random requests, pipelined; every fuzz-loaded component is unloaded after."""
         rng = random.Random(seed)
-        generator = RequestGenerator(rng, self.bag_root)
+        generator = RequestGenerator(rng, self.bag_root, self.marker)
         report = FuzzReport(seed, requests)
         pipeline = Pipeline(fuzz_node, max_in_flight)
         prefix = "/ComponentManager/_container"
@@ -202,6 +204,10 @@ class FuzzScene:
         recorder_id = next(uid for uid, name in self.protected.items() if name == f"/{RECORDER}")
         response = self.client.unload(recorder_id)
         assert response.success, response
+
+    def escaped(self, root: pathlib.Path) -> set[str]:
+        """Files and directories under ``root`` that fuzz paths named, outside the bag root."""
+        return marked_paths(root, self.bag_root, self.marker)
 
     def bags(self) -> dict[str, int]:
         """Messages in every finished bag under the bag root (read by rosbags), by bag directory."""

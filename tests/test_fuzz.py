@@ -19,7 +19,7 @@ import pytest
 from rclpy.node import Node
 
 from container_process import listing
-from fuzz_scene import RATES, FuzzScene, environment_seed, file_listing, marked_paths, rss_bytes
+from fuzz_scene import RATES, FuzzScene, environment_seed, file_listing, rss_bytes
 
 TMP = pathlib.Path("/tmp")
 RSS_GROWTH_LIMIT = 50 * 1024 * 1024
@@ -40,7 +40,7 @@ def test_random_requests_leave_the_container_healthy(probe: Node, fuzz_node: Nod
     print(f"IPC_FUZZ_SEED={seed} IPC_FUZZ_REQUESTS={requests}")
     with FuzzScene(probe, tmp_path) as scene:
         cwd_before = file_listing(scene.cwd)
-        tmp_before = marked_paths(TMP, scene.bag_root)
+        tmp_before = scene.escaped(TMP)
         rss_before = rss_bytes(scene.process.pid)
 
         report = scene.fuzz(seed, requests, fuzz_node)
@@ -60,4 +60,4 @@ def test_random_requests_leave_the_container_healthy(probe: Node, fuzz_node: Nod
         assert bags.get("baseline_bag", 0) > 0, (seed, bags)
         assert scene.process.stop(signal.SIGINT) == 0, scene.process.output
     assert file_listing(scene.cwd) == cwd_before, f"seed {seed}: written outside the bag root (cwd)"
-    assert marked_paths(TMP, scene.bag_root) == tmp_before, f"seed {seed}: written outside the bag root (/tmp)"
+    assert scene.escaped(TMP) == tmp_before, f"seed {seed}: written outside the bag root (/tmp)"
