@@ -47,6 +47,6 @@ for _name in INTERFACE_PACKAGES:  # setuptools checks package folders exist befo
 setup(
     packages=["component_container", "components", "components.recorder", "baglib", *INTERFACE_PACKAGES],
     package_dir={name: str(BUILD_DIR / "python" / name.replace(".", "/")) for name in INTERFACE_PACKAGES},
-    package_data={name: ["*.so"] for name in INTERFACES},
+    package_data={**{name: ["*.so"] for name in INTERFACES}, "component_container": ["*.xml"]},
     cmdclass={"build_py": BuildPyWithInterfaces},
 )

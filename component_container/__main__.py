@@ -28,6 +28,7 @@ from component_container.component_executors import (
     SupervisedSingleThreadedExecutor,
 )
 from component_container.component_manager import ComponentManager
+from component_container.discovery_profile import use_container_profile
 from component_container.startup_file import StartupFileError, load_requests
 from component_container.supervisor import ERROR_POLICIES, ExitRequest
 
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    use_container_profile()
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:
         manager = ComponentManager(args.executor, use_intra_process_comms=args.use_intra_process_comms,

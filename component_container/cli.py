@@ -5,6 +5,8 @@ same output lines, the same failure messages (on stderr) and exit code 1 on fail
 the side of not hanging and of clearer errors:
 
 * discovery and listing share one 5 s budget; loading and unloading wait at most 60 s for each reply;
+* ``list`` without a container name watches the graph for 0.6 s (``--spin-time``; ros2cli: 0.5 s) from the
+  moment its participant exists, then ends as soon as every container found has answered;
 * ``--log-level`` takes a level name (DEBUG, INFO, WARN, ERROR, FATAL; any case) or its number;
 * a ``-p``/``-e`` argument without ``:=``, a ``-r`` rule without ``:=`` and a unique id that is not a
   non-negative integer are refused before anything is sent, with exit code 1.
@@ -21,8 +23,10 @@ import time
 from typing import Any, Callable, Sequence
 
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
-LIST_DISCOVERY = 4.5     # s: how long ``list`` without a container watches the graph (see container_discovery)
-SERVICE_WAIT = 5.0       # s: waiting for load_node / unload_node to be ready once the container is found
+# s: how long ``list`` without a container watches the graph. This project's containers re-announce every
+# 0.25 s (component_container.discovery_profile), so even a lost first exchange is over in ~0.45 s; a
+# container announcing at Fast DDS's default 3 s may need ``--spin-time 3.5``.
+LIST_DISCOVERY = 0.6
 CALL_TIMEOUT = 60.0      # s: waiting for a LoadNode / UnloadNode reply (component constructors may be slow)
 GONE_GRACE = 2.0         # s: a container whose service stays absent this long while we wait has left
 
@@ -81,35 +85,45 @@ class RosSession:
         if not found:
             raise CliError(f"Unable to find container node '{container}'")
 
-    def container_client(self, srv_type: Any, container: str, service: str, start: float) -> Any:
-        """A client of ``<container>/_container/<service>``, found, ready and able to get replies."""
-        self.find_container(container, start + BUDGET)
+    def container_client(self, srv_type: Any, container: str, service: str, deadline: float) -> Any:
+        """A client of ``<container>/_container/<service>``, found, ready and able to get replies.
+
+        Both clients (this one, then the harmless ListNodes one) are created before anything is waited for,
+        so that they are announced in this participant's first discovery exchange with the container
+        instead of a second one after it. The order matters: endpoints are announced in creation order over
+        one reliable, ordered discovery stream, so once the container answers ListNodes it has also matched
+        this client's reply reader.
+        """
+        from composition_interfaces.srv import ListNodes
+
+        from component_container.repeated_call import RepeatedCall
+
         client = self.node.create_client(srv_type, f"{container}/_container/{service}")
-        if not client.wait_for_service(timeout_sec=SERVICE_WAIT):
-            raise CliError(f"No '{service}' service found for '{container}' container")
-        self.ensure_replies(container, time.monotonic() + BUDGET)
+        harmless = RepeatedCall(self.node.create_client(ListNodes, f"{container}/_container/list_nodes"),
+                                ListNodes.Request)
+        try:
+            self.find_container(container, deadline)
+            self.ensure_replies(harmless, deadline)
+        finally:
+            harmless.close()
+            self.node.destroy_client(harmless.client)
+        while not client.service_is_ready():
+            if time.monotonic() >= deadline:
+                raise CliError(f"No '{service}' service found for '{container}' container")
+            self.executor.spin_once(timeout_sec=0.02)
         return client
 
-    def ensure_replies(self, container: str, deadline: float) -> None:
+    def ensure_replies(self, harmless: Any, deadline: float) -> None:
         """Make sure the container can answer this process before sending a request that must not be lost.
 
         A service is "ready" once this side has matched it; the container may not have discovered this
         process's reply readers yet, and Fast DDS then drops the reply. A harmless ListNodes call, repeated
-        until it is answered, waits out that discovery (at most until ``deadline``; then the real call
-        goes ahead and its own timeout applies).
+        until one is answered (``harmless``, a component_container.repeated_call.RepeatedCall), waits out
+        that discovery (at most until ``deadline``; then the real call goes ahead and its own timeout applies).
         """
-        from composition_interfaces.srv import ListNodes
-
-        client = self.node.create_client(ListNodes, f"{container}/_container/list_nodes")
-        try:
-            while time.monotonic() < deadline and client.wait_for_service(timeout_sec=0.1):
-                try:
-                    self.call(client, ListNodes.Request(), container, timeout=min(1.0, deadline - time.monotonic()))
-                    return
-                except CliError:
-                    continue
-        finally:
-            self.node.destroy_client(client)
+        while harmless.reply is None and time.monotonic() < deadline:
+            harmless.step(time.monotonic())
+            self.executor.spin_once(timeout_sec=0.02)
 
     def call(self, client: Any, request: Any, container: str, timeout: float = CALL_TIMEOUT) -> Any:
         """Call a service and wait for the reply, at most ``timeout`` s; CliError text is the reason."""
@@ -152,7 +166,7 @@ def run_list(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     start = time.monotonic()
     with RosSession(ros_args) as ros:
         listings = list_containers(
-            ros.node, ros.executor, deadline=start + BUDGET, discovery_until=start + args.spin_time,
+            ros.node, ros.executor, deadline=start + BUDGET, discovery_until=time.monotonic() + args.spin_time,
             container=args.container_node_name, list_components=not args.containers_only)
     lines = []
     if args.container_node_name is not None:
@@ -232,7 +246,7 @@ def run_load(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         extra_arguments=parameter_msgs(args.extra_arguments, "extra argument"))
     start = time.monotonic()
     with RosSession(ros_args) as ros:
-        client = ros.container_client(LoadNode, container, "load_node", start)
+        client = ros.container_client(LoadNode, container, "load_node", start + BUDGET)
         try:
             response = ros.call(client, request, container)
         except CliError as exc:
@@ -265,7 +279,7 @@ def run_unload(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     unique_ids = [parse_unique_id(text) for text in args.component_uid]
     start = time.monotonic()
     with RosSession(ros_args) as ros:
-        client = ros.container_client(UnloadNode, container, "unload_node", start)
+        client = ros.container_client(UnloadNode, container, "unload_node", start + BUDGET)
         for uid in unique_ids:
             try:
                 response = ros.call(client, UnloadNode.Request(unique_id=uid), container)

@@ -4,11 +4,16 @@ A container is a node that is not hidden and offers all three services ``<node>/
 ``<node>/_container/unload_node`` and ``<node>/_container/list_nodes`` with the composition_interfaces
 types, exactly what ``ros2 component`` looks for.
 
+Containers are recognised from service names and types alone (endpoint discovery), not from node names: a
+peer's node names arrive later (its ``ros_discovery_info`` sample, ~80 ms after its endpoints), and a
+container's full name is the prefix of its services anyway.
+
 Discovery of a freshly started participant is not instant: on a quiet localhost it usually completes in
-about 0.1 s, but when the first exchange of participant announcements is missed, a peer is only seen at its
-next periodic announcement, up to about 3 s later (Fast DDS announces every 3 s). Everything here therefore
-polls the graph against a deadline, never waits without one, and lists containers while discovery is still
-going on, so that one overall budget covers both.
+about 0.1 s, but Fast DDS regularly loses the first exchange (the peer's answering announcement arrives
+before the new participant listens), and a peer is then only seen at its next periodic announcement: up to
+3 s later by default, at most 0.25 s later for this project's containers (component_container.
+discovery_profile). Everything here therefore polls the graph against a deadline, never waits without one,
+and lists containers while discovery is still going on, so that one overall budget covers both.
 """
 from __future__ import annotations
 
@@ -19,7 +24,8 @@ from typing import Any
 from composition_interfaces.srv import ListNodes
 from rclpy.executors import Executor
 from rclpy.node import Node
-from rclpy.task import Future
+
+from component_container.repeated_call import RepeatedCall
 
 HIDDEN_NODE_PREFIX = "_"
 CONTAINER_SERVICES = {
@@ -27,35 +33,30 @@ CONTAINER_SERVICES = {
     "unload_node": "composition_interfaces/srv/UnloadNode",
     "list_nodes": "composition_interfaces/srv/ListNodes",
 }
-POLL_PERIOD = 0.05
-
-
-def full_node_name(name: str, namespace: str) -> str:
-    """``/ns/name`` from a node's name and namespace (``/`` being the root namespace)."""
-    return f"{namespace.rstrip('/')}/{name}"
-
-
-def is_container(services: list[tuple[str, list[str]]], full_name: str) -> bool:
-    """Whether ``services`` (a node's service names and types) make it a component container."""
-    offered = dict(services)
-    return all(srv_type in offered.get(f"{full_name}/_container/{srv}", ())
-               for srv, srv_type in CONTAINER_SERVICES.items())
+CONTAINER_INFIX = "/_container/"
+POLL_PERIOD = 0.02
 
 
 def find_containers(node: Node) -> list[str]:
     """Full names of the containers the graph shows right now, sorted."""
-    containers = set()
-    for name, namespace in node.get_node_names_and_namespaces():
-        if name.startswith(HIDDEN_NODE_PREFIX):
-            continue
-        full_name = full_node_name(name, namespace)
-        try:
-            services = node.get_service_names_and_types_by_node(name, namespace)
-        except Exception:  # noqa: BLE001 - the node left the graph between the two calls
-            continue
-        if is_container(services, full_name):
-            containers.add(full_name)
-    return sorted(containers)
+    offered: dict[str, dict[str, list[str]]] = {}
+    for name, types in node.get_service_names_and_types():
+        container, separator, service = name.rpartition(CONTAINER_INFIX)
+        if separator and container and service in CONTAINER_SERVICES:
+            offered.setdefault(container, {})[service] = types
+    return sorted(container for container, services in offered.items()
+                  if not container.rsplit("/", 1)[1].startswith(HIDDEN_NODE_PREFIX)
+                  and all(srv_type in services.get(srv, ()) and _served(node, f"{container}{CONTAINER_INFIX}{srv}")
+                          for srv, srv_type in CONTAINER_SERVICES.items()))
+
+
+def _served(node: Node, service: str) -> bool:
+    """Whether someone serves ``service``: has a reader on its request topic (``rq<service>Request``).
+
+    The graph's service names include clients too, so without this check a command's own clients (or
+    another ``ipc-component load /nowhere`` running at the same time) would make a container appear.
+    """
+    return bool(node.get_subscriptions_info_by_topic(f"rq{service}Request", no_mangle=True))
 
 
 @dataclass
@@ -72,26 +73,20 @@ class _Lister:
 
     def __init__(self, node: Node, container: str) -> None:
         self.container = container
-        self.client = node.create_client(ListNodes, f"{container}/_container/list_nodes")
-        self.future: Future | None = None
-
-    def step(self) -> None:
-        if self.future is None and self.client.service_is_ready():
-            self.future = self.client.call_async(ListNodes.Request())
+        self.call = RepeatedCall(node.create_client(ListNodes, f"{container}/_container/list_nodes"),
+                                 ListNodes.Request)
 
     @property
     def done(self) -> bool:
-        return self.future is not None and self.future.done()
+        return self.call.reply is not None
 
     def outcome(self) -> ContainerListing:
-        if self.future is None:
+        response: Any = self.call.reply
+        if response is not None:
+            return ContainerListing(self.container, list(zip(response.unique_ids, response.full_node_names)))
+        if not self.call.sent:
             return ContainerListing(self.container, error="No 'list_nodes' service found")
-        if not self.future.done():
-            self.future.cancel()
-            return ContainerListing(self.container, error="No 'list_nodes' service response")
-        response: Any = self.future.result()
-        return ContainerListing(
-            self.container, list(zip(response.unique_ids, response.full_node_names)))
+        return ContainerListing(self.container, error="No 'list_nodes' service response")
 
 
 def list_containers(node: Node, executor: Executor, *, deadline: float, discovery_until: float,
@@ -106,6 +101,9 @@ def list_containers(node: Node, executor: Executor, *, deadline: float, discover
     discovery_until = min(discovery_until, deadline) if container is None else deadline
     found: set[str] = set()
     listers: dict[str, _Lister] = {}
+    if container is not None and list_components:
+        # Created now, the client is announced in the first discovery exchange with the container.
+        listers[container] = _Lister(node, container)
     try:
         discovering = True
         while True:
@@ -121,8 +119,9 @@ def list_containers(node: Node, executor: Executor, *, deadline: float, discover
                             listers[name] = _Lister(node, name)
                 if time.monotonic() >= discovery_until:
                     discovering = False
+            now = time.monotonic()
             for lister in listers.values():
-                lister.step()
+                lister.call.step(now)
             if not discovering and all(lister.done for lister in listers.values()):
                 break
             if time.monotonic() >= deadline:
@@ -132,4 +131,5 @@ def list_containers(node: Node, executor: Executor, *, deadline: float, discover
                 for name in sorted(found)]
     finally:
         for lister in listers.values():
-            node.destroy_client(lister.client)
+            lister.call.close()
+            node.destroy_client(lister.call.client)
