@@ -30,7 +30,8 @@ MAIN, OTHER = "/ComponentManager", "/other"
 TALKER, LISTENER = "components::Talker", "components::Listener"
 PROBE = "cli_probe:Probe"
 BUDGET = 5.0
-SLACK = 3.0  # process start-up, rclpy import and shutdown on a loaded machine
+SLACK = 8.0  # start-up, import and shutdown of several CLIs at once on a loaded 2-core machine: this checks
+# that the CLI gives up after its budget instead of hanging, not how fast it is (benchmarks/cli_latency.py)
 
 PROBE_SOURCE = '''
 """A component that writes down, once it runs, what the container gave it."""
