@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import errno
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -319,6 +320,16 @@ class BagWriter:
                 action(self._storage)
             except OSError as error:
                 self._fail(error)
+
+    def discard(self) -> None:
+        """Close and delete this bag before anything was written to it (its recorder refused to start)."""
+        with self._lock:
+            self._closed = True
+            self._discard_prepared()
+            if self._storage is not None:
+                self._storage.close()
+                self._storage = None
+            shutil.rmtree(self._path, ignore_errors=True)
 
     def check_files(self) -> None:
         """Raise BagWriteError (and close the bag) if the current file was deleted or replaced on disk: writes

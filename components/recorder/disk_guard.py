@@ -30,22 +30,18 @@ def free_bytes(path: Path) -> int:
     raise FileNotFoundError(errno.ENOENT, "no existing directory on the path", str(path))
 
 
-def refuse_start_below(path: Path, min_free: int, parameter: str = "storage.min_free_space") -> None:
-    """Raise ValueError if recording to ``path`` would start with less than ``min_free`` bytes free."""
-    free = free_bytes(path)
-    if free < min_free:
-        raise ValueError(f"parameter '{parameter}': only {free} bytes are free on the disk of {path}, less "
-                         f"than the {min_free} bytes to keep free: not recording")
-
-
 class DiskGuard:
     """Watches the free space of a bag's filesystem while it is written; estimates the time left."""
 
     def __init__(self, path: Path, min_free: int) -> None:
+        """Raise ValueError naming storage.min_free_space if the bag at ``path`` starts with less free."""
         self.path = path
         self.min_free = min_free
         self.free = free_bytes(path)
         self._samples: list[tuple[float, int]] = []  # (monotonic time, bytes written)
+        if self.free < min_free:
+            raise ValueError(f"parameter 'storage.min_free_space': only {self.free} bytes are free on the disk of "
+                             f"{path}, less than the {min_free} bytes to keep free: not recording")
 
     def check(self, bytes_written: int) -> None:
         """Update the free space and the write rate; raise BagWriteError(ENOSPC) below the minimum."""

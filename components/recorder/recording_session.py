@@ -26,13 +26,12 @@ import threading
 import time
 import traceback
 from collections import Counter, defaultdict, deque
-from pathlib import Path
 from typing import Any, Callable
 
 from baglib import cdr_fast
 from baglib.cdr_fast import CdrData
 from baglib.writer import BagWriteError, BagWriter
-from components.recorder.disk_guard import DiskGuard, refuse_start_below
+from components.recorder.disk_guard import DiskGuard
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from baglib.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
@@ -80,11 +79,14 @@ class RecordingSession:
         self._queue_drops = queue_drops
         self._last_log_time = 0
         self._monotonic_log_times = options.storage_preset_profile == "fastwrite"
-        refuse_start_below(Path(uri), options.min_free_space)
         self.writer = writer_class(uri, options.storage_id, options.max_bagfile_size,
                                    options.max_bagfile_duration, options.storage_preset_profile,
                                    options.custom_data or None, on_split, options.max_bag_files)
-        self.disk = DiskGuard(self.writer.path, options.min_free_space)
+        try:  # after the writer: a location that cannot hold a bag at all is reported as such first
+            self.disk = DiskGuard(self.writer.path, options.min_free_space)
+        except ValueError:
+            self.writer.discard()
+            raise
         self._next_disk_check = 0.0
         self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
         # The live counts are the session's own, not the writer's: reading the writer's would wait on its lock,
