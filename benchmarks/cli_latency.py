@@ -18,14 +18,10 @@ before rclpy is imported; the container is stopped by its pid.
 """
 from __future__ import annotations
 
-import os
-import random
-
-if not os.environ.get("ROS_DOMAIN_ID"):
-    os.environ["ROS_DOMAIN_ID"] = str(random.randint(1, 100))
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+import isolation  # noqa: F401  (first: the ROS environment before rclpy is imported)
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import pathlib  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
@@ -34,8 +30,6 @@ import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from typing import Callable, Sequence  # noqa: E402
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 
 import rclpy  # noqa: E402
 

@@ -12,20 +12,14 @@ before rclpy is imported; the container is stopped by its pid.
 """
 from __future__ import annotations
 
-import os
-import random
-
-if not os.environ.get("ROS_DOMAIN_ID"):
-    os.environ["ROS_DOMAIN_ID"] = str(random.randint(1, 100))
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+import isolation  # noqa: F401  (first: the ROS environment before rclpy is imported)
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import pathlib  # noqa: E402
 import signal  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 
 import rclpy  # noqa: E402
 
