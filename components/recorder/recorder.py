@@ -231,7 +231,7 @@ class Recorder(ComponentNode):
 
     def _drops_of_current_bag(self) -> dict[str, dict[str, int]]:
         session = self._session
-        return session.stats()["drop_reasons"] if session is not None else {}
+        return session.drop_reasons() if session is not None else {}
 
     def stats(self) -> dict[str, Any]:
         """Live counts of the current bag plus the final counts of bags already closed."""

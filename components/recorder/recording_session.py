@@ -26,6 +26,7 @@ import threading
 import time
 import traceback
 from collections import Counter, defaultdict, deque
+from dataclasses import dataclass
 from typing import Any, Callable
 
 from baglib import cdr_fast
@@ -315,8 +316,8 @@ class RecordingSession:
             self._close_writer()
         self._logger.info(self.summary())
 
-    def stats(self) -> dict[str, Any]:
-        """Live counts per topic, with the reasons of every drop; never waits on the storage."""
+    def _counts(self) -> _Counts:
+        """Per topic: written, received, queue drops and the reasons of every drop; never waits on the storage."""
         idle = not self._thread.is_alive()  # only then is the writer's lock free for sure
         handed = dict(self.handed)
         written = self.writer.topic_message_counts if idle else handed
@@ -324,7 +325,6 @@ class RecordingSession:
         queue = Counter(self._queue_drops() if self._queue_drops else {})
         with self._stats_lock:
             reasons = defaultdict(Counter, {t: Counter(c) for t, c in self._writer_drops.items()})
-            serialize_errors = dict(self.serialize_errors)
             error = self.error
         # Only a failure loses accepted messages (the writer thread has stopped then, so the counts are still).
         lost_in_storage = {t: n - written.get(t, 0) for t, n in handed.items()} if error and idle else {}
@@ -334,10 +334,24 @@ class RecordingSession:
                 if count:
                     reasons[topic][reason] += count
         topics = sorted(set(written) | self._topics | set(received) | set(queue))
+        return _Counts(idle, written, received, queue, reasons, topics)
+
+    def drop_reasons(self) -> dict[str, dict[str, int]]:
+        """Per topic, per reason: messages dropped so far (what events/messages_lost reports the change of)."""
+        counts = self._counts()
+        return {t: dict(counts.reasons[t]) for t in counts.topics if counts.reasons[t]}
+
+    def stats(self) -> dict[str, Any]:
+        """Live counts per topic, with the reasons of every drop; never waits on the storage."""
+        counts = self._counts()
+        reasons, queue = counts.reasons, counts.queue
+        with self._stats_lock:
+            serialize_errors = dict(self.serialize_errors)
+            error = self.error
         return {
             "bag": str(self.writer.path),
             "current_file": str(self.writer.current_file or ""),
-            "bytes_written": self.writer.bytes_written if idle else self._bytes_written,
+            "bytes_written": self.writer.bytes_written if counts.idle else self._bytes_written,
             "cache_bytes": self.cache.bytes,
             "free_bytes": self.disk.free,
             "seconds_until_min_free": self.disk.seconds_left,
@@ -345,9 +359,9 @@ class RecordingSession:
             "error": error,
             "serialize_errors": serialize_errors,
             "write_latency_ms": _percentiles(list(self._latencies)),
-            "topics": {t: {"received": received[t], "written": written.get(t, 0),
-                           "dropped": sum(reasons[t].values()), "queue_dropped": queue[t]} for t in topics},
-            "drop_reasons": {t: dict(reasons[t]) for t in topics if reasons[t]},
+            "topics": {t: {"received": counts.received[t], "written": counts.written.get(t, 0),
+                           "dropped": sum(reasons[t].values()), "queue_dropped": queue[t]} for t in counts.topics},
+            "drop_reasons": {t: dict(reasons[t]) for t in counts.topics if reasons[t]},
         }
 
     def summary(self) -> str:
@@ -362,6 +376,18 @@ class RecordingSession:
                 f"{topic} " + ", ".join(f"{reason} {n}" for reason, n in reasons.items())
                 for topic, reasons in stats["drop_reasons"].items()))
         return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class _Counts:
+    """One consistent reading of a session's per-topic counts (see RecordingSession._counts)."""
+
+    idle: bool
+    written: dict[str, int]
+    received: Counter[str]
+    queue: Counter[str]
+    reasons: defaultdict[str, Counter[str]]
+    topics: list[str]
 
 
 def _log_time(message: CachedMessage) -> int:
