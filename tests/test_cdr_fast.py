@@ -3,7 +3,7 @@
 Fast-CDR (behind rclpy) leaves alignment padding uninitialized: the same message serialized twice can
 differ in its padding bytes (checked below). So identity is proven three ways for every variation:
 
-* byte for byte against an independent reference encoder written here from the message
+* byte for byte against an independent reference encoder (``cdr_reference.py``) from the message
   introspection (``get_fields_and_field_types``), which also reports where the padding is and
   writes it as zeros, like the fast path must;
 * byte for byte against rclpy's bytes of many serializations, everywhere except at those padding
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import array
 import itertools
-import struct
 from pathlib import Path
 from typing import Any
 
@@ -30,67 +29,16 @@ from std_msgs.msg import String
 
 from baglib import cdr_fast
 from baglib.writer import BagWriter
-from baglib.cdr_fast import CDR_LE_HEADER, MIN_BUFFERS_SIZE, SerializedBuffers, serialize
+from baglib.cdr_fast import MIN_BUFFERS_SIZE, SerializedBuffers, serialize
 from baglib.cdr_size import serialized_size
 from baglib.message_definitions import type_hash
 from baglib.metadata import TopicInfo
+from cdr_reference import reference
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 RCLPY_RUNS = 8
 FRAME_IDS = ["", "a", "ab", "cam", "base", "lidar", "camera", "optical", "imu_link", "camera_01", "kamera_ü",
              "相机", "nul\x00tail"]
-
-
-# --- an independent reference encoder ------------------------------------------------------------
-
-_PRIMITIVES = {
-    "boolean": "?", "octet": "B", "byte": "B", "char": "B", "uint8": "B", "int8": "b", "uint16": "H",
-    "int16": "h", "uint32": "I", "int32": "i", "uint64": "Q", "int64": "q", "float": "f", "double": "d",
-}
-
-
-class Reference:
-    """Plain CDR from the message's own field list; padding is zero and its positions are recorded."""
-
-    def __init__(self) -> None:
-        self.body = bytearray()
-        self.padding: list[int] = []  # positions in the whole message (after the 4-byte header)
-
-    def align(self, size: int) -> None:
-        while len(self.body) % size:
-            self.padding.append(4 + len(self.body))
-            self.body.append(0)
-
-    def value(self, type_name: str, value: Any) -> None:
-        if type_name in _PRIMITIVES:
-            fmt = _PRIMITIVES[type_name]
-            self.align(struct.calcsize(fmt))
-            self.body += struct.pack("<" + fmt, value)
-        elif type_name == "string":
-            raw = value.encode().split(b"\x00")[0]  # a C string ends at its first NUL
-            self.value("uint32", len(raw) + 1)
-            self.body += raw + b"\x00"
-        elif type_name == "sequence<uint8>":
-            self.value("uint32", len(value))
-            self.body += bytes(value)
-        elif type_name.startswith("sequence<"):
-            self.value("uint32", len(value))
-            for element in value:
-                self.value(type_name[len("sequence<"):-1], element)
-        elif "/" in type_name:
-            self.message(value)
-        else:
-            raise NotImplementedError(type_name)
-
-    def message(self, msg: Any) -> None:
-        for name, type_name in msg.get_fields_and_field_types().items():
-            self.value(type_name, getattr(msg, name))
-
-
-def reference(msg: Any) -> tuple[bytes, list[int]]:
-    encoder = Reference()
-    encoder.message(msg)
-    return CDR_LE_HEADER + bytes(encoder.body), encoder.padding
 
 
 # --- message variations --------------------------------------------------------------------------
