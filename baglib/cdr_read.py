@@ -10,9 +10,11 @@ fields itself and copies the payload once, straight from the CDR buffer into the
 temporary ``bytes``). The message is built by its constructor and filled through its public
 attributes, so it is the object rclpy would return: the same Python type for every field, ``==`` equal,
 and re-serialized to the same bytes (up to alignment padding, which serializers leave uninitialized).
-No setter is bypassed: assigning ``msg.data`` anything but an ``array('B')`` built by the setter itself
-costs a second copy (``bytes``) or an element-by-element conversion (``memoryview``, numpy: ~200x slower).
-The message owns its payload: it never references the input buffer, which may be reused afterwards.
+No setter is bypassed, and none is needed: assigning ``msg.data`` instead would cost a second copy (the
+setter builds a new ``array('B')`` from whatever it gets, ``bytes`` or an array alike) or, given a
+``memoryview`` or numpy array, a conversion element by element three orders of magnitude slower
+(``benchmarks/deserialize.py`` measures each way). The message owns its payload: it never references
+the input buffer, which is free to be reused or resized once ``deserialize`` returns or raises.
 
 What is read is what rmw_fastrtps_cpp's C type support reads (checked against ``deserialize_message``
 in ``tests/test_cdr_read.py``): plain CDR (XCDR1) after the 4-byte encapsulation header, whose second
@@ -203,10 +205,9 @@ def deserialize(data: bytes | memoryview, msg_class: type) -> Any:
     decoder = _DECODERS.get(msg_class)
     if decoder is None:
         return _with_rclpy(data, msg_class)
-    view = memoryview(data)
-    if view.format != "B" or view.ndim != 1:
-        view = view.cast("B")
-    structs = _PLAIN_CDR.get(bytes(view[:2])) if len(view) >= _HEADER_SIZE else None
-    if structs is None:
-        return _with_rclpy(view, msg_class)
-    return decoder(_Reader(view, _type_name(msg_class), structs))
+    # Released on the way out, even by an exception whose traceback lives on: a bytearray stays resizable.
+    with memoryview(data) as given, given.cast("B") as view:
+        structs = _PLAIN_CDR.get(bytes(view[:2])) if len(view) >= _HEADER_SIZE else None
+        if structs is None:
+            return _with_rclpy(view, msg_class)
+        return decoder(_Reader(view, _type_name(msg_class), structs))

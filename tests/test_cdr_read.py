@@ -14,6 +14,8 @@ import array
 import os
 import random
 import struct
+import subprocess
+import sys
 import tracemalloc
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -294,6 +296,34 @@ LIES: list[tuple[str, type, Callable[[], bytearray], str]] = [
 @pytest.mark.parametrize(("cls", "make", "match"), [lie[1:] for lie in LIES], ids=[lie[0] for lie in LIES])
 def test_lengths_and_headers_that_lie_are_refused(cls: type, make: Callable[[], bytearray], match: str) -> None:
     assert_refused(bytes(make()), cls, match)
+
+
+def test_input_buffer_is_released_even_on_error() -> None:
+    """A player may reuse (resize) its read buffer: no view of it survives, not even in a traceback."""
+    raw = bytearray(reference(random_message(Image, 0), "<")[0])
+    deserialize(raw, Image)
+    raw += b"\x00"
+    del raw[20:]
+    with pytest.raises(ValueError) as caught:
+        deserialize(raw, Image)
+    raw += b"\x00"
+    assert caught.value.__traceback__ is not None
+
+
+def test_with_field_checks_on() -> None:
+    """With ROS_PYTHON_CHECK_FIELDS=1 (read when the message modules load) every setter validates."""
+    script = (
+        "import random, sys\n"
+        "sys.path[:0] = sys.argv[1:]\n"
+        "import test_cdr_read as t\n"
+        "for cls in t.RANDOM:\n"
+        "    for case in range(20):\n"
+        "        for _, raw in t.inputs(t.random_message(cls, case)):\n"
+        "            assert t.check_against_rclpy(raw, cls)._check_fields is True\n"
+    )
+    here = os.path.dirname(__file__)
+    subprocess.run([sys.executable, "-c", script, here, os.path.dirname(here)], check=True, timeout=120,
+                   env={**os.environ, "ROS_PYTHON_CHECK_FIELDS": "1", "CDR_READ_SEED": str(SEED)})
 
 
 # --- other types ---------------------------------------------------------------------------------------
