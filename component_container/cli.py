@@ -22,6 +22,8 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
+from component_container import bag_play
+
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
 # s: how long ``list`` without a container watches the graph. This project's containers re-announce every
 # 0.25 s (component_container.discovery_profile), so even a lost first exchange is over in ~0.45 s; a
@@ -412,7 +414,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Package name to look for registered components in")
     p.set_defaults(handler=run_types)
 
-    p = add("bag", help="Inspect rosbag2 bags (what `ros2 bag` offers)", description="Inspect rosbag2 bags.")
+    p = add("bag", help="Inspect and play rosbag2 bags (what `ros2 bag` offers)",
+            description="Inspect and play rosbag2 bags.")
     bag_verbs = p.add_subparsers(dest="bag_verb", title="commands")
     bag_verbs.required = True
     p = bag_verbs.add_parser("info", help="Print information about a bag (like `ros2 bag info`)",
@@ -428,6 +431,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default=None,
                    help="Write the recovered bag to this new directory instead of in place")
     p.set_defaults(handler=run_bag_recover)
+    p = bag_verbs.add_parser("play", help="Play back a bag (like `ros2 bag play`)",
+                             description="Play back a bag with components::Player, like `ros2 bag play`.")
+    bag_play.add_arguments(p)
+    p.set_defaults(handler=bag_play.run_bag_play)
     return parser
 
 

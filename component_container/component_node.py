@@ -159,6 +159,23 @@ class IntraProcessPublisher:
         if self._always_dds or self.publisher.get_subscription_count() > local:
             self._publication.log.record(lambda: self.publisher.publish(msg))
 
+    def local_subscription_count(self) -> int:
+        """In-process subscriptions this publisher delivers to (QoS-compatible ones)."""
+        return len(self._manager.subscriptions_for(self._publication))
+
+    def publish_recorded(self, serialized: bytes | memoryview, make_message: Callable[[], Any]) -> None:
+        """Publish a message that exists as CDR bytes (a bag's): in-process subscribers get the object
+        ``make_message()`` builds, made only if one exists, and DDS readers get ``serialized`` as it is.
+
+        The object is new and never held by the caller, so the reuse rule does not apply to it.
+        """
+        local = 0
+        if self._manager.subscriptions_for(self._publication):
+            local = self._manager.deliver(self._publication, make_message())
+        if self._always_dds or self.publisher.get_subscription_count() > local:
+            data = serialized if isinstance(serialized, bytes) else bytes(serialized)  # rclpy publishes bytes only
+            self._publication.log.record(lambda: self.publisher.publish(data))
+
     def _must_copy(self, msg: Any) -> bool:
         if self.reuses_messages:
             return True

@@ -58,19 +58,21 @@ def load_requests(path: str | pathlib.Path) -> list[LoadNode.Request]:
     entries = document.get("components") if isinstance(document, dict) else document
     if not isinstance(entries, list):
         raise StartupFileError(f"'{path}' must hold a list of components (under the key 'components')")
-    requests = []
-    for index, entry in enumerate(entries):
-        if not isinstance(entry, dict) or not {"package", "plugin"} <= entry.keys() or entry.keys() - _KEYS:
-            raise StartupFileError(
-                f"'{path}' component #{index + 1}: needs 'package' and 'plugin', may have "
-                f"{', '.join(sorted(_KEYS - {'package', 'plugin'}))}; got {entry!r}")
-        try:
-            requests.append(LoadNode.Request(
-                package_name=str(entry["package"]), plugin_name=str(entry["plugin"]),
-                node_name=str(entry.get("name", "")), node_namespace=str(entry.get("namespace", "")),
-                log_level=int(entry.get("log_level", 0)), remap_rules=_remap_rules(entry.get("remaps")),
-                parameters=[parameter_msg(k, v) for k, v in flatten(entry.get("parameters") or {}).items()],
-                extra_arguments=[parameter_msg(k, v) for k, v in (entry.get("extra_arguments") or {}).items()]))
-        except (TypeError, ValueError, AssertionError) as exc:
-            raise StartupFileError(f"'{path}' component #{index + 1}: {exc}") from exc
-    return requests
+    return [load_request(entry, index + 1, f"'{path}'") for index, entry in enumerate(entries)]
+
+
+def load_request(entry: Any, position: int, source: str = "request") -> LoadNode.Request:
+    """One component entry (``package``, ``plugin``, ``parameters``...) as a LoadNode request."""
+    if not isinstance(entry, dict) or not {"package", "plugin"} <= entry.keys() or entry.keys() - _KEYS:
+        raise StartupFileError(
+            f"{source} component #{position}: needs 'package' and 'plugin', may have "
+            f"{', '.join(sorted(_KEYS - {'package', 'plugin'}))}; got {entry!r}")
+    try:
+        return LoadNode.Request(
+            package_name=str(entry["package"]), plugin_name=str(entry["plugin"]),
+            node_name=str(entry.get("name", "")), node_namespace=str(entry.get("namespace", "")),
+            log_level=int(entry.get("log_level", 0)), remap_rules=_remap_rules(entry.get("remaps")),
+            parameters=[parameter_msg(k, v) for k, v in flatten(entry.get("parameters") or {}).items()],
+            extra_arguments=[parameter_msg(k, v) for k, v in (entry.get("extra_arguments") or {}).items()])
+    except (TypeError, ValueError, AssertionError) as exc:
+        raise StartupFileError(f"{source} component #{position}: {exc}") from exc

@@ -3,6 +3,10 @@ container started with ``--allow-module-plugins`` and the repository root as its
 """
 from __future__ import annotations
 
+import functools
+import hashlib
+import importlib
+import json
 import pathlib
 import sys
 import threading
@@ -10,8 +14,11 @@ import time
 from typing import Any
 
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
 from baglib.writer import BagWriter
@@ -227,3 +234,41 @@ class GatedRecorder(Recorder):
     """The recorder, writing through a GatedBagWriter."""
 
     writer_class = GatedBagWriter
+
+
+class PlaybackProbe(ComponentNode):
+    """An in-process consumer for player tests: subscribes to ``topics`` (with ``types``, reliable keep_all
+    unless ``best_effort``) and answers ``~/report`` (std_srvs/Trigger) with JSON per topic: receive times
+    (monotonic ns), the SHA-1 of each message's CDR (rclpy's serializer: what was recorded), and the Python
+    types of ``data`` fields."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("playback_probe", **kwargs)
+        topics = self.declare_parameter("topics", [""]).value
+        types = self.declare_parameter("types", [""]).value
+        self._lock = threading.Lock()
+        self._seen: dict[str, dict[str, list[Any]]] = {}
+        qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+        self._subscriptions = []
+        for topic, type_name in zip(topics, types):
+            package, kind, name = type_name.split("/")
+            msg_class = getattr(importlib.import_module(f"{package}.{kind}"), name)
+            self._seen[topic] = {"times": [], "digests": [], "data_types": []}
+            self._subscriptions.append(self.create_subscription(
+                msg_class, topic, functools.partial(self._on_message, topic), qos))
+        self._report = self.create_service(Trigger, "~/report", self._on_report)
+
+    def _on_message(self, topic: str, msg: Any) -> None:
+        now = time.monotonic_ns()
+        digest = hashlib.sha1(serialize_message(msg)).hexdigest()
+        with self._lock:
+            seen = self._seen[topic]
+            seen["times"].append(now)
+            seen["digests"].append(digest)
+            if hasattr(msg, "data") and len(seen["data_types"]) < 3:
+                seen["data_types"].append(type(msg.data).__name__)
+
+    def _on_report(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self._lock:
+            response.success, response.message = True, json.dumps(self._seen)
+        return response

@@ -18,7 +18,6 @@ An alias given together with its rosbag2 name is an error, so nothing is silentl
 """
 from __future__ import annotations
 
-import difflib
 import re
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +27,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
+from components.node_parameters import clean, declare_defaults, given_values, typed, warn_unknown
 
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
@@ -85,6 +85,8 @@ ALIASES: dict[str, str] = {
 #: aliases whose boolean means the opposite of their rosbag2 parameter
 INVERTED_ALIASES = frozenset({"start_recording_immediately"})
 STORAGE_IDS = ("mcap", "sqlite3")
+#: Durations take fractions of a second although their rosbag2 defaults are integers.
+_KINDS = {"storage.max_bagfile_duration": float}
 
 # Bounds of the numbers a LoadNode request sets (see components/bounds.py for why).
 #: rosbag2_cpp's writer refuses a split size below its storage plugin's get_minimum_split_file_size(): 86016
@@ -151,11 +153,6 @@ class RecordOptions:
     max_bag_files: int = 0
 
 
-def _clean(values: list[str]) -> list[str]:
-    """rclpy cannot declare an empty string array without a type, so defaults hold one empty string."""
-    return [v for v in values if v]
-
-
 def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOptions:
     """Declare every parameter on ``node`` and return the validated options; ValueError on bad input.
 
@@ -163,14 +160,9 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
     NOT_SET means its default. Names the recorder does not know get one warning: a misspelled parameter would
     otherwise be ignored without a word, and the recording would silently use the default.
     """
-    given = {name: p.value for name, p in overrides.items() if p.type_ != Parameter.Type.NOT_SET}
-    values: dict[str, Any] = {}
+    given = given_values(overrides)
+    values = declare_defaults(node, DEFAULTS, _KINDS)
     sources = {name: name for name in DEFAULTS}  # rosbag2 name -> the name the user gave it as
-    for name, default in DEFAULTS.items():
-        value = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
-        if value is None:  # declared NOT_SET: show the default that is used
-            node.set_parameters([Parameter(name, value=default)])
-        values[name] = default if value is None else _typed(name, value, f"'{name}'")
     for alias, target in ALIASES.items():
         if alias not in given:
             continue
@@ -180,48 +172,18 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
         if isinstance(DEFAULTS[target], list) and isinstance(value, str):  # the seed tools took "a, b" for a list
             value = [v.strip() for v in value.replace(",", " ").split()]
         sources[target] = alias
-        value = _typed(target, value, _label(target, alias))
+        value = typed(_KINDS.get(target, type(DEFAULTS[target])), value, _label(target, alias))
         values[target] = not value if alias in INVERTED_ALIASES else value
         node.declare_parameter(alias, given[alias], ParameterDescriptor(dynamic_typing=True))
         # Mirror the value to the rosbag2 name, so `ros2 param get <node> storage.uri` shows what is used.
         node.set_parameters([Parameter(target, value=values[target])])
-    unknown = [name for name in given if not node.has_parameter(name) and not name.startswith("qos_overrides.")]
-    if unknown:
-        node.get_logger().warning("Unknown parameters, ignored: " + ", ".join(_suggest(name) for name in unknown))
+    warn_unknown(node, given, [*DEFAULTS, *ALIASES])
     return _validate(values, {name: _label(name, source) for name, source in sources.items()})
 
 
 def _label(name: str, source: str) -> str:
     """How an error names a parameter: as the user gave it."""
     return f"'{name}'" if source == name else f"'{source}' (alias of '{name}')"
-
-
-def _suggest(name: str) -> str:
-    close = difflib.get_close_matches(name, [*DEFAULTS, *ALIASES], n=1, cutoff=0.75)
-    return f"{name} (did you mean {close[0]}?)" if close else name
-
-
-def _typed(name: str, value: Any, label: str) -> Any:
-    """``value`` as the type of rosbag2's parameter ``name``, or a ValueError naming the parameter (``label``)."""
-    kind = type(DEFAULTS[name])
-    if kind is list:
-        value = [value] if isinstance(value, str) else value
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-            raise ValueError(f"parameter {label} must be a list of strings, got {value!r}")
-        return list(value)
-    if kind is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"parameter {label} must be a boolean, got {value!r}")
-        return value
-    if kind in (int, float):
-        kind = float if name.endswith("duration") else kind
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and value != int(value)):
-            raise ValueError(f"parameter {label} must be a number{' (integer)' if kind is int else ''}, "
-                             f"got {value!r}")
-        return kind(value)
-    if not isinstance(value, str):
-        raise ValueError(f"parameter {label} must be a string, got {value!r}")
-    return value
 
 
 def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
@@ -245,7 +207,7 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
     custom: dict[str, str] = {}
-    for item in _clean(values["storage.custom_data"]):
+    for item in clean(values["storage.custom_data"]):
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"parameter 'storage.custom_data' entries must be 'key=value', got '{item}'")
@@ -259,10 +221,10 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     POLLING_INTERVAL.check("'record.topic_polling_interval' (.sec + .nsec)", interval)
     return RecordOptions(
         all_topics=values["record.all_topics"],
-        topics=_clean(values["record.topics"]),
-        topic_types=_clean(values["record.topic_types"]),
-        exclude_topics=_clean(values["record.exclude_topics"]),
-        exclude_topic_types=_clean(values["record.exclude_topic_types"]),
+        topics=clean(values["record.topics"]),
+        topic_types=clean(values["record.topic_types"]),
+        exclude_topics=clean(values["record.exclude_topics"]),
+        exclude_topic_types=clean(values["record.exclude_topic_types"]),
         regex=values["record.regex"],
         exclude_regex=values["record.exclude_regex"],
         include_hidden_topics=values["record.include_hidden_topics"],

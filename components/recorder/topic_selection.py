@@ -12,18 +12,10 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
 
-from rclpy.duration import Duration
-from rclpy.qos import (
-    DurabilityPolicy,
-    HistoryPolicy,
-    LivelinessPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from component_container.request_file import read_yaml
+from components import qos_profiles
 from components.recorder.recorder_options import RecordOptions
 
 # rosbag2 uses 10. Here the subscription's queue is the only buffer between a publication and the intake
@@ -41,8 +33,8 @@ class TopicFilter:
         self._own_topics = own_topics
         self._regex = re.compile(options.regex) if options.regex else None
         self._exclude_regex = re.compile(options.exclude_regex) if options.exclude_regex else None
-        self._topics = {_absolute(t) for t in options.topics}
-        self._exclude_topics = {_absolute(t) for t in options.exclude_topics}
+        self._topics = {qos_profiles.absolute_topic(t) for t in options.topics}
+        self._exclude_topics = {qos_profiles.absolute_topic(t) for t in options.exclude_topics}
 
     def selects(self, topic: str, type_name: str, publisher_count: int) -> bool:
         o = self._options
@@ -62,8 +54,6 @@ class TopicFilter:
         return not (self._exclude_regex and self._exclude_regex.search(topic))
 
 
-def _absolute(topic: str) -> str:
-    return topic if topic.startswith("/") else f"/{topic}"
 
 
 def _is_hidden(topic: str) -> bool:
@@ -80,53 +70,6 @@ def adapt_qos(offered: list[QoSProfile]) -> QoSProfile:
         durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
 
 
-_POLICIES = {
-    "history": HistoryPolicy,
-    "reliability": ReliabilityPolicy,
-    "durability": DurabilityPolicy,
-    "liveliness": LivelinessPolicy,
-}
-
-
 def load_qos_overrides(parameter: str, path: Path | None) -> dict[str, QoSProfile]:
-    """Parse a rosbag2 QoS override file: ``{topic: {history: keep_last, depth: 10, ...}}``.
-
-    ``path`` is what the node's ``resolve_path`` made of ``parameter`` (None: no file). The file may be anything
-    an anonymous caller pointed at, so errors give the parameter and the entry's position, never a key or a
-    value from the file.
-    """
-    if path is None:
-        return {}
-    document = read_yaml(parameter, path) or {}
-    if not isinstance(document, dict) or not all(isinstance(topic, str) for topic in document):
-        raise ValueError(f"parameter '{parameter}': the file must map topic names to QoS profiles")
-    overrides: dict[str, QoSProfile] = {}
-    for position, (topic, spec) in enumerate(document.items(), 1):
-        try:
-            overrides[_absolute(topic)] = _profile(spec)
-        except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
-            raise ValueError(
-                f"parameter '{parameter}': entry {position} is not a valid QoS profile (expected a mapping of "
-                f"{', '.join(_KEYS)} with rosbag2's values)") from None
-    return overrides
-
-
-_DURATIONS = ("deadline", "lifespan", "liveliness_lease_duration")
-_KEYS = ("depth", *_POLICIES, *_DURATIONS, "avoid_ros_namespace_conventions")
-
-
-def _profile(spec: Any) -> QoSProfile:
-    """One entry as a QoSProfile; raises (without detail: see load_qos_overrides) on anything else."""
-    if not isinstance(spec, dict):
-        raise TypeError("a QoS profile must be a mapping")
-    kwargs: dict[str, Any] = {"depth": int(spec.get("depth", RECORDER_DEPTH))}
-    for key, value in spec.items():
-        if key in _POLICIES:
-            kwargs[key] = _POLICIES[key][str(value).upper()]
-        elif key in _DURATIONS:
-            kwargs[key] = Duration(seconds=int(value.get("sec", 0)), nanoseconds=int(value.get("nsec", 0)))
-        elif key == "avoid_ros_namespace_conventions":
-            kwargs[key] = bool(value)
-        elif key != "depth":
-            raise KeyError("unknown key")
-    return QoSProfile(**kwargs)
+    """The recorder's ``record.qos_profile_overrides_path`` file (see qos_profiles.load_qos_overrides)."""
+    return qos_profiles.load_qos_overrides(parameter, path, RECORDER_DEPTH)

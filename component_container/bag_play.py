@@ -1,0 +1,148 @@
+"""``ipc-component bag play BAG``: what ``ros2 bag play`` does, as a container of one ``components::Player``.
+
+The command runs a container in its own process (no separate container to start) and loads the player by
+plugin name, with the command's options as the player's rosbag2 parameters; while it plays, a terminal shows
+one progress line (bag position / duration, rate, state), updated in place. The player's services
+(``/rosbag2_player/pause``...) work as with ``ros2 bag play``. It exits when playback ends (never with
+``--loop``) or on Ctrl-C, which stops playback and unloads the player within the shutdown timeout.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+PLAYER_PLUGIN = "components::Player"
+PROGRESS_PERIOD = 0.25
+_NS_PER_S = 1_000_000_000
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``ros2 bag play`` options this player supports, with its names."""
+    parser.add_argument("bag_path", help="Bag directory, or a single .mcap / .db3 file")
+    parser.add_argument("-s", "--storage", default="", choices=("", "mcap", "sqlite3"),
+                        help="Storage identifier (default: detect)")
+    parser.add_argument("-r", "--rate", type=float, default=1.0, help="Rate at which to play back messages")
+    parser.add_argument("-l", "--loop", action="store_true", help="Enables loop playback")
+    parser.add_argument("--topics", nargs="+", default=[], help="Topics to replay, separated by space")
+    parser.add_argument("--services", nargs="+", default=[], help="Services to replay, separated by space")
+    parser.add_argument("-e", "--regex", default="", help="Play only topics and services matching this regex")
+    parser.add_argument("-x", "--exclude-regex", default="", help="Exclude topics and services matching this")
+    parser.add_argument("--exclude-topics", nargs="+", default=[], help="Topics not to replay")
+    parser.add_argument("--exclude-services", nargs="+", default=[], help="Services not to replay")
+    parser.add_argument("--qos-profile-overrides-path", default="", help="QoS overrides file (YAML)")
+    parser.add_argument("--remap", "-m", nargs="+", default=[], help="Remappings, in the 'from:=to' form")
+    parser.add_argument("--read-ahead-queue-size", type=int, default=1000,
+                        help="Messages to read ahead of playback (default 1000)")
+    parser.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
+                        help="Publish /clock at this frequency (default 40 Hz when given without a value)")
+    parser.add_argument("-d", "--delay", type=float, default=0.0, help="Sleep this many seconds before playing")
+    parser.add_argument("--playback-duration", type=float, default=-1.0,
+                        help="Seconds of the bag to play (default: all)")
+    parser.add_argument("--playback-until-sec", type=float, default=-1.0,
+                        help="Play until this bag timestamp (seconds since epoch)")
+    parser.add_argument("--start-offset", type=float, default=0.0, help="Start this many seconds into the bag")
+    parser.add_argument("-p", "--start-paused", action="store_true", help="Start paused")
+    parser.add_argument("--wait-for-all-acked", type=int, default=-1, metavar="TIMEOUT_MS",
+                        help="At the end, wait for reliable readers to acknowledge (0: no limit)")
+    parser.add_argument("--publish-service-requests", action="store_true",
+                        help="Call the recorded services with the recorded requests instead of publishing "
+                             "their events")
+    parser.add_argument("--service-requests-source", default="SERVICE_INTROSPECTION",
+                        choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"))
+    parser.add_argument("--no-progress", action="store_true", help="No progress line, even on a terminal")
+
+
+def _duration(name: str, seconds: float) -> dict[str, int]:
+    """rosbag2's .sec/.nsec pair; negative seconds (disabled) stay negative."""
+    nanoseconds = round(seconds * _NS_PER_S)
+    sign = -1 if nanoseconds < 0 else 1
+    return {f"{name}.sec": sign * (abs(nanoseconds) // _NS_PER_S), f"{name}.nsec": sign * (abs(nanoseconds) % _NS_PER_S)}
+
+
+def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
+    """The player's parameters for the command's options."""
+    parameters: dict[str, Any] = {
+        "storage.uri": args.bag_path,
+        "storage.storage_id": args.storage,
+        "play.rate": args.rate,
+        "play.loop": args.loop,
+        "play.topics_to_filter": args.topics or [""],
+        "play.services_to_filter": args.services or [""],
+        "play.regex_to_filter": args.regex,
+        "play.exclude_regex_to_filter": args.exclude_regex,
+        "play.exclude_topics_to_filter": args.exclude_topics or [""],
+        "play.exclude_services_to_filter": args.exclude_services or [""],
+        "play.qos_profile_overrides_path": args.qos_profile_overrides_path,
+        "play.read_ahead_queue_size": args.read_ahead_queue_size,
+        "play.clock_publish_frequency": args.clock,
+        "play.start_paused": args.start_paused,
+        "play.publish_service_request": args.publish_service_requests,
+        "play.service_requests_source": args.service_requests_source,
+        **_duration("play.delay", args.delay),
+        **_duration("play.playback_duration", args.playback_duration),
+        **_duration("play.start_offset", args.start_offset),
+        **_duration("play.wait_acked_timeout", args.wait_for_all_acked / 1000 if args.wait_for_all_acked >= 0
+                    else -1.0),
+    }
+    if args.playback_until_sec >= 0:
+        parameters.update(_duration("play.playback_until_timestamp", args.playback_until_sec))
+    return parameters
+
+
+def progress_line(stats: dict[str, Any]) -> str:
+    """``[PLAYING]  12.345 / 60.000 s  rate 1.00  1234 msgs``, as the player's stats say."""
+    state = "PAUSED" if stats["paused"] else ("PLAYING" if stats["playing"] else "FINISHED")
+    published = sum(stats["published"].values())
+    return (f"[{state}]  {stats['position_ns'] / _NS_PER_S:.3f} / {stats['duration_ns'] / _NS_PER_S:.3f} s  "
+            f"rate {stats['rate']:.2f}  {published} msgs")
+
+
+def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO = sys.stdout) -> int:
+    """Play a bag in this process; returns the exit status."""
+    import rclpy
+    from rclpy.context import Context
+
+    from component_container.component_manager import ComponentManager
+    from component_container.discovery_profile import use_container_profile
+    from component_container.startup_file import load_request
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    use_container_profile()
+    context = Context()
+    rclpy.init(args=["ipc-component", *ros_args], context=context)
+    manager = None
+    try:
+        manager = ComponentManager("single", node_name=f"bag_play_{args.bag_path.strip('/').split('/')[-1]}"
+                                   .replace("-", "_").replace(".", "_"), context=context)
+        request = load_request({"package": "components", "plugin": PLAYER_PLUGIN,
+                                "parameters": player_parameters(args),
+                                "remaps": args.remap}, 1, "bag play")
+        try:
+            player = manager.load(request).node
+        except Exception as exc:  # noqa: BLE001 - the player's own message names what is wrong
+            print(f"Cannot play {args.bag_path}: {exc}", file=sys.stderr, flush=True)
+            return 1
+        show = out.isatty() and not args.no_progress
+        while not stop.wait(PROGRESS_PERIOD):
+            stats = player.stats()
+            if show:
+                out.write("\r" + progress_line(stats) + "\033[K")
+                out.flush()
+            if not stats["playing"] and not stats["paused"]:
+                break
+        stats = player.stats()
+        out.write(("\r" if show else "") + progress_line(stats) + ("\033[K" if show else "") + "\n")
+        out.flush()
+        return 1 if stats["read_error"] else 0
+    finally:
+        if manager is not None:
+            manager.shutdown()
+            manager.destroy_node()
+        rclpy.try_shutdown(context=context)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
