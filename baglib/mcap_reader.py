@@ -92,8 +92,8 @@ class McapReader:
 
     def _read_indexed(self, size: int) -> tuple[dict[int, Schema], dict[int, Channel], dict[str, dict[str, str]]
                                                  ] | None:
-        """Schemas, channels and metadata from the summary, and the units from its chunk indexes;
-        ``None`` when the file has no usable summary."""
+        """Schemas, channels and metadata from the summary; sets the units (from its chunk indexes),
+        counts and time range. ``None`` when the file has no usable summary."""
         with open(self._fd, "rb", closefd=False) as file:
             try:
                 summary = SeekingReader(file).get_summary()
@@ -128,7 +128,8 @@ class McapReader:
         return summary.schemas, summary.channels, metadata
 
     def _read_linearly(self, size: int) -> tuple[dict[int, Schema], dict[int, Channel], dict[str, dict[str, str]]]:
-        """Everything complete before the file's first damage, as ``bag recover`` keeps it."""
+        """Schemas, channels and metadata of everything complete before the file's first damage, as
+        ``bag recover`` keeps it; sets the units, counts and time range of those records."""
         with open(self._fd, "rb", closefd=False) as file:
             found = scan(file, size, check_chunks=True)
         if found.damage is not None:

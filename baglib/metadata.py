@@ -22,6 +22,7 @@ __all__ = [
     "METADATA_VERSION",
     "QOS_KEYS",
     "ROS_DISTRO",
+    "SAFE_LOADER",
     "BagMetadata",
     "FileInfo",
     "TopicInfo",
@@ -94,8 +95,8 @@ _Dumper.add_representer(
 )
 
 
-# libyaml's loader when PyYAML has it: old bags hold a QoS document per topic.
-_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+#: libyaml's safe loader when PyYAML has it: a bag holds a QoS document per topic and file.
+SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 def _dump(document: Any) -> str:
@@ -135,7 +136,7 @@ def parse_qos_profiles(stored: Any) -> list[dict[str, Any]]:
     """
     if isinstance(stored, str):
         try:
-            stored = yaml.load(stored, Loader=_Loader) if stored.strip() else None  # noqa: S506 (safe)
+            stored = yaml.load(stored, Loader=SAFE_LOADER) if stored.strip() else None  # noqa: S506 (safe)
         except yaml.YAMLError as error:
             raise ValueError(f"offered_qos_profiles is not YAML ({error})") from error
     if stored is None:

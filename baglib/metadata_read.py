@@ -14,14 +14,13 @@ from typing import Any
 
 import yaml
 
-from .metadata import METADATA_FILENAME, FileInfo, parse_qos_profiles
+from .metadata import METADATA_FILENAME, SAFE_LOADER, FileInfo, parse_qos_profiles
 from .repair import RECOVER_COMMAND, storage_files
 from .storage_reader import BagReadError
 
 __all__ = ["SUPPORTED_VERSIONS", "StoredMetadata", "StoredTopic", "load_metadata", "parse_metadata"]
 
 SUPPORTED_VERSIONS = range(4, 10)
-_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 @dataclass(frozen=True)
@@ -80,18 +79,17 @@ def load_metadata(bag_dir: str | Path) -> StoredMetadata:
         raise BagReadError(f"'{bag_dir}' is not a bag: no {METADATA_FILENAME}") from error
     except (OSError, UnicodeDecodeError) as error:
         raise BagReadError(f"cannot read {path}: {error}") from error
-    try:
-        document = yaml.load(text, Loader=_Loader)  # noqa: S506 (a safe loader)
-    except yaml.YAMLError as error:
-        raise BagReadError(f"{path} is not YAML: {error}") from error
+    document = _load_yaml(text, str(path))
     if not isinstance(document, dict) or "rosbag2_bagfile_information" not in document:
         raise BagReadError(f"{path} has no rosbag2_bagfile_information")
     return parse_metadata(document["rosbag2_bagfile_information"], str(path))
 
 
 def parse_metadata(document: Any, source: str) -> StoredMetadata:
-    """The ``rosbag2_bagfile_information`` mapping (from ``metadata.yaml`` or a storage file's own copy);
+    """The ``rosbag2_bagfile_information`` mapping, or the YAML text of it that a storage file keeps;
     ``source`` names where it came from in errors."""
+    if isinstance(document, str):
+        document = _load_yaml(document, source)
     if not isinstance(document, dict):
         raise BagReadError(f"{source}: the bag information is not a mapping")
     try:
@@ -115,6 +113,13 @@ def parse_metadata(document: Any, source: str) -> StoredMetadata:
         raise BagReadError(f"{source}: no {error.args[0]!r} entry") from error
     except (TypeError, ValueError, AttributeError) as error:
         raise BagReadError(f"{source}: malformed entry ({error})") from error
+
+
+def _load_yaml(text: str, source: str) -> Any:
+    try:
+        return yaml.load(text, Loader=SAFE_LOADER)  # noqa: S506 (a safe loader)
+    except yaml.YAMLError as error:
+        raise BagReadError(f"{source} is not YAML: {error}") from error
 
 
 def _optional_entries(document: dict[str, Any], version: int) -> dict[str, Any]:

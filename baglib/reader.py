@@ -22,7 +22,6 @@ from operator import attrgetter
 from pathlib import Path, PurePath
 from typing import Any, NamedTuple
 
-import yaml
 import zstandard
 
 from .mcap_reader import McapReader
@@ -140,9 +139,10 @@ class BagReader:
         if self.storage_id not in _STORAGES:
             raise BagReadError(f"{source}: unknown storage id {self.storage_id!r} (this reader reads "
                                f"{', '.join(_STORAGES)})")
-        file_compression = self._compression(metadata.compression_mode, metadata.compression_format, source)
+        mode = _compression_mode(metadata.compression_mode, metadata.compression_format, source)
+        self._message_compression = mode == "message"
         self.files = [self._listed_file(name) for name in metadata.relative_file_paths]
-        self._open_storages(file_compression)
+        self._open_storages(file_compression=mode == "file")
         self.ros_distro = metadata.ros_distro or next(
             (storage.ros_distro for storage in self._storages if storage.ros_distro), "")
         self.custom_data = dict(metadata.custom_data)
@@ -172,7 +172,8 @@ class BagReader:
         storage = self._storages[0]
         embedded = _embedded_metadata(storage)
         if embedded is not None:
-            self._compression(embedded.compression_mode, embedded.compression_format, str(self.path))
+            self._message_compression = _compression_mode(
+                embedded.compression_mode, embedded.compression_format, str(self.path)) == "message"
         self.ros_distro = (embedded.ros_distro if embedded else "") or storage.ros_distro
         self.custom_data = dict(embedded.custom_data) if embedded else {}
         time_range = storage.time_range()
@@ -180,19 +181,6 @@ class BagReader:
             if time_range else (0, 0)
         self._connect([], from_metadata=False)
         self.message_count = sum(connection.message_count for connection in self.connections)
-
-    def _compression(self, mode: str, compression_format: str, source: str) -> bool:
-        """Whether whole files are compressed; notes message compression. Rejects anything else."""
-        mode = mode.strip().lower()
-        if mode in ("", "none"):
-            return False
-        if mode not in ("file", "message"):
-            raise BagReadError(f"{source}: unknown compression mode {mode!r}")
-        if compression_format.strip().lower() != "zstd":
-            raise BagReadError(f"{source}: compression format {compression_format!r} is not supported "
-                               f"(this reader decompresses zstd)")
-        self._message_compression = mode == "message"
-        return mode == "file"
 
     def _listed_file(self, name: str) -> Path:
         """A file ``metadata.yaml`` lists; rosbag2 (version 4, compressed) and version 3 bags prefixed
@@ -348,11 +336,24 @@ def _msgtype(type_name: str) -> str:
         return type_name
 
 
+def _compression_mode(mode: str, compression_format: str, source: str) -> str:
+    """rosbag2_compression's mode as ``""``, ``"file"`` or ``"message"``; anything else is refused."""
+    mode = mode.strip().lower()
+    if mode in ("", "none"):
+        return ""
+    if mode not in ("file", "message"):
+        raise BagReadError(f"{source}: unknown compression mode {mode!r}")
+    if compression_format.strip().lower() != "zstd":
+        raise BagReadError(f"{source}: compression format {compression_format!r} is not supported "
+                           f"(this reader decompresses zstd)")
+    return mode
+
+
 def _embedded_metadata(storage: StorageReader) -> StoredMetadata | None:
     """The bag metadata a storage file keeps (rosbag2 since Humble), ``None`` if none is usable."""
     if not storage.serialized_metadata:
         return None
     try:
-        return parse_metadata(yaml.safe_load(storage.serialized_metadata), "the file's own metadata")
-    except (BagReadError, yaml.YAMLError):
+        return parse_metadata(storage.serialized_metadata, "the file's own metadata")
+    except BagReadError:
         return None
