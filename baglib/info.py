@@ -1,7 +1,8 @@
 """``ipc-component bag info``: what ``ros2 bag info`` prints, for users of the PyPI wheels (no ``ros2 bag``).
 
 It reads ``metadata.yaml`` (version 9) and the sizes of the files it lists, and formats them the way
-rosbag2_cpp's ``format_bag_meta_data`` does. A bag a crash left unfinished (no ``metadata.yaml``, a
+rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed as services, not as
+topics, and their messages are not counted in ``Messages:``. A bag a crash left unfinished (no ``metadata.yaml``, a
 file it does not list, an MCAP file without footer) is named as such, with the command that repairs it.
 """
 from __future__ import annotations
@@ -15,8 +16,10 @@ import yaml
 from baglib.mcap_records import MAGIC
 from baglib.metadata import METADATA_FILENAME
 from baglib.repair import RECOVER_COMMAND, storage_files
+from baglib.service_events import is_service_event_topic, service_name, service_type
 
 _LABEL_WIDTH = 19  # "Topic information: " and the padding of every other label
+_SERVICE_LABEL_WIDTH = 21  # "Service information: ", which rosbag2 pads its service lines to
 
 
 class BagInfoError(Exception):
@@ -52,12 +55,13 @@ def _file_size(size: int) -> str:
 def _time(nanoseconds: int) -> str:
     moment = datetime.datetime.fromtimestamp(nanoseconds / 1e9)
     seconds, fraction = divmod(nanoseconds, 1_000_000_000)
-    return f"{moment:%b %d %Y %H:%M:%S}.{fraction:09d} ({seconds}.{fraction:09d})"
+    # rosbag2's "%b %e %Y": the day padded with a space, not a zero
+    return f"{moment:%b} {moment.day:2d} {moment:%Y %H:%M:%S}.{fraction:09d} ({seconds}.{fraction:09d})"
 
 
-def _block(label: str, lines: list[str]) -> list[str]:
-    pad = " " * _LABEL_WIDTH
-    first = f"{label:<{_LABEL_WIDTH}}"
+def _block(label: str, lines: list[str], width: int = _LABEL_WIDTH) -> list[str]:
+    pad = " " * width
+    first = f"{label:<{width}}"
     return [first + (lines[0] if lines else "")] + [pad + line for line in lines[1:]]
 
 
@@ -84,22 +88,30 @@ def format_bag_info(bag_dir: str | Path) -> str:
     size = sum((Path(bag_dir) / f).stat().st_size for f in files if (Path(bag_dir) / f).exists())
     start = int(meta["starting_time"]["nanoseconds_since_epoch"])
     duration = int(meta["duration"]["nanoseconds"])
-    topics = [
-        f"Topic: {t['topic_metadata']['name']} | Type: {t['topic_metadata']['type']} | "
-        f"Count: {t['message_count']} | Serialization Format: {t['topic_metadata']['serialization_format']}"
-        for t in meta.get("topics_with_message_count") or []]
+    topics: list[str] = []
+    services: list[str] = []
+    service_messages = 0
+    for entry in meta.get("topics_with_message_count") or []:
+        topic, count = entry["topic_metadata"], entry["message_count"]
+        if is_service_event_topic(topic["name"], topic["type"]):
+            service_messages += count
+            services.append(f"Service: {service_name(topic['name'])} | Type: {service_type(topic['type'])} | "
+                            f"Event Count: {count} | Serialization Format: {topic['serialization_format']}")
+        else:
+            topics.append(f"Topic: {topic['name']} | Type: {topic['type']} | Count: {count} | "
+                          f"Serialization Format: {topic['serialization_format']}")
     lines = [
         *_block("Files:", files),
         *_block("Bag size:", [_file_size(size)]),
         *_block("Storage id:", [meta.get("storage_identifier", "")]),
-        *_block("ROS Distro:", [meta.get("ros_distro", "")]),
+        *_block("ROS Distro:", [meta.get("ros_distro") or "unknown"]),
         *_block("Duration:", [f"{duration // 1_000_000_000}.{duration % 1_000_000_000:09d}s"]),
         *_block("Start:", [_time(start)]),
         *_block("End:", [_time(start + duration)]),
-        *_block("Messages:", [str(meta.get("message_count", 0))]),
+        *_block("Messages:", [str(meta.get("message_count", 0) - service_messages)]),
         *_block("Topic information:", topics),
-        *_block("Services:", ["0"]),
-        *_block("Service information:", []),
+        *_block("Service:", [str(len(services))]),
+        *_block("Service information:", services, _SERVICE_LABEL_WIDTH),
         *_unfinished(Path(bag_dir), files),
     ]
     return "\n".join(line.rstrip() for line in lines)
