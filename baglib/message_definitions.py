@@ -8,16 +8,18 @@ its output exactly, because ``rosbags`` recomputes the RIHS01 type hash from the
 """
 from __future__ import annotations
 
+import importlib
 import json
 import re
 import sys
 from functools import cache
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
-from .service_events import EVENT_TYPE_SUFFIX, service_type
+from .service_events import EVENT_TYPE_SUFFIX, event_class, service_type
 
 __all__ = [
+    "message_class",
     "MessageDefinitionNotFoundError",
     "message_definition",
     "type_hash",
@@ -228,3 +230,17 @@ def type_hash(type_name: str) -> str:
                     if entry["type_name"] == full_name)
     except (KeyError, TypeError, StopIteration):
         raise MessageDefinitionNotFoundError(f"{path} holds no type hash for {full_name}") from None
+
+
+def message_class(type_name: str) -> Any:
+    """The Python class of ``pkg/msg/Type`` or of a service event ``pkg/srv/Name_Event``.
+
+    Raises ImportError / AttributeError if it is not installed, ValueError for a name of another form.
+    """
+    parts = type_name.split("/")
+    if len(parts) != 3:
+        raise ValueError(f"not a ROS message type name (pkg/msg/Type): {type_name!r}")
+    package, folder, name = parts
+    if folder == "srv":
+        return event_class(type_name)
+    return getattr(importlib.import_module(f"{package}.{folder}"), name)

@@ -31,8 +31,8 @@ class FrameConsumer(ComponentNode):
         self.payload_bytes = 0
         self._window: Counter[str] = Counter()
         self._started = time.monotonic()
-        self._subscriptions = [self.create_subscription(Image, t, self._on_image, 10) for t in image_topics]
-        self._subscriptions += [self.create_subscription(PointCloud2, t, self._on_cloud, 10) for t in cloud_topics]
+        self._inputs = [self.create_subscription(Image, t, self._on_image, 10) for t in image_topics]
+        self._inputs += [self.create_subscription(PointCloud2, t, self._on_cloud, 10) for t in cloud_topics]
         self._timer = self.create_timer(1.0, self._log_rates)
 
     def _on_image(self, msg: Image) -> None:

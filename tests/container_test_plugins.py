@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import importlib
 import json
 import pathlib
 import sys
@@ -15,14 +14,14 @@ from typing import Any
 
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
+from baglib.message_definitions import message_class
 from baglib.writer import BagWriter
-from baglib.cdr_fast import CdrData
+from baglib.cdr_fast import CdrData, serialize
 from components.recorder.recorder import Recorder
 
 
@@ -239,8 +238,8 @@ class GatedRecorder(Recorder):
 class PlaybackProbe(ComponentNode):
     """An in-process consumer for player tests: subscribes to ``topics`` (with ``types``, reliable keep_all
     unless ``best_effort``) and answers ``~/report`` (std_srvs/Trigger) with JSON per topic: receive times
-    (monotonic ns), the SHA-1 of each message's CDR (rclpy's serializer: what was recorded), and the Python
-    types of ``data`` fields."""
+    (monotonic ns), the SHA-1 of each message's exact CDR (baglib.cdr_fast: what a recorder writes) and the
+    Python types of ``data`` fields."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("playback_probe", **kwargs)
@@ -249,18 +248,17 @@ class PlaybackProbe(ComponentNode):
         self._lock = threading.Lock()
         self._seen: dict[str, dict[str, list[Any]]] = {}
         qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
-        self._subscriptions = []
+        self._inputs: list[Any] = []
         for topic, type_name in zip(topics, types):
-            package, kind, name = type_name.split("/")
-            msg_class = getattr(importlib.import_module(f"{package}.{kind}"), name)
+            msg_class = message_class(type_name)
             self._seen[topic] = {"times": [], "digests": [], "data_types": []}
-            self._subscriptions.append(self.create_subscription(
+            self._inputs.append(self.create_subscription(
                 msg_class, topic, functools.partial(self._on_message, topic), qos))
         self._report = self.create_service(Trigger, "~/report", self._on_report)
 
     def _on_message(self, topic: str, msg: Any) -> None:
         now = time.monotonic_ns()
-        digest = hashlib.sha1(serialize_message(msg)).hexdigest()
+        digest = hashlib.sha1(bytes(serialize(msg))).hexdigest()
         with self._lock:
             seen = self._seen[topic]
             seen["times"].append(now)

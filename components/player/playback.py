@@ -69,12 +69,13 @@ class Playback:
 
     def __init__(self, clock: PlaybackClock, read_ahead: ReadAhead, bag_start_ns: int,
                  publish: Callable[[Queued], bool], log: Any, loop: bool = False, delay_ns: int = 0,
-                 on_run_end: Callable[[], None] = lambda: None) -> None:
+                 on_run_end: Callable[[], None] = lambda: None,
+                 on_bag_end: Callable[[], None] = lambda: None) -> None:
         self.clock = clock
         self._read_ahead = read_ahead
-        self._bag_start_ns = bag_start_ns
         self._publish = publish
         self._on_run_end = on_run_end
+        self._on_bag_end = on_bag_end
         self._log = log
         self._loop = loop
         self._delay_ns = max(delay_ns, 0)
@@ -137,12 +138,13 @@ class Playback:
             while True:
                 if self._delay_ns and self._stop.wait(self._delay_ns / 1e9):
                     break
-                start = max(self.limits.start_ns, self._bag_start_ns)
+                start = self.limits.start_ns
                 with self._take_over:
                     self._skip = False
                     self._read_ahead.restart(start)
                     self.clock.jump(start)
-                self._play_queue()
+                if self._play_queue():
+                    self._on_bag_end()
                 if self._stop.is_set() or not self._loop:
                     break
         except Exception as exc:  # noqa: BLE001 - rosbag2 logs "Failed to play" and ends the run
@@ -153,7 +155,8 @@ class Playback:
             finally:
                 self._playing.release()
 
-    def _play_queue(self) -> None:
+    def _play_queue(self) -> bool:
+        """Play the current pass; True if it reached the end of the bag (not a stop or the "until" time)."""
         while not self._stop.is_set():
             item = self._next()
             if item is None:
@@ -162,10 +165,10 @@ class Playback:
                 if self.clock.paused:  # rosbag2 stays in the run while paused at the end (seek may follow)
                     self.clock.sleep_until(self.clock.now() + 1)
                     continue
-                return
+                return True
             log_time = item.message.log_time_ns
             if self.limits.stops_at(log_time):
-                return
+                return False
             if not self.clock.sleep_until(log_time):
                 continue  # the schedule moved (pause, rate, seek, take-over, stop): look again
             with self._take_over:
@@ -180,6 +183,7 @@ class Playback:
                 self.timing.add(late)
                 if late > BEHIND_NS:
                     self._fall_behind(log_time, late)
+        return False
 
     def _next(self) -> Queued | None:
         item = self._read_ahead.peek(0.1)
@@ -245,10 +249,10 @@ class Playback:
         return played
 
     def seek(self, time_ns: int) -> None:
-        """Continue from bag time ``time_ns`` (clamped to the bag's start), paused or not."""
+        """Continue from bag time ``time_ns`` (clamped to the run's start), paused or not."""
         with self._take_over:
             self._skip = True
-            time_ns = max(time_ns, self._bag_start_ns)
+            time_ns = max(time_ns, self.limits.start_ns)
             self._read_ahead.restart(time_ns)
             self.clock.jump(time_ns)
             self.position_ns = time_ns

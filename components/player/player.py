@@ -13,7 +13,6 @@ Topics whose type is not installed are skipped with a warning naming the type; t
 """
 from __future__ import annotations
 
-import importlib
 import json
 import time
 from typing import Any
@@ -39,7 +38,8 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 from baglib.reader import BagMessage, BagReader, BagReadError
-from baglib.service_events import event_class, is_service_event_topic
+from baglib.message_definitions import message_class
+from baglib.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
 from components.player.playback import Playback, RunLimits
@@ -57,14 +57,6 @@ QOS_OVERRIDES_PARAMETER = "play.qos_profile_overrides_path"
 CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 _NS_PER_S = 1_000_000_000
 ACK_POLL_NS = 100_000_000
-
-
-def message_class(type_name: str) -> Any:
-    """The Python class of ``pkg/msg/Type`` or ``pkg/srv/Type_Event``; ImportError/AttributeError if absent."""
-    package, kind, name = type_name.split("/")
-    if kind == "srv":
-        return event_class(type_name)
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
 
 
 def _time_msg(nanoseconds: int) -> Time:
@@ -86,18 +78,18 @@ class Player(ComponentNode):
         try:
             self._options = declare_play_options(self, overrides)
             self._reader = self._open_bag(self._options)
-            self._publishers = self._make_publishers()
+            self._senders = self._make_publishers()
             self._clock_publisher = None
             if self._options.clock_publish_frequency > 0 or self._options.clock_publish_on_topic_publish:
                 self._clock_publisher = self.create_publisher(Clock, "/clock", CLOCK_QOS)
             self._split_events = self.create_publisher(ReadSplitEvent, SPLIT_EVENT_TOPIC, 1)
             self._file_index = 0
-            self._read_ahead = ReadAhead(self._reader, list(self._publishers), self._options.read_ahead_queue_size,
+            self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
                                          self._options.read_ahead_max_bytes, self._prepare, self._on_read_error)
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
             self._playback = Playback(clock, self._read_ahead, self._reader.starting_time_ns, self._publish,
                                       self.get_logger(), self._options.loop, self._options.delay_ns,
-                                      self._wait_for_acks)
+                                      self._wait_for_acks, self._finish_files)
             self._read_error: str | None = None
         except Exception:
             self._close_bag()
@@ -165,7 +157,7 @@ class Player(ComponentNode):
 
     # --- the read-ahead and playback threads' hooks -------------------------------------------------------
     def _prepare(self, message: BagMessage) -> Any:
-        publisher = self._publishers[message.connection.topic]
+        publisher = self._senders[message.connection.topic]
         return publisher.make(message.data) if publisher.wants_object() else None
 
     def _on_read_error(self, exc: BaseException) -> None:
@@ -175,25 +167,34 @@ class Player(ComponentNode):
     def _publish(self, item: Queued) -> bool:
         message = item.message
         if message.file_index != self._file_index:
-            self._announce_split(message.file_index)
+            self._move_to_file(message.file_index)
         if self._clock_publisher is not None and self._options.clock_publish_on_topic_publish and (
                 not self._options.clock_trigger_topics
                 or message.connection.topic in self._options.clock_trigger_topics):
             self._publish_clock()
         try:
-            return self._publishers[message.connection.topic].publish(message.data, item.prepared)
+            return self._senders[message.connection.topic].publish(message.data, item.prepared)
         except Exception as exc:  # noqa: BLE001 - rosbag2 logs a failed publish and plays on
             self.get_logger().error(f"Failed to publish message on '{message.connection.topic}' topic. "
                                     f"\nError: {exc}")
             return False
 
-    def _announce_split(self, file_index: int) -> None:
+    def _move_to_file(self, file_index: int) -> None:
+        """``events/read_split`` as rosbag2's sequential reader sends them: one per file it moves on to, the
+        files whose messages the filters skipped included; one for a jump back (a loop, a seek)."""
         assert self._reader is not None
         files = self._reader.files
-        event = ReadSplitEvent(closed_file=str(files[self._file_index]), opened_file=str(files[file_index]),
-                               node_name=self.get_fully_qualified_name())
-        self._file_index = file_index
-        self._split_events.publish(event)
+        steps = range(self._file_index + 1, file_index + 1) if file_index > self._file_index else (file_index,)
+        for opened in steps:
+            self._split_events.publish(ReadSplitEvent(
+                closed_file=str(files[self._file_index]), opened_file=str(files[opened]),
+                node_name=self.get_fully_qualified_name()))
+            self._file_index = opened
+
+    def _finish_files(self) -> None:
+        """At the end of the bag the reader has gone through the last files too."""
+        assert self._reader is not None
+        self._move_to_file(len(self._reader.files) - 1)
 
     def _wait_for_acks(self) -> None:
         """rosbag2's end of a run: with ``play.wait_acked_timeout`` >= 0 (0: no limit), wait until every
@@ -202,7 +203,7 @@ class Player(ComponentNode):
         if timeout_ns < 0:
             return
         deadline = time.monotonic_ns() + timeout_ns if timeout_ns else None
-        for topic, publisher in self._publishers.items():
+        for topic, publisher in self._senders.items():
             while not self._playback.stopping:
                 step = ACK_POLL_NS if deadline is None else min(ACK_POLL_NS, deadline - time.monotonic_ns())
                 if publisher.publisher.wait_for_all_acked(Duration(nanoseconds=max(step, 0))):
@@ -218,13 +219,22 @@ class Player(ComponentNode):
 
     # --- control (rosbag2's Player API) -------------------------------------------------------------------
     def play(self, start_offset_ns: int = 0, playback_duration_ns: int = -1, until_ns: int = -1) -> bool:
-        """Start a run (rosbag2's configure_play_until_timestamp, then play()); False while one is going on."""
+        """Start a run; False while one is going on.
+
+        As rosbag2's PlayerImpl: playback starts at the bag's start plus ``start_offset_ns`` (negative: ignored,
+        with a warning), and ``configure_play_until_timestamp`` sets where it ends: ``playback_duration_ns``
+        after that start (0: nothing is played) or at ``until_ns``, the later of the two; both negative: the
+        end of the bag. Unlike rosbag2 Jazzy, whose ``~/play`` ignores the request's start_offset for where
+        playback starts, the offset of every ``play`` call is used.
+        """
         assert self._reader is not None
+        if start_offset_ns < 0:
+            self.get_logger().warning(f"Invalid start offset value: {start_offset_ns / 1e9}. "
+                                      "Negative start offset ignored.")
         start = self._reader.starting_time_ns + max(start_offset_ns, 0)
         until = -1
         if playback_duration_ns >= 0 or until_ns >= 0:
-            from_duration = 0 if playback_duration_ns == 0 else self._reader.starting_time_ns + playback_duration_ns
-            until = max(from_duration, until_ns)
+            until = max(0 if playback_duration_ns == 0 else start + playback_duration_ns, until_ns)
         self._file_index = 0
         return self._playback.play(RunLimits(start, until))
 
@@ -315,7 +325,7 @@ class Player(ComponentNode):
             "rate": self._playback.clock.rate,
             "paused": self._playback.clock.paused,
             "playing": self._playback.in_playback,
-            "published": {topic: p.published for topic, p in self._publishers.items()},
+            "published": {topic: p.published for topic, p in self._senders.items()},
             "publish_error_ms": {"p50": p50, "p99": p99, "max": worst, "count": self._playback.timing.count},
             "behind": {"count": self._playback.behind_count, "total_s": self._playback.behind_ns / 1e9},
             "queue_starved": self._read_ahead.starved,

@@ -17,7 +17,6 @@ and never silently stops the recording (see RecordingSession).
 from __future__ import annotations
 
 import functools
-import importlib
 import json
 import os
 import threading
@@ -38,7 +37,7 @@ from component_container.health import Health
 from baglib.writer import BagWriter
 from baglib.message_definitions import message_definition
 from baglib.metadata import TopicInfo, qos_profile_dict
-from baglib.service_events import event_class
+from baglib.message_definitions import message_class
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
@@ -52,15 +51,6 @@ QOS_OVERRIDES_PARAMETER = "record.qos_profile_overrides_path"
 #: (its endpoints, the split event acknowledgement) within the rest.
 FINISH_SHARE = 0.8
 ACK_SHARE = 0.1
-
-
-def message_class(type_name: str) -> Any:
-    """The Python class of ``pkg/msg/Type`` or of a service event ``pkg/srv/Name_Event``;
-    ImportError/AttributeError if it is not installed."""
-    package, folder, name = type_name.split("/")
-    if folder == "srv":
-        return event_class(type_name)
-    return getattr(importlib.import_module(f"{package}.msg"), name)
 
 
 class Recorder(ComponentNode):
