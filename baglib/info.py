@@ -1,44 +1,33 @@
 """``ipc-component bag info``: what ``ros2 bag info`` prints, for users of the PyPI wheels (no ``ros2 bag``).
 
-It reads ``metadata.yaml`` (version 9) and the sizes of the files it lists, and formats them the way
-rosbag2_cpp's ``format_bag_meta_data`` does. A bag a crash left unfinished (no ``metadata.yaml``, a
-file it does not list, an MCAP file without footer) is named as such, with the command that repairs it.
+It reads ``metadata.yaml`` (versions 4 to 9, :mod:`.metadata_read`) and the sizes of the files it
+lists, and formats them the way rosbag2_cpp's ``format_bag_meta_data`` does. A bag a crash left
+unfinished (no ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as
+such, with the command that repairs it.
 """
 from __future__ import annotations
 
 import datetime
 from pathlib import Path
-from typing import Any
-
-import yaml
 
 from baglib.mcap_records import MAGIC
 from baglib.metadata import METADATA_FILENAME
+from baglib.metadata_read import StoredMetadata, load_metadata
 from baglib.repair import RECOVER_COMMAND, storage_files
+from baglib.storage_reader import BagReadError
 
 _LABEL_WIDTH = 19  # "Topic information: " and the padding of every other label
 
 
-class BagInfoError(Exception):
+class BagInfoError(BagReadError):
     """The directory is not a readable rosbag2 bag."""
 
 
-def read_metadata(bag_dir: str | Path) -> dict[str, Any]:
-    path = Path(bag_dir) / METADATA_FILENAME
+def _metadata(bag_dir: str | Path) -> StoredMetadata:
     try:
-        document = yaml.safe_load(path.read_text())
-        return document["rosbag2_bagfile_information"]
-    except FileNotFoundError as exc:
-        files = storage_files(Path(bag_dir)) if Path(bag_dir).is_dir() else []
-        if files:
-            raise BagInfoError(
-                f"'{bag_dir}' is an unfinished bag: no {METADATA_FILENAME} next to "
-                f"{', '.join(file.name for file in files)} (was the recording interrupted?). "
-                f"Run `{RECOVER_COMMAND} {bag_dir}` to make it readable."
-            ) from exc
-        raise BagInfoError(f"'{bag_dir}' is not a bag: no {METADATA_FILENAME}") from exc
-    except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
-        raise BagInfoError(f"cannot read {path}: {exc}") from exc
+        return load_metadata(bag_dir)
+    except BagReadError as error:
+        raise BagInfoError(str(error)) from error
 
 
 def _file_size(size: int) -> str:
@@ -78,25 +67,24 @@ def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
 
 
 def format_bag_info(bag_dir: str | Path) -> str:
-    """The ``ros2 bag info`` text for ``bag_dir``."""
-    meta = read_metadata(bag_dir)
-    files = [f["path"] for f in meta.get("files") or []] or list(meta.get("relative_file_paths") or [])
+    """The ``ros2 bag info`` text for ``bag_dir`` (``metadata.yaml`` of any version from 4 to 9)."""
+    meta = _metadata(bag_dir)
+    files = [info.path for info in meta.files] or meta.relative_file_paths
     size = sum((Path(bag_dir) / f).stat().st_size for f in files if (Path(bag_dir) / f).exists())
-    start = int(meta["starting_time"]["nanoseconds_since_epoch"])
-    duration = int(meta["duration"]["nanoseconds"])
+    start, duration = meta.starting_time_ns, meta.duration_ns
     topics = [
-        f"Topic: {t['topic_metadata']['name']} | Type: {t['topic_metadata']['type']} | "
-        f"Count: {t['message_count']} | Serialization Format: {t['topic_metadata']['serialization_format']}"
-        for t in meta.get("topics_with_message_count") or []]
+        f"Topic: {topic.name} | Type: {topic.type} | Count: {topic.message_count} | "
+        f"Serialization Format: {topic.serialization_format}"
+        for topic in meta.topics]
     lines = [
         *_block("Files:", files),
         *_block("Bag size:", [_file_size(size)]),
-        *_block("Storage id:", [meta.get("storage_identifier", "")]),
-        *_block("ROS Distro:", [meta.get("ros_distro", "")]),
+        *_block("Storage id:", [meta.storage_identifier]),
+        *_block("ROS Distro:", [meta.ros_distro]),
         *_block("Duration:", [f"{duration // 1_000_000_000}.{duration % 1_000_000_000:09d}s"]),
         *_block("Start:", [_time(start)]),
         *_block("End:", [_time(start + duration)]),
-        *_block("Messages:", [str(meta.get("message_count", 0))]),
+        *_block("Messages:", [str(meta.message_count)]),
         *_block("Topic information:", topics),
         *_block("Services:", ["0"]),
         *_block("Service information:", []),

@@ -39,7 +39,7 @@ from mcap.records import (
     SummaryOffset,
 )
 
-__all__ = ["MAGIC", "Damage", "Scan", "Totals", "Unit", "decompress", "scan", "summary_tail"]
+__all__ = ["MAGIC", "Damage", "InvalidRecord", "Scan", "Totals", "Unit", "decompress", "scan", "summary_tail"]
 
 MAGIC = b"\x89MCAP0\r\n"
 # opcode and record length: what precedes every record's body
@@ -136,19 +136,19 @@ class Totals:
         return cls(counts, first, last)
 
 
-class _Invalid(Exception):
+class InvalidRecord(Exception):
     """A record that is complete but cannot be used; the message says why."""
 
 
 def _parse(record_type: type[McapRecord], body: bytes) -> McapRecord:
-    """The record parsed from exactly ``body``; garbage of any kind raises :class:`_Invalid`."""
+    """The record parsed from exactly ``body``; garbage of any kind raises :class:`InvalidRecord`."""
     stream = ReadDataStream(io.BytesIO(body))
     try:
         record = record_type.read(stream)  # type: ignore[attr-defined]
     except Exception as error:  # the parser meets arbitrary bytes: struct, unicode, EOF errors...
-        raise _Invalid(f"unreadable {record_type.__name__.lower()} record ({error})") from error
+        raise InvalidRecord(f"unreadable {record_type.__name__.lower()} record ({error})") from error
     if stream.count != len(body):
-        raise _Invalid(f"{record_type.__name__.lower()} record of the wrong length")
+        raise InvalidRecord(f"{record_type.__name__.lower()} record of the wrong length")
     return record
 
 
@@ -215,10 +215,10 @@ def scan(file: BinaryIO, size: int, check_chunks: bool = False) -> Scan:
                 if check_chunks:
                     _read_chunk(file, chunk, result, check_chunks)
             elif opcode == Opcode.MESSAGE_INDEX:
-                raise _Invalid("message index without a chunk")
+                raise InvalidRecord("message index without a chunk")
             else:
                 result.units.append(_top_level_unit(opcode, body, position, end, result))
-        except _Invalid as error:
+        except InvalidRecord as error:
             what = "damaged chunk" if opcode == Opcode.CHUNK else f"bad {_name(opcode)} record"
             result.damage = Damage(position, f"{what} at offset {position} ({error}): it and all after "
                                              f"it cut", None)
@@ -228,7 +228,7 @@ def scan(file: BinaryIO, size: int, check_chunks: bool = False) -> Scan:
         # Nothing whole follows the last chunk, so its indexes may be cut short: rebuild them.
         try:
             _read_chunk(file, chunk, result, check_chunks)
-        except _Invalid as error:
+        except InvalidRecord as error:
             result.damage = Damage(chunk.start, f"{error} in the chunk at offset {chunk.start}: "
                                                 f"1 chunk cut", None)
             chunk = None
@@ -259,18 +259,18 @@ def _top_level_unit(opcode: int, body: bytes, position: int, end: int, result: S
         channel = _parse(Channel, body)
         assert isinstance(channel, Channel)
         if channel.schema_id and channel.schema_id not in result.schemas:
-            raise _Invalid(f"channel {channel.id} names unknown schema {channel.schema_id}")
+            raise InvalidRecord(f"channel {channel.id} names unknown schema {channel.schema_id}")
         result.channels[channel.id] = channel
     elif opcode == Opcode.MESSAGE:
         if len(body) < 22:
-            raise _Invalid("message record too short")
+            raise InvalidRecord("message record too short")
         channel_id, _sequence, log_time = struct.unpack_from("<HIQ", body)
         if channel_id not in result.channels:
-            raise _Invalid(f"message on unknown channel {channel_id}")
+            raise InvalidRecord(f"message on unknown channel {channel_id}")
         if result.units and (previous := result.units[-1]).chunk_index is None and previous.last_ns is not None \
                 and log_time < previous.last_ns:
             # Readers accept unindexed messages only in log time order; out of order here is damage.
-            raise _Invalid("log time going backwards in unindexed messages")
+            raise InvalidRecord("log time going backwards in unindexed messages")
         unit.counts, unit.first_ns, unit.last_ns = {channel_id: 1}, log_time, log_time
     elif opcode == Opcode.METADATA:
         metadata = _parse(Metadata, body)
@@ -286,9 +286,9 @@ def _chunk_unit(body: bytes, position: int, end: int) -> Unit:
         compression = body[32:32 + name_length].decode()
         (compressed_size,) = struct.unpack_from("<Q", body, 32 + name_length)
     except (struct.error, UnicodeDecodeError) as error:
-        raise _Invalid(f"unreadable chunk header ({error})") from error
+        raise InvalidRecord(f"unreadable chunk header ({error})") from error
     if 40 + name_length + compressed_size != len(body):
-        raise _Invalid("chunk record of the wrong length")
+        raise InvalidRecord("chunk record of the wrong length")
     index = ChunkIndex(
         chunk_length=end - position, chunk_start_offset=position, compression=compression,
         compressed_size=compressed_size, message_end_time=end_ns, message_index_length=0,
@@ -298,7 +298,7 @@ def _chunk_unit(body: bytes, position: int, end: int) -> Unit:
 
 
 def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: bool) -> None:
-    """Read the chunk's content: its counts, times and rebuilt message indexes; raises ``_Invalid``.
+    """Read the chunk's content: its counts, times and rebuilt message indexes; raises ``InvalidRecord``.
 
     ``check_references``: messages must name a channel defined before them (in this chunk or the
     records read before it); off when earlier chunks were not read.
@@ -309,9 +309,9 @@ def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: boo
     file.seek(chunk.start + header_length)
     data = decompress(index.compression, file.read(index.compressed_size), index.uncompressed_size)
     if len(data) != index.uncompressed_size:
-        raise _Invalid("chunk content of the wrong size")
+        raise InvalidRecord("chunk content of the wrong size")
     if chunk.crc and zlib.crc32(data) != chunk.crc:
-        raise _Invalid("chunk CRC mismatch")
+        raise InvalidRecord("chunk CRC mismatch")
     entries, schemas, channels = _chunk_records(data, result, check_references,
                                                 (index.message_start_time, index.message_end_time))
     result.schemas.update(schemas)
@@ -342,20 +342,20 @@ def _chunk_records(
     offset = 0
     while offset < len(data):
         if offset + 9 > len(data):
-            raise _Invalid("record header cut inside the chunk")
+            raise InvalidRecord("record header cut inside the chunk")
         opcode, length = _RECORD_START.unpack_from(data, offset)
         end = offset + 9 + length
         if end > len(data):
-            raise _Invalid("record cut inside the chunk")
+            raise InvalidRecord("record cut inside the chunk")
         body = data[offset + 9:end]
         if opcode == Opcode.MESSAGE:
             if length < 22:
-                raise _Invalid("message record too short")
+                raise InvalidRecord("message record too short")
             channel_id, _sequence, log_time = struct.unpack_from("<HIQ", body)
             if check_references and channel_id not in channels and channel_id not in result.channels:
-                raise _Invalid(f"message on unknown channel {channel_id}")
+                raise InvalidRecord(f"message on unknown channel {channel_id}")
             if not time_range[0] <= log_time <= time_range[1]:
-                raise _Invalid("message log time outside the chunk's range")
+                raise InvalidRecord("message log time outside the chunk's range")
             entries.setdefault(channel_id, []).append((log_time, offset))
         elif opcode == Opcode.SCHEMA:
             schema = _parse(Schema, body)
@@ -366,10 +366,10 @@ def _chunk_records(
             assert isinstance(channel, Channel)
             known = channel.schema_id in schemas or channel.schema_id in result.schemas
             if check_references and channel.schema_id and not known:
-                raise _Invalid(f"channel {channel.id} names unknown schema {channel.schema_id}")
+                raise InvalidRecord(f"channel {channel.id} names unknown schema {channel.schema_id}")
             channels[channel.id] = channel
         else:
-            raise _Invalid(f"{_name(opcode)} record inside the chunk")
+            raise InvalidRecord(f"{_name(opcode)} record inside the chunk")
         offset = end
     return entries, schemas, channels
 
@@ -400,7 +400,7 @@ def _partial_chunk_messages(file: BinaryIO, position: int, size: int) -> int | N
 
 
 def decompress(compression: str, data: bytes, size: int) -> bytes:
-    """A chunk's content; any failure (unknown compression, damaged frame) raises ``_Invalid``."""
+    """A chunk's content; any failure (unknown compression, damaged frame) raises ``InvalidRecord``."""
     try:
         if compression == "":
             return data
@@ -409,8 +409,8 @@ def decompress(compression: str, data: bytes, size: int) -> bytes:
         if compression == "lz4":
             return bytes(lz4.frame.decompress(data))
     except Exception as error:  # the decompressors raise several types on damaged frames
-        raise _Invalid(f"cannot decompress: {error}") from error
-    raise _Invalid(f"unknown chunk compression {compression!r}")
+        raise InvalidRecord(f"cannot decompress: {error}") from error
+    raise InvalidRecord(f"unknown chunk compression {compression!r}")
 
 
 def summary_tail(

@@ -22,9 +22,12 @@ __all__ = [
     "METADATA_VERSION",
     "QOS_KEYS",
     "ROS_DISTRO",
+    "SAFE_LOADER",
     "BagMetadata",
     "FileInfo",
     "TopicInfo",
+    "normalize_type",
+    "parse_qos_profiles",
     "qos_profile_dict",
     "serialize_qos_profiles",
 ]
@@ -92,6 +95,10 @@ _Dumper.add_representer(
 )
 
 
+#: libyaml's safe loader when PyYAML has it: a bag holds a QoS document per topic and file.
+SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
 def _dump(document: Any) -> str:
     return yaml.dump(
         document, Dumper=_Dumper, sort_keys=False, default_flow_style=False,
@@ -104,7 +111,70 @@ def serialize_qos_profiles(profiles: list[dict[str, Any]]) -> str:
     return _dump(profiles)
 
 
-def _normalize_type(type_name: str) -> str:
+# The policies as rmw numbers them (rmw/types.h); metadata before version 9 and Humble-era storage
+# files store these integers. A number rmw has no string for (Foxy's deprecated manual_by_node)
+# reads as "unknown", as rosbag2's own conversion gives.
+_POLICY_NAMES: dict[str, tuple[str, ...]] = {
+    "history": ("system_default", "keep_last", "keep_all", "unknown"),
+    "reliability": ("system_default", "reliable", "best_effort", "unknown", "best_available"),
+    "durability": ("system_default", "transient_local", "volatile", "unknown", "best_available"),
+    "liveliness": ("system_default", "automatic", "unknown", "manual_by_topic", "unknown", "best_available"),
+}
+_DURATION_KEYS = ("deadline", "lifespan", "liveliness_lease_duration")
+
+
+def parse_qos_profiles(stored: Any) -> list[dict[str, Any]]:
+    """The offered QoS profiles as any rosbag2 version stored them, in :func:`qos_profile_dict`'s form.
+
+    ``stored`` is the YAML list itself (metadata version 9) or the YAML *text* of it (older
+    metadata, MCAP channel metadata, sqlite3 topic rows); ``""`` or ``None`` means none recorded.
+    Policies may be rmw's integers (before version 9) or strings; Foxy's "infinite" durations
+    become ``{sec: 9223372036, nsec: 854775807}``, as rosbag2's ``qos.cpp`` reads them.
+
+    Raises:
+        ValueError: not YAML, not a list of profiles, or a profile lacking one of :data:`QOS_KEYS`.
+    """
+    if isinstance(stored, str):
+        try:
+            stored = yaml.load(stored, Loader=SAFE_LOADER) if stored.strip() else None  # noqa: S506 (safe)
+        except yaml.YAMLError as error:
+            raise ValueError(f"offered_qos_profiles is not YAML ({error})") from error
+    if stored is None:
+        return []
+    if not isinstance(stored, list) or not all(isinstance(profile, dict) for profile in stored):
+        raise ValueError("offered_qos_profiles is not a list of QoS profiles")
+    return [_parse_qos_profile(profile) for profile in stored]
+
+
+def _parse_qos_profile(stored: dict[str, Any]) -> dict[str, Any]:
+    missing = [key for key in QOS_KEYS if key not in stored]
+    if missing:
+        raise ValueError(f"a QoS profile lacks {', '.join(missing)}")
+    try:
+        profile: dict[str, Any] = {}
+        for key in QOS_KEYS:
+            value = stored[key]
+            if key in _POLICY_NAMES:
+                names = _POLICY_NAMES[key]
+                if isinstance(value, bool) or not isinstance(value, (int, str)):
+                    raise ValueError(f"{key} {value!r} is not a policy")
+                if isinstance(value, int):
+                    value = names[value] if 0 <= value < len(names) else "unknown"
+                else:
+                    value = value.lower() if value.lower() in names else "unknown"
+            elif key in _DURATION_KEYS:
+                value = _duration_dict(int(value["sec"]) * _NS_PER_S + int(value["nsec"]))
+            elif key == "depth":
+                value = int(value)
+            else:
+                value = bool(value)
+            profile[key] = value
+    except (KeyError, TypeError) as error:
+        raise ValueError(f"a QoS profile has an invalid value ({error!r})") from error
+    return profile
+
+
+def normalize_type(type_name: str) -> str:
     """``pkg/Type`` -> ``pkg/msg/Type``: readers match topics on the three-part spelling only."""
     parts = type_name.split("/")
     if len(parts) == 2 and all(parts):
@@ -132,7 +202,7 @@ class TopicInfo:
     def __post_init__(self) -> None:
         if not self.name.startswith("/"):
             raise ValueError(f"topic name must be fully qualified (start with '/'): {self.name!r}")
-        self.type = _normalize_type(self.type)
+        self.type = normalize_type(self.type)
         for profile in self.offered_qos_profiles:
             missing = [key for key in QOS_KEYS if key not in profile]
             if missing:

@@ -37,11 +37,9 @@ from mcap.opcode import Opcode
 
 from .mcap_records import MAGIC, Scan, Totals, scan, summary_tail
 from .mcap_storage import METADATA_KEY, METADATA_NAME
-from .metadata import METADATA_FILENAME, BagMetadata, FileInfo, TopicInfo
+from .metadata import METADATA_FILENAME, SAFE_LOADER, BagMetadata, FileInfo, TopicInfo
 from .sqlite_storage import create_tables
 
-# libyaml's loader when PyYAML has it: a bag has a QoS document per topic and file.
-_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 __all__ = ["RECOVER_COMMAND", "FileReport", "RecoveryReport", "recover_bag", "storage_files"]
 
@@ -225,7 +223,7 @@ def _custom_data(document: Any) -> dict[str, str] | None:
 
 
 def _load(text: str) -> Any:
-    return yaml.load(text, Loader=_Loader)  # noqa: S506 (a safe loader)
+    return yaml.load(text, Loader=SAFE_LOADER)  # noqa: S506 (a safe loader)
 
 
 def _storage_of(path: Path) -> str:

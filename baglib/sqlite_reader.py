@@ -1,0 +1,147 @@
+"""Reading one ``.db3`` storage file, in each schema rosbag2's sqlite3 plugin has written.
+
+The schema versions (rosbag2_storage_sqlite3 ``sqlite_storage.cpp``, ``read_db_schema_version``):
+1 (before Foxy) ``topics`` without ``offered_qos_profiles``; 2 (Foxy, Galactic) with it; 3 (Humble)
+adds the ``schema`` table (version, ROS distro) and the ``metadata`` table (the bag's metadata YAML);
+4 (Iron, Jazzy) adds ``topics.type_description_hash`` and the ``message_definitions`` table. Every
+version has ``messages(id, topic_id, timestamp, data)`` indexed by timestamp, which is the receive
+time; there is no publish time.
+
+Messages come out ordered by (timestamp, id): the order of ``timestamp_idx`` (sqlite keys every index
+by the row id last), so a start time is a seek in that index and the order needs no sort.
+"""
+from __future__ import annotations
+
+import logging
+import sqlite3
+import urllib.parse
+from collections.abc import Collection, Iterator
+from pathlib import Path
+
+from .metadata import parse_qos_profiles
+from .repair import RECOVER_COMMAND
+from .storage_reader import BagReadError, FileTopic, RawMessage
+
+__all__ = ["SqliteReader"]
+
+_log = logging.getLogger(__name__)
+_MAGIC = b"SQLite format 3\0"
+
+
+class SqliteReader:
+    """One sqlite3 database open read-only; its messages may be read from several threads."""
+
+    storage_id = "sqlite3"
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            with open(path, "rb") as file:
+                magic = file.read(len(_MAGIC))
+        except OSError as error:
+            raise BagReadError(f"cannot open {path}: {error.strerror}") from error
+        if magic != _MAGIC:
+            raise BagReadError(f"{path} is not an SQLite3 database")
+        self._db = self._connect()
+        try:
+            self._read_schema()
+        except sqlite3.Error as error:
+            self.close()
+            raise BagReadError(f"{path} is not a readable rosbag2 database: {error}") from error
+        except BaseException:
+            self.close()
+            raise
+
+    def _connect(self) -> sqlite3.Connection:
+        """A read-only connection that sees what a write-ahead log holds; where sqlite may not create the
+        log's index file (a read-only directory) the database is read as it is, without the log."""
+        uri = f"file:{urllib.parse.quote(str(self.path.resolve()))}"
+        try:
+            db = sqlite3.connect(f"{uri}?mode=ro", uri=True, check_same_thread=False)
+            db.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            return db
+        except sqlite3.Error as error:
+            hint = ""
+            if self.path.with_name(self.path.name + "-journal").exists():
+                hint = f" (a crash left its journal: run `{RECOVER_COMMAND}` on the bag)"
+            elif self.path.with_name(self.path.name + "-wal").exists():
+                _log.warning("%s: %s; reading it without its write-ahead log", self.path, error)
+                return sqlite3.connect(f"{uri}?immutable=1", uri=True, check_same_thread=False)
+            raise BagReadError(f"cannot read {self.path}: {error}{hint}") from error
+
+    def _read_schema(self) -> None:
+        tables = {name for (name,) in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if not {"topics", "messages"} <= tables:
+            raise BagReadError(f"{self.path} is not a rosbag2 database (no topics and messages tables)")
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(topics)")}
+        self.ros_distro = ""
+        if "schema" in tables:
+            row = self._db.execute("SELECT schema_version, ros_distro FROM schema").fetchone()
+            self.schema_version, self.ros_distro = (int(row[0]), str(row[1] or "")) if row else (3, "")
+        else:
+            self.schema_version = 2 if "offered_qos_profiles" in columns else 1
+        self.serialized_metadata = ""
+        if "metadata" in tables:
+            row = self._db.execute("SELECT metadata FROM metadata ORDER BY id DESC LIMIT 1").fetchone()
+            self.serialized_metadata = str(row[0]) if row else ""
+        definitions: dict[str, tuple[str, str]] = {}
+        if "message_definitions" in tables:
+            for type_name, encoding, text in self._db.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions ORDER BY id"):
+                if encoding and text and encoding != "unknown":
+                    definitions.setdefault(type_name, (encoding, text))
+        qos = "offered_qos_profiles" if "offered_qos_profiles" in columns else "''"
+        type_hash = "type_description_hash" if "type_description_hash" in columns else "''"
+        self.topics = [
+            FileTopic(topic_id, name, type_name, serialization_format, self._profiles(name, profiles),
+                      type_hash_value or "", definitions.get(type_name))
+            for topic_id, name, type_name, serialization_format, profiles, type_hash_value in self._db.execute(
+                f"SELECT id, name, type, serialization_format, {qos}, {type_hash} FROM topics ORDER BY id")]
+
+    def _profiles(self, topic: str, stored: str) -> tuple[dict, ...]:
+        try:
+            return tuple(parse_qos_profiles(stored))
+        except ValueError as error:
+            _log.warning("%s: topic %s: %s; its QoS profiles are left out", self.path, topic, error)
+            return ()
+
+    # --- the StorageReader interface ----------------------------------------------------------
+
+    def time_range(self) -> tuple[int, int] | None:
+        first, last = self._query("SELECT min(timestamp), max(timestamp) FROM messages").fetchone()
+        return None if first is None else (first, last)
+
+    def message_counts(self) -> dict[int, int]:
+        return dict(self._query("SELECT topic_id, count(*) FROM messages GROUP BY topic_id").fetchall())
+
+    def messages(self, keys: Collection[int] | None, start_ns: int | None, stop_ns: int | None
+                 ) -> Iterator[RawMessage]:
+        wanted = {topic.key for topic in self.topics} if keys is None else set(keys)
+        if not wanted:
+            return
+        conditions, parameters = [f"topic_id IN ({', '.join('?' * len(wanted))})"], list(wanted)
+        if start_ns is not None:
+            conditions.append("timestamp >= ?")
+            parameters.append(start_ns)
+        if stop_ns is not None:
+            conditions.append("timestamp < ?")
+            parameters.append(stop_ns)
+        cursor = self._query(
+            f"SELECT topic_id, timestamp, data FROM messages WHERE {' AND '.join(conditions)}"
+            " ORDER BY timestamp, id", parameters)
+        try:
+            for topic_id, timestamp, data in cursor:
+                yield topic_id, timestamp, timestamp, data
+        except sqlite3.Error as error:
+            raise BagReadError(f"cannot read {self.path}: {error}") from error
+        finally:
+            cursor.close()
+
+    def close(self) -> None:
+        self._db.close()
+
+    def _query(self, sql: str, parameters: Collection[int] = ()) -> sqlite3.Cursor:
+        try:
+            return self._db.execute(sql, tuple(parameters))
+        except sqlite3.Error as error:
+            raise BagReadError(f"cannot read {self.path}: {error}") from error
