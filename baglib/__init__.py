@@ -14,5 +14,6 @@ recorder, the player and ``ipc-component bag ...`` all share one implementation:
 * ``info``: what ``ros2 bag info`` prints;
 * ``cdr_fast`` / ``cdr_size``: message objects to the exact CDR bytes a DDS reader receives;
 * ``message_definitions``: the ``.msg`` text and RIHS01 type hash of installed types;
+* ``service_events``: service event topics (``<service>/_service_event``) and types (``pkg/srv/Name_Event``);
 * ``direct_file``: ``O_DIRECT`` writes for big payloads.
 """

@@ -15,8 +15,10 @@ the only copies are the read from the file and, for compressed chunks, the decom
 """
 from __future__ import annotations
 
+import bisect
 import heapq
 import io
+import itertools
 import logging
 import os
 import struct
@@ -109,13 +111,12 @@ class McapReader:
                                                         or summary.statistics.message_count)):
             return None
         if summary.chunk_indexes:
-            self._units = [_chunk_unit(index, frozenset(index.message_index_offsets) or None)
-                           for index in summary.chunk_indexes]
+            self._set_units([_chunk_unit(index, frozenset(index.message_index_offsets) or None)
+                             for index in summary.chunk_indexes])
         elif summary.statistics is None or summary.statistics.message_count:
-            self._units = self._list_top_level_messages(size)
+            self._set_units(self._list_top_level_messages(size))
         else:
-            self._units = []
-        self._units.sort(key=lambda unit: (unit.start_ns, unit.offset))
+            self._set_units([])
         statistics = summary.statistics
         if statistics is not None:
             self._counts: dict[int, int] | None = dict(statistics.channel_message_counts)
@@ -142,11 +143,18 @@ class McapReader:
             elif unit.counts and unit.first_ns is not None:  # a top-level message
                 units.append(_Unit(unit.first_ns, unit.first_ns, unit.start, unit.end - unit.start,
                                    frozenset(unit.counts)))
-        self._units = sorted(units, key=lambda unit: (unit.start_ns, unit.offset))
+        self._set_units(units)
         totals = Totals.of(found.units)
         self._counts = totals.counts
         self._range = None if totals.first_ns is None or totals.last_ns is None else (totals.first_ns, totals.last_ns)
         return found.schemas, found.channels, found.metadata
+
+    def _set_units(self, units: list[_Unit]) -> None:
+        """Keep ``units`` ordered by first log time (then file offset), with what a time seek needs: the
+        first log times, and the latest log time reached by each prefix of the list."""
+        self._units = sorted(units, key=lambda unit: (unit.start_ns, unit.offset))
+        self._starts = [unit.start_ns for unit in self._units]
+        self._reach = list(itertools.accumulate((unit.end_ns for unit in self._units), max))
 
     def _list_top_level_messages(self, size: int) -> list[_Unit]:
         """The units of a file whose summary has no chunk indexes, from the record headers alone."""
@@ -196,9 +204,10 @@ class McapReader:
         wanted = frozenset(topic.key for topic in self.topics) if keys is None else frozenset(keys)
         start = -1 if start_ns is None else start_ns
         stop = 2**64 if stop_ns is None else stop_ns
-        units = [unit for unit in self._units
-                 if unit.end_ns >= start and unit.start_ns < stop
-                 and (unit.channels is None or not unit.channels.isdisjoint(wanted))]
+        # Units before `first` end before `start`; those from `last` on begin at or after `stop`.
+        first, last = bisect.bisect_left(self._reach, start), bisect.bisect_left(self._starts, stop)
+        units = [unit for unit in self._units[first:last]
+                 if unit.end_ns >= start and (unit.channels is None or not unit.channels.isdisjoint(wanted))]
         waiting: list[tuple[int, int, int, int, int, bytes | memoryview]] = []
         for number, unit in enumerate(units):
             while waiting and waiting[0][0] < unit.start_ns:

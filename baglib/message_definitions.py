@@ -13,6 +13,9 @@ import re
 import sys
 from functools import cache
 from pathlib import Path
+from typing import Callable
+
+from .service_events import EVENT_TYPE_SUFFIX, service_type
 
 __all__ = [
     "MessageDefinitionNotFoundError",
@@ -28,6 +31,8 @@ _SEPARATOR = "=" * 80 + "\n"
 _MSG_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
 # Includes in .idl files: "foo_msgs/msg/Bar" in "#include <foo_msgs/msg/Bar.idl>".
 _IDL_INCLUDE = re.compile(r'(?:^|\n)#include\s+(?:"|<)([a-zA-Z0-9_/]+)\.idl(?:"|>)')
+# A whole #include line, removed from the sections of a service event definition.
+_INCLUDE_LINE = re.compile(r"^#include\s[^\n]*\n?", re.MULTILINE)
 
 # rosbag2's list plus "wstring": rosbag2 forgets it and then falls back to IDL for any type with a
 # wstring field; treating it as the builtin it is keeps such types in the readable .msg form.
@@ -109,23 +114,61 @@ def _dependencies(text: str, type_name: str, extension: str) -> list[str]:
     return sorted(found)
 
 
-def _full_text(root: str, extension: str, label: str) -> str:
-    """Root text followed by every dependency once, depth first, each behind a separator."""
+def _full_text(root: str, extension: str, label: str, root_text: str | None = None,
+               clean: Callable[[str], str] = str) -> str:
+    """Root text followed by every dependency once, depth first, each behind a separator.
+
+    ``root_text`` replaces the root's file (for a type that has none); ``clean`` is applied to every
+    section's text after its dependencies were read from it.
+    """
     seen: set[str] = set()
 
-    def append(type_name: str, depth: int) -> str:
+    def append(type_name: str, text: str, depth: int) -> str:
         if depth <= 0:
             raise RecursionError(f"message definition of {root} nests deeper than {_MAX_DEPTH}")
-        text = _read_definition(type_name, extension)
-        parts = [text]
+        parts = [clean(text)]
         for dependency in _dependencies(text, type_name, extension):
             if dependency not in seen:
                 seen.add(dependency)
                 parts.append(f"\n{_SEPARATOR}{label}: {dependency}\n")
-                parts.append(append(dependency, depth - 1))
+                parts.append(append(dependency, _read_definition(dependency, extension), depth - 1))
         return "".join(parts)
 
-    return append(root, _MAX_DEPTH)
+    return append(root, _read_definition(root, extension) if root_text is None else root_text, _MAX_DEPTH)
+
+
+def _event_idl(service: str) -> str:
+    """The IDL of ``pkg/srv/Name_Event``, the message rosidl generates for ``pkg/srv/Name`` (no file has it)."""
+    package, _, name = service.split("/")
+    return (f'#include "service_msgs/msg/ServiceEventInfo.idl"\n'
+            f'#include "{service}.idl"\n\n'
+            f"module {package} {{\n"
+            "  module srv {\n"
+            f"    struct {name}{EVENT_TYPE_SUFFIX} {{\n"
+            "      service_msgs::msg::ServiceEventInfo info;\n\n"
+            f"      sequence<{package}::srv::{name}_Request, 1> request;\n\n"
+            f"      sequence<{package}::srv::{name}_Response, 1> response;\n"
+            "    };\n"
+            "  };\n"
+            "};\n")
+
+
+def _service_event_definition(type_name: str) -> str:
+    """The ``ros2idl`` text of a service event type: its own IDL, then ServiceEventInfo, the service's
+    ``_Request``/``_Response`` and their dependencies, each from the installed ``.idl`` files.
+
+    rosbag2 Jazzy stores the ``.srv`` text here instead (behind an ``SRV:`` header, encoding ``ros2msg``,
+    ``ros2idl`` or, for a service of primitive fields only, ``unknown``), which describes the request and
+    the response but not the event message on the topic: no reader can decode the events with it, and the
+    ``rosbags`` reader refuses the whole bag (ros2/rosbag2#2365). The text here decodes the events in
+    ``rosbags`` (whose RIHS01 hash of it equals rosidl's) and in Foxglove. It is IDL because ``.msg`` cannot
+    name the ``pkg/srv/...`` types the event is made of (readers turn them into ``pkg/msg/...``). The
+    ``#include`` lines are left out: every included type is a section of the same text, and ``rosbags``'
+    IDL parser rejects them.
+    """
+    root = f"{_SEPARATOR}IDL: {type_name}\n"
+    return root + _full_text(type_name, ".idl", "IDL", root_text=_event_idl(service_type(type_name)),
+                             clean=lambda text: _INCLUDE_LINE.sub("", text))
 
 
 @cache
@@ -135,19 +178,22 @@ def message_definition(type_name: str) -> tuple[str, str]:
     ``type_name`` is ``pkg/msg/Type`` (``pkg/Type`` is accepted too). The encoding is ``ros2msg``
     when the type and all its dependencies have ``.msg`` files; otherwise the whole definition
     falls back to ``ros2idl`` (as in rosbag2), with every type, the root included, behind an
-    ``IDL: pkg/msg/Type`` header.
+    ``IDL: pkg/msg/Type`` header. A service event type ``pkg/srv/Name_Event`` is ``ros2idl``
+    (see :func:`_service_event_definition`).
 
     Raises:
         MessageDefinitionNotFoundError: neither form is installed for the type or a dependency.
         ValueError: ``type_name`` is not a ROS type name.
     """
     package, folder, name = _split_type_name(type_name)
-    try:
-        return "ros2msg", _full_text(type_name, ".msg", "MSG")
-    except MessageDefinitionNotFoundError:
-        pass
     root = f"{package}/{folder}/{name}"
     try:
+        if folder == "srv" and name.endswith(EVENT_TYPE_SUFFIX):
+            return "ros2idl", _service_event_definition(root)
+        try:
+            return "ros2msg", _full_text(type_name, ".msg", "MSG")
+        except MessageDefinitionNotFoundError:
+            pass
         return "ros2idl", f"{_SEPARATOR}IDL: {root}\n" + _full_text(root, ".idl", "IDL")
     except MessageDefinitionNotFoundError as error:
         raise MessageDefinitionNotFoundError(
@@ -161,6 +207,8 @@ def type_hash(type_name: str) -> str:
 
     Publishers announce this hash in their endpoint info; when none is at hand (no publisher seen
     yet), the hash of the locally installed type is the same value for an identical definition.
+    A service event type ``pkg/srv/Name_Event`` has no ``.json`` of its own: rosidl lists its hash
+    in the service's ``pkg/srv/Name.json``.
 
     Raises:
         MessageDefinitionNotFoundError: the package has no ``<Type>.json`` type description.
@@ -168,11 +216,15 @@ def type_hash(type_name: str) -> str:
     """
     package, folder, name = _split_type_name(type_name)
     path = _find_file(package, folder, name, ".json")
+    if path is None and folder == "srv" and name.endswith(EVENT_TYPE_SUFFIX):
+        path = _find_file(package, folder, name[: -len(EVENT_TYPE_SUFFIX)], ".json")
     if path is None:
         raise MessageDefinitionNotFoundError(f"no type description (.json) for {type_name}")
     with open(path, encoding="utf-8") as file:
         description = json.load(file)
+    full_name = f"{package}/{folder}/{name}"
     try:
-        return str(description["type_hashes"][0]["hash_string"])
-    except (KeyError, IndexError, TypeError):
-        raise MessageDefinitionNotFoundError(f"{path} holds no type hash") from None
+        return next(str(entry["hash_string"]) for entry in description["type_hashes"]
+                    if entry["type_name"] == full_name)
+    except (KeyError, TypeError, StopIteration):
+        raise MessageDefinitionNotFoundError(f"{path} holds no type hash for {full_name}") from None

@@ -31,6 +31,7 @@ GARBAGE_PLUGINS = ["", "components::", "::", "components::NoSuch", "components::
 KNOWN_PARAMETERS = [
     "rate", "fps", "width", "height", "encoding", "frame_id", "topic", "qos", "points_per_scan", "rings",
     "use_sim_time", "record.all_topics", "record.topics", "record.topic_types", "record.exclude_topics",
+    "record.all_services", "record.services", "record.exclude_services",
     "record.regex", "record.exclude_regex", "record.include_hidden_topics", "record.start_paused",
     "record.topic_polling_interval.sec", "record.topic_polling_interval.nsec", "storage.storage_id",
     "storage.max_bagfile_size", "storage.max_bagfile_duration", "storage.max_cache_size",

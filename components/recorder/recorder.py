@@ -38,6 +38,7 @@ from component_container.health import Health
 from baglib.writer import BagWriter
 from baglib.message_definitions import message_definition
 from baglib.metadata import TopicInfo, qos_profile_dict
+from baglib.service_events import event_class
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
@@ -54,8 +55,11 @@ ACK_SHARE = 0.1
 
 
 def message_class(type_name: str) -> Any:
-    """The Python class of ``pkg/msg/Type``; ImportError/AttributeError if it is not installed."""
-    package, _, name = type_name.split("/")
+    """The Python class of ``pkg/msg/Type`` or of a service event ``pkg/srv/Name_Event``;
+    ImportError/AttributeError if it is not installed."""
+    package, folder, name = type_name.split("/")
+    if folder == "srv":
+        return event_class(type_name)
     return getattr(importlib.import_module(f"{package}.msg"), name)
 
 

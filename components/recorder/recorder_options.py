@@ -31,10 +31,13 @@ from components.node_parameters import clean, declare_defaults, given_values, ty
 
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
+    "all_services": False,
     "topics": [""],
     "topic_types": [""],
+    "services": [""],
     "exclude_topics": [""],
     "exclude_topic_types": [""],
+    "exclude_services": [""],
     "regex": "",
     "exclude_regex": "",
     "include_hidden_topics": False,
@@ -124,10 +127,15 @@ class RecordOptions:
     """The recorder's validated settings."""
 
     all_topics: bool = False
+    #: every service whose events are published (introspection enabled), see topic_selection
+    all_services: bool = False
     topics: list[str] = field(default_factory=list)
     topic_types: list[str] = field(default_factory=list)
+    #: service names (``/add_two_ints``; ``/add_two_ints/_service_event`` is accepted too)
+    services: list[str] = field(default_factory=list)
     exclude_topics: list[str] = field(default_factory=list)
     exclude_topic_types: list[str] = field(default_factory=list)
+    exclude_services: list[str] = field(default_factory=list)
     regex: str = ""
     exclude_regex: str = ""
     include_hidden_topics: bool = False
@@ -221,10 +229,13 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     POLLING_INTERVAL.check("'record.topic_polling_interval' (.sec + .nsec)", interval)
     return RecordOptions(
         all_topics=values["record.all_topics"],
+        all_services=values["record.all_services"],
         topics=clean(values["record.topics"]),
         topic_types=clean(values["record.topic_types"]),
+        services=clean(values["record.services"]),
         exclude_topics=clean(values["record.exclude_topics"]),
         exclude_topic_types=clean(values["record.exclude_topic_types"]),
+        exclude_services=clean(values["record.exclude_services"]),
         regex=values["record.regex"],
         exclude_regex=values["record.exclude_regex"],
         include_hidden_topics=values["record.include_hidden_topics"],

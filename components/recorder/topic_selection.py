@@ -5,6 +5,13 @@ minus ``exclude_topics`` / ``exclude_topic_types`` / ``exclude_regex``; hidden t
 with ``_``) only with ``include_hidden_topics``; topics without publishers only with
 ``include_unpublished_topics``. The recorder's own event topic is never recorded.
 
+Service event topics (``<service>/_service_event`` of type ``pkg/srv/Name_Event``, see
+:mod:`baglib.service_events`) are selected apart, as in rosbag2 Jazzy's TopicFilter: ``all_services``, or
+the service named in ``services``, or ``regex`` matching the *service* name; minus ``exclude_services`` and
+``exclude_regex`` (again on the service name). The topic options (``all_topics``, ``topics``,
+``topic_types``, ``exclude_topics``, ``exclude_topic_types``, ``include_hidden_topics``) never apply to them,
+although their names are hidden; ``include_unpublished_topics`` does.
+
 QoS: reliable only if every publisher offers reliable, transient_local only if every publisher offers it,
 keep_last with depth :data:`RECORDER_DEPTH`; an entry in the ``qos_profile_overrides_path`` YAML file replaces this.
 """
@@ -15,6 +22,7 @@ from pathlib import Path
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from baglib.service_events import event_topic, is_service_event_topic, service_name
 from components import qos_profiles
 from components.recorder.recorder_options import RecordOptions
 
@@ -35,6 +43,9 @@ class TopicFilter:
         self._exclude_regex = re.compile(options.exclude_regex) if options.exclude_regex else None
         self._topics = {qos_profiles.absolute_topic(t) for t in options.topics}
         self._exclude_topics = {qos_profiles.absolute_topic(t) for t in options.exclude_topics}
+        # rosbag2 compares the event topic names the services map to
+        self._services = {event_topic(qos_profiles.absolute_topic(s)) for s in options.services}
+        self._exclude_services = {event_topic(qos_profiles.absolute_topic(s)) for s in options.exclude_services}
 
     def selects(self, topic: str, type_name: str, publisher_count: int) -> bool:
         o = self._options
@@ -42,6 +53,8 @@ class TopicFilter:
             return False
         if publisher_count == 0 and not o.include_unpublished_topics:
             return False
+        if is_service_event_topic(topic, type_name):
+            return self._selects_service(topic)
         explicitly_named = topic in self._topics
         if _is_hidden(topic) and not (o.include_hidden_topics or explicitly_named):
             return False
@@ -53,6 +66,14 @@ class TopicFilter:
             return False
         return not (self._exclude_regex and self._exclude_regex.search(topic))
 
+    def _selects_service(self, topic: str) -> bool:
+        """The service options for a service event topic; the regexes see the service's name."""
+        service = service_name(topic)
+        wanted = (self._options.all_services or topic in self._services
+                  or bool(self._regex and self._regex.search(service)))
+        if not wanted or topic in self._exclude_services:
+            return False
+        return not (self._exclude_regex and self._exclude_regex.search(service))
 
 
 
