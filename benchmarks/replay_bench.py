@@ -17,6 +17,8 @@ Modes (each a fresh set of processes, cwd the repository):
   the consumer gets message objects, deserialized once by the player's read-ahead thread;
 * ``out-of-process``: the player alone in a container; the consumer a plain rclpy process whose reliable
   subscriptions receive the recorded CDR over Fast DDS and deserialize it (what a Python pipeline gets).
+  The player offers the recorded QoS, as rosbag2's does: the drivers' reliable keep_last 10, so a reader that
+  falls more than 10 samples behind on a topic loses samples (counted by its message-lost events).
 
 Protocol of one run at rate multiplier R: reset the consumer's counters; load a player (``storage.uri``,
 ``play.rate`` R, ``play.start_paused``); wait until the consumer has matched a publisher on every topic, then
@@ -204,6 +206,7 @@ class Setup:
     client: ContainerClient
     pids: dict[str, int]
     alive: Callable[[], bool]
+    output: Callable[[], str]   # what the container printed so far
 
 
 def stop_process(process: subprocess.Popen, timeout: float = 20.0) -> None:
@@ -226,7 +229,7 @@ def in_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path
                                  parameters={"topics": list(bag.counts), "types": list(bag.types.values())})
             if not loaded.success:
                 raise RuntimeError(f"consumer did not load: {loaded.error_message}")
-            yield Setup(client, {"container": container.pid}, container.alive)
+            yield Setup(client, {"container": container.pid}, container.alive, lambda: container.output)
         finally:
             container.stop()
 
@@ -242,7 +245,7 @@ def out_of_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: 
             client = ContainerClient(caller.node)
             client.wait(args.startup_timeout)
             yield Setup(client, {"player container": container.pid, "consumer": consumer.pid},
-                        lambda: container.alive() and consumer.poll() is None)
+                        lambda: container.alive() and consumer.poll() is None, lambda: container.output)
         finally:
             stop_process(consumer)
             container.stop()
@@ -321,7 +324,8 @@ def run_mode(caller: Caller, mode: str, bag: Bag, args: argparse.Namespace, work
             try:
                 run = run_rate(caller, setup, bag, rate, f"player_{index}", args)
             except Exception as exc:  # noqa: BLE001 - reported as this rate's result; the next mode still runs
-                log(f"    FAILED: {type(exc).__name__}: {exc}")
+                log(f"    FAILED: {type(exc).__name__}: {exc}; the container's last lines:\n"
+                    + "\n".join(setup.output().splitlines()[-15:]))
                 runs.append({"rate": rate, "error": f"{type(exc).__name__}: {exc}", "sustained": False})
                 break
             log(f"    {run['delivered']}/{run['expected']} delivered, wall {run['wall_s']:.2f} s "
@@ -363,7 +367,10 @@ def print_report(report: dict[str, Any], args: argparse.Namespace) -> None:
     for row in rows:
         print("| " + " | ".join(row) + " |")
     print("\nCPU s per process: in-process = the container (player + consumer); out-of-process = player "
-          "container + consumer process.\n")
+          "container + consumer process. other s: CPU of other processes during the run.")
+    for line in notes(report):
+        print("  * " + line)
+    print()
     summary = []
     for mode, result in report["modes"].items():
         if "error" in result:
@@ -384,6 +391,26 @@ def print_report(report: dict[str, Any], args: argparse.Namespace) -> None:
           + f"; {report['environment']['cpus']} CPUs; total run time {report['elapsed_s']:.0f} s)")
 
 
+def notes(report: dict[str, Any]) -> list[str]:
+    """What went missing where, and runs that other processes perturbed."""
+    out = []
+    for mode, result in report["modes"].items():
+        for run in result.get("runs", []):
+            if "error" in run:
+                continue
+            label = f"{mode} R={run['rate']:g}"
+            missing = [f"{topic} {c['expected'] - c['received']} (DDS lost events {c['lost']}, in-process drops "
+                       f"{c['dropped']})" for topic, c in run["per_topic"].items() if c["received"] != c["expected"]]
+            if missing:
+                out.append(f"{label}: missing " + "; ".join(missing))
+            if run["read_error"]:
+                out.append(f"{label}: the player failed to read the bag: {run['read_error']}")
+            if run["other_cpu_s"] > 0.25 * run["wall_s"] * (os.cpu_count() or 1):
+                out.append(f"{label}: other processes used {run['other_cpu_s']:.1f} CPU s during the run "
+                           "(a busy machine: timing numbers are perturbed)")
+    return out
+
+
 def evaluate_target(report: dict[str, Any]) -> dict[str, str]:
     runs = report["modes"].get("in-process", {}).get("runs", [])
     one = next((r for r in runs if r["rate"] == 1.0 and "error" not in r), None)
@@ -402,7 +429,7 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--rates", default="1,2,4,8,16", help="rate multipliers, tried in order up to a failure")
     p.add_argument("--modes", default="in-process,out-of-process")
     p.add_argument("--slack", type=float, default=1.10, help="sustained: wall <= ideal x this")
-    p.add_argument("--settle", type=float, default=1.0, help="seconds between matching and ~/resume")
+    p.add_argument("--settle", type=float, default=2.0, help="seconds between matching and ~/resume")
     p.add_argument("--startup-timeout", type=float, default=60.0)
     p.add_argument("--output-dir", default=None, help="where the temporary bag directory goes (default: $TMPDIR)")
     p.add_argument("--json", metavar="FILE", help="also write the results as JSON")
