@@ -427,11 +427,11 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="smoke run: 3 s bag, rates 1 and 2")
     p.add_argument("--seconds", type=float, default=10.0, help="bag length")
     p.add_argument("--rates", default="1,2,4,8,16", help="rate multipliers, tried in order up to a failure")
-    p.add_argument("--modes", default="in-process,out-of-process")
+    p.add_argument("--modes", default="in-process,out-of-process", help="comma-separated subset")
     p.add_argument("--slack", type=float, default=1.10, help="sustained: wall <= ideal x this")
     p.add_argument("--settle", type=float, default=2.0, help="seconds between matching and ~/resume")
     p.add_argument("--startup-timeout", type=float, default=60.0)
-    p.add_argument("--output-dir", default=None, help="where the temporary bag directory goes (default: $TMPDIR)")
+    p.add_argument("--output-dir", default=None, help="where the temporary bag directory goes (None: $TMPDIR)")
     p.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = p.parse_args(argv)
     if args.quick:
