@@ -13,6 +13,7 @@ Topics whose type is not installed are skipped with a warning naming the type; t
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from typing import Any
@@ -43,7 +44,7 @@ from baglib.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
 from components.player.playback import Playback, RunLimits
-from components.player.playback_clock import PlaybackClock
+from components.player.playback_clock import PlaybackClock, ShortSwitchInterval
 from components.player.player_options import PlayOptions, declare_play_options
 from components.player.player_topics import TopicPublisher, allow_topic, publisher_qos
 from components.player.read_ahead import Queued, ReadAhead
@@ -75,6 +76,8 @@ class Player(ComponentNode):
         super().__init__("rosbag2_player", **kwargs)
         self._reader: BagReader | None = None
         self._read_ahead: ReadAhead | None = None
+        self._read_error: str | None = None
+        self._holds_switch_interval = False
         try:
             self._options = declare_play_options(self, overrides)
             self._reader = self._open_bag(self._options)
@@ -85,15 +88,18 @@ class Player(ComponentNode):
             self._split_events = self.create_publisher(ReadSplitEvent, SPLIT_EVENT_TOPIC, 1)
             self._file_index = 0
             self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
-                                         self._options.read_ahead_max_bytes, self._prepare, self._on_read_error)
+                                         self._options.read_ahead_max_bytes, self._prepare, self._on_read_error,
+                                         lambda: self._playback.wait_for_slack())
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
             self._playback = Playback(clock, self._read_ahead, self._reader.starting_time_ns, self._publish,
                                       self.get_logger(), self._options.loop, self._options.delay_ns,
                                       self._wait_for_acks, self._finish_files)
-            self._read_error: str | None = None
+            ShortSwitchInterval.acquire()
+            self._holds_switch_interval = True
         except Exception:
-            self._close_bag()
-            super().destroy_node()
+            with contextlib.suppress(Exception):  # the caller needs the original error, not a cleanup's
+                self._close_bag()
+                super().destroy_node()
             raise
         if self._options.clock_publish_frequency > 0:
             self._clock_timer = self.create_timer(1.0 / self._options.clock_publish_frequency, self._publish_clock)
@@ -355,6 +361,9 @@ class Player(ComponentNode):
         try:
             if hasattr(self, "_playback"):
                 self._playback.stop(self.shutdown_timeout / 2)
+            if self._holds_switch_interval:
+                self._holds_switch_interval = False
+                ShortSwitchInterval.release()
             self._close_bag()
         finally:
             super().destroy_node()

@@ -25,12 +25,14 @@ class ReadAhead:
     """A loader thread over one BagReader; the playback thread ``peek``s and ``pop``s."""
 
     def __init__(self, reader: BagReader, topics: Collection[str], max_messages: int, max_bytes: int,
-                 prepare: Callable[[BagMessage], Any], on_error: Callable[[BaseException], None]) -> None:
+                 prepare: Callable[[BagMessage], Any], on_error: Callable[[BaseException], None],
+                 before_prepare: Callable[[], None] = lambda: None) -> None:
         self._reader = reader
         self._topics = list(topics)
         self._max_messages = max_messages
         self._max_bytes = max_bytes
         self._prepare = prepare
+        self._before_prepare = before_prepare
         self._on_error = on_error
         self._queue: deque[Queued] = deque()
         self._bytes = 0
@@ -103,6 +105,7 @@ class ReadAhead:
         messages = self._reader.messages(self._topics, start_ns, stop_ns)
         try:
             for message in messages:
+                self._before_prepare()
                 prepared = self._prepare(message)
                 size = _size(message)
                 with self._changed:

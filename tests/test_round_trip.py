@@ -1,0 +1,91 @@
+"""Round-trip fidelity: record the rig, play the bag into a second container that records it again.
+
+Container A runs the drivers (camera, LiDAR, IMU) with a recorder next to them, all intra-process. Container B
+runs a recorder and then a player of A's bag, both intra-process: the recorder gets the player's message
+objects by reference and serializes them itself. Read back by ``rosbags`` (an independent reader), the two bags
+must hold per topic the same message bytes in the same order, and B's log times (when its recorder received
+each message, i.e. when the player published it) must keep A's offsets between messages: the bag's schedule.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from rosbags.rosbag2 import Reader
+
+from container_process import Containers, wait_until
+
+IPC = {"use_intra_process_comms": True}
+TOPICS = ["/camera/image_raw", "/camera/camera_info", "/lidar/points", "/imu/imu"]
+RIG = [
+    ("components::CameraDriver", "camera", {"width": 320, "height": 240, "fps": 30.0}),
+    ("components::LidarDriver", "lidar", {"points_per_scan": 4096, "rings": 16, "rate": 10.0}),
+    ("components::ImuDriver", "imu", {"rate": 200.0}),
+]
+#: The issue's bound on the offset between consecutive messages, for nearly all of them (p99): CI shares two
+#: cores with nothing else, but a single scheduling hiccup must not fail the test; the worst is printed.
+OFFSET_BOUND_MS = 2.0
+
+
+def read(bag: Path) -> dict[str, list[tuple[int, bytes]]]:
+    """topic -> [(log time, CDR)] in bag order, by rosbags."""
+    messages: dict[str, list[tuple[int, bytes]]] = {topic: [] for topic in TOPICS}
+    with Reader(bag) as reader:
+        for connection, timestamp, data in reader.messages():
+            messages[connection.topic].append((timestamp, bytes(data)))
+    return messages
+
+
+def record(client: Any, name: str, uri: Path) -> int:
+    response = client.load("components::Recorder", name=name, extra=IPC,
+                           parameters={"storage.uri": str(uri), "record.topics": TOPICS})
+    assert response.success, response.error_message
+    return response.unique_id
+
+
+def test_record_play_record_keeps_bytes_order_and_offsets(probe: Any, tmp_path: Path) -> None:
+    rig_file = tmp_path / "rig.yaml"
+    rig_file.write_text(yaml.safe_dump({"components": [
+        {"package": "components", "plugin": plugin, "name": name, "parameters": parameters,
+         "extra_arguments": IPC} for plugin, name, parameters in RIG]}))
+    started = Containers(probe)
+    try:
+        rig_process, rig = started.start("--load", str(rig_file), "--ros-args", "-r", "__node:=rig", container="/rig")
+        assert wait_until(lambda: len(rig.list().unique_ids) == 3, 20.0)
+        first = tmp_path / "first"
+        recorder = record(rig, "recorder", first)
+        time.sleep(3.0)
+        assert rig.unload(recorder).success
+        assert rig_process.stop() == 0  # its drivers would publish on the topics the player replays
+
+        _, replay = started.start("--use-intra-process-comms", "--ros-args", "-r", "__node:=replay", container="/replay")
+        second = tmp_path / "second"
+        recorder = record(replay, "rerecorder", second)
+        player = replay.load("components::Player", name="player", extra=IPC,
+                             parameters={"storage.uri": str(first), "play.delay.sec": 1})
+        assert player.success, player.error_message
+        original = read(first)
+        duration = max(t for messages in original.values() for t, _ in messages) - min(
+            t for messages in original.values() for t, _ in messages)
+        time.sleep(1.0 + duration / 1e9 + 1.0)
+        assert replay.unload(player.unique_id).success
+        assert replay.unload(recorder).success
+    finally:
+        started.close()
+
+    again = read(second)
+    for topic in TOPICS:
+        assert len(original[topic]) > 10, topic
+        assert [data for _, data in again[topic]] == [data for _, data in original[topic]], topic
+    # Offsets between consecutive messages of the whole bag (log-time order) against the original's.
+    first_order = sorted((t, topic, i) for topic in TOPICS for i, (t, _) in enumerate(original[topic]))
+    second_times = [again[topic][i][0] for _, topic, i in first_order]
+    errors = sorted(abs((b2 - a2) - (b1 - a1)) / 1e6 for (a1, _, _), (b1, _, _), a2, b2
+                    in zip(first_order, first_order[1:], second_times, second_times[1:]))
+    p99 = errors[int(0.99 * len(errors))]
+    print(f"offset error over {len(errors)} consecutive pairs: p50 {errors[len(errors) // 2]:.3f} ms, "
+          f"p99 {p99:.3f} ms, max {errors[-1]:.3f} ms")
+    assert p99 <= OFFSET_BOUND_MS, errors[-20:]
