@@ -1,0 +1,88 @@
+"""``ipc-component bag play`` as users run it: a real process, its progress line on a terminal, its exit code.
+
+The command runs a container with one ``components::Player`` in its own process; a plain rclpy subscription in
+this process receives what it plays over Fast DDS.
+"""
+from __future__ import annotations
+
+import os
+import pty
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from baglib.cdr_fast import serialize
+from baglib.metadata import TopicInfo, qos_profile_dict
+from baglib.writer import BagWriter
+from container_process import wait_until
+
+CLI = str(Path(sys.executable).with_name("ipc-component"))
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+T0 = 1_700_000_000_000_000_000
+
+
+def chatter_bag(path: Path, count: int, period_ms: int) -> Path:
+    with BagWriter(path) as writer:
+        writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String",
+                                   offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+        for n in range(count):
+            t = T0 + n * period_ms * 1_000_000
+            writer.write("/chatter", bytes(serialize(String(data=f"message {n}"))), t, t)
+    return path
+
+
+def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
+    bag = chatter_bag(tmp_path / "bag", 20, 50)
+    got: list[String] = []
+    subscription = probe.create_subscription(String, "/chatter", got.append, RELIABLE)
+    try:
+        # Spin while it plays: Fast DDS drops the samples of a writer that is gone before they were taken.
+        process = subprocess.Popen([CLI, "bag", "play", str(bag), "--delay", "2", "--rate", "2"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        wait_until(lambda: process.poll() is not None, 60.0, probe)
+        stdout, stderr = process.communicate(timeout=10)
+        assert process.returncode == 0, stderr
+        assert [m.data for m in got] == [f"message {n}" for n in range(20)]
+        assert stdout.splitlines()[-1].startswith("[FINISHED]  0.950 / 0.950 s  rate 2.00  20 msgs")
+        assert "\r" not in stdout  # no progress line when stdout is not a terminal
+    finally:
+        probe.destroy_subscription(subscription)
+
+
+def test_progress_line_on_a_terminal_and_ctrl_c(tmp_path: Path) -> None:
+    bag = chatter_bag(tmp_path / "bag", 100, 100)  # 10 s
+    controller, terminal = pty.openpty()
+    process = subprocess.Popen([CLI, "bag", "play", str(bag), "--topics", "/chatter"],
+                               stdout=terminal, stderr=subprocess.PIPE, text=False)
+    os.close(terminal)
+    output = b""
+    try:
+        deadline = time.monotonic() + 20
+        while output.count(b"\r[PLAYING]") < 3 and time.monotonic() < deadline:
+            if select.select([controller], [], [], 0.5)[0]:
+                output += os.read(controller, 4096)
+        assert output.count(b"\r[PLAYING]") >= 3, output
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=20) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        os.close(controller)
+    assert b" / 9.900 s  rate 1.00" in output
+
+
+def test_a_bag_that_cannot_be_played_is_named(tmp_path: Path) -> None:
+    result = subprocess.run([CLI, "bag", "play", str(tmp_path / "missing")], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 1
+    assert f"Cannot play {tmp_path / 'missing'}" in result.stderr
+    assert "missing" in result.stderr.splitlines()[-1]
+
