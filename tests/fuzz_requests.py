@@ -24,7 +24,7 @@ from std_srvs.srv import Trigger
 
 MARKER = "ipcfuzz"
 PLUGINS = ["components::Talker", "components::Listener", "components::CameraDriver", "components::LidarDriver",
-           "components::ImuDriver", "components::Recorder"]
+           "components::ImuDriver", "components::Recorder", "components::Player"]
 GARBAGE_PLUGINS = ["", "components::", "::", "components::NoSuch", "components::recorder", "os:system",
                    "components.recorder.recorder:Recorder", "components::Talker ", "COMPONENTS::TALKER"]
 # Parameter names the built-in components read, so that garbage values reach their validation.
@@ -37,8 +37,16 @@ KNOWN_PARAMETERS = [
     "storage.max_bagfile_size", "storage.max_bagfile_duration", "storage.max_cache_size",
     "storage.storage_preset_profile", "storage.snapshot_mode", "storage.custom_data", "record_all", "topics",
     "start_paused", "max_bag_size", "max_cache_size", "storage_id", "exclude", "start_recording_immediately",
+    "play.rate", "play.loop", "play.topics_to_filter", "play.regex_to_filter", "play.exclude_regex_to_filter",
+    "play.read_ahead_queue_size", "play.read_ahead_max_bytes", "play.start_paused", "play.delay.sec",
+    "play.delay.nsec", "play.start_offset.sec", "play.playback_duration.sec", "play.playback_until_timestamp.nsec",
+    "play.clock_publish_frequency", "play.clock_publish_on_topic_publish", "play.wait_acked_timeout.nsec",
+    "play.service_requests_source", "play.publish_service_request", "play.services_to_filter",
 ]
-PATH_PARAMETERS = ["storage.uri", "bag_file", "bag_name", "bag_prefix", "uri", "record.qos_profile_overrides_path"]
+#: A finished bag in the bag root (FuzzScene writes it) that a fuzzed player may open.
+REPLAY_BAG = "replay_bag"
+PATH_PARAMETERS = ["storage.uri", "bag_file", "bag_name", "bag_prefix", "uri", "record.qos_profile_overrides_path",
+                   "play.qos_profile_overrides_path"]
 EXTRA_ARGUMENTS = ["use_intra_process_comms", "forward_global_arguments", "use_global_arguments", "unknown"]
 RECORDER_SERVICES: dict[str, Any] = {
     "pause": Pause, "resume": Resume, "toggle_paused": TogglePaused, "is_paused": IsPaused,
@@ -161,6 +169,9 @@ class RequestGenerator:
         if plugin == "components::Recorder" and rng.random() < 0.7:
             parameters.append(Parameter(name="storage.uri", value=ParameterValue(
                 type=ParameterType.PARAMETER_STRING, string_value=self.path())))
+        if plugin == "components::Player" and rng.random() < 0.8:
+            parameters.append(Parameter(name="storage.uri", value=ParameterValue(
+                type=ParameterType.PARAMETER_STRING, string_value=REPLAY_BAG if rng.random() < 0.6 else self.path())))
         # Each field is mostly plausible, so that most requests get as far as a constructor; the garbage in one
         # field at a time is what is being tested.
         remaps = [rng.choice([f"chatter:={self.name()}", f"__node:={self.text(8)}", f"__ns:={self.name()}",

@@ -21,10 +21,15 @@ from composition_interfaces.srv import LoadNode, UnloadNode
 from rclpy.node import Node
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import Image, Imu
+from std_msgs.msg import String
+
+from baglib.cdr_fast import serialize
+from baglib.metadata import TopicInfo
+from baglib.writer import BagWriter
 
 from container_process import ContainerClient, ContainerProcess, listing, proc_status, wait_until
 from fuzz_pipeline import Pipeline, PipelineCounts
-from fuzz_requests import MARKER, RECORDER_SERVICES, RequestGenerator
+from fuzz_requests import MARKER, RECORDER_SERVICES, REPLAY_BAG, RequestGenerator
 
 CAMERA = ("components::CameraDriver", "fuzz_cam", {"width": 160, "height": 120, "fps": 30.0})
 IMU = ("components::ImuDriver", "fuzz_imu", {"rate": 100.0})
@@ -82,6 +87,15 @@ class FuzzReport:
                 f"errors {len(self.internal_errors)}\n  most frequent load errors:\n{errors}")
 
 
+def write_replay_bag(path: pathlib.Path) -> None:
+    """A small finished bag for fuzzed players: 50 strings on /fuzz_chatter over 5 s."""
+    with BagWriter(path) as writer:
+        writer.add_topic(TopicInfo("/fuzz_chatter", "std_msgs/msg/String"))
+        for n in range(50):
+            stamp = 1_700_000_000_000_000_000 + n * 100_000_000
+            writer.write("/fuzz_chatter", bytes(serialize(String(data=f"fuzz {n}"))), stamp, stamp)
+
+
 class FuzzScene:
     """The container with its drivers and recorder; a context manager that always stops the container."""
 
@@ -103,6 +117,7 @@ class FuzzScene:
             self.client.wait(timeout=30.0)
         except AssertionError:
             raise AssertionError(f"container did not come up:\n{self.process.output}") from None
+        write_replay_bag(self.bag_root / REPLAY_BAG)
         for plugin, name, parameters in (CAMERA, IMU):
             self._load(plugin, name, parameters)
         self._load("components::Recorder", RECORDER, {"storage.uri": str(self.bag_root / "baseline_bag"),
