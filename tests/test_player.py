@@ -35,6 +35,7 @@ from rosbag2_interfaces.srv import (
     TogglePaused,
 )
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -376,6 +377,64 @@ def test_loop_filters_and_split_events(container: Any, tmp_path: Path) -> None:
         handle.unload()
     finally:
         node.destroy_subscription(subscription)
+
+
+# --- bags of other writers ----------------------------------------------------------------------------------
+def chatter_messages(count: int) -> list[tuple[str, int, int, bytes]]:
+    return [("/chatter", T0 + n * 20 * MS, T0 + n * 20 * MS, chatter(n)) for n in range(count)]
+
+
+def rosbags_bag(path: Path, storage: str, compression: str) -> Path:
+    """Written by rosbags' own writer (MCAP or SQLite3; rosbag2's FILE or MESSAGE zstd compression)."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin[storage])
+    if compression:
+        writer.set_compression(CompressionMode[compression], CompressionFormat.ZSTD)
+    with writer:
+        connection = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+        for _, log_time, _, data in chatter_messages(30):
+            writer.write(connection, log_time, data)
+    return path
+
+
+def legacy_bag(path: Path, layout: str) -> Path:
+    """rosbag2 layouts of older releases, written from rosbag2's sources (tests/legacy_bags.py)."""
+    from legacy_bags import LegacyTopic, metadata_document, write_metadata, write_mcap, write_sqlite
+    from mcap.writer import CompressionType
+
+    topics = [LegacyTopic("/chatter", "std_msgs/msg/String", [qos_profile_dict(RELIABLE)])]
+    messages = chatter_messages(30)
+    path.mkdir()
+    if layout == "foxy-sqlite3-message-compressed":  # metadata v4, schema 2, each message zstd
+        files, parts = ["bag_0.db3", "bag_1.db3"], [messages[:15], messages[15:]]
+        for name, part in zip(files, parts):
+            write_sqlite(path / name, 2, topics, part, 4, compress_messages=True)
+        write_metadata(path, metadata_document(4, "sqlite3", files, topics, parts, compression_mode="MESSAGE",
+                                               compression_format="zstd"))
+    elif layout == "humble-sqlite3":  # metadata v5, schema 3
+        write_sqlite(path / "bag_0.db3", 3, topics, messages, 5, ros_distro="humble")
+        write_metadata(path, metadata_document(5, "sqlite3", ["bag_0.db3"], topics, [messages]))
+    else:  # "iron-mcap-lz4": metadata v8, lz4 chunks
+        write_mcap(path / "bag_0.mcap", topics, messages, 8, compression=CompressionType.LZ4)
+        write_metadata(path, metadata_document(8, "mcap", ["bag_0.mcap"], topics, [messages], ros_distro="iron"))
+    return path
+
+
+@pytest.mark.parametrize("writer", ["rosbags-MCAP", "rosbags-SQLITE3", "rosbags-MCAP-FILE",
+                                    "rosbags-SQLITE3-MESSAGE", "foxy-sqlite3-message-compressed",
+                                    "humble-sqlite3", "iron-mcap-lz4"])
+def test_plays_bags_of_other_writers(container: Any, tmp_path: Path, writer: str) -> None:
+    node, client, process = container
+    if writer.startswith("rosbags-"):
+        storage, _, compression = writer.removeprefix("rosbags-").partition("-")
+        bag = rosbags_bag(tmp_path / "bag", storage, compression)
+    else:
+        bag = legacy_bag(tmp_path / "bag", writer)
+    handle = PlayerHandle(node, client, bag, topics=(("/chatter", "std_msgs/msg/String"),))
+    stats = handle.wait_finished()
+    assert stats["published"] == {"/chatter": 30}
+    assert received(handle.report(), "/chatter") == [digest(chatter(n)) for n in range(30)]
+    handle.unload()
 
 
 @pytest.mark.parametrize("parameters, message", [
