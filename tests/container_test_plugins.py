@@ -250,6 +250,8 @@ class PlaybackProbe(ComponentNode):
         qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
         self._inputs: list[Any] = []
         for topic, type_name in zip(topics, types):
+            if not topic:
+                continue
             msg_class = message_class(type_name)
             self._seen[topic] = {"times": [], "digests": [], "data_types": []}
             self._inputs.append(self.create_subscription(

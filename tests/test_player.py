@@ -39,7 +39,8 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
-from std_srvs.srv import Trigger
+from service_msgs.msg import ServiceEventInfo
+from std_srvs.srv import SetBool, Trigger
 
 from baglib.cdr_fast import serialize
 from baglib.metadata import TopicInfo, qos_profile_dict
@@ -126,7 +127,8 @@ class PlayerHandle:
         self.unique_id = self.probe_id = 0
         PlayerHandle.live.append(self)
         probe = client.load(PROBE, "tests", name=f"{name}_probe", extra=IPC,
-                            parameters={"topics": [t for t, _ in topics], "types": [t for _, t in topics]})
+                            parameters={"topics": [t for t, _ in topics] or [""],  # [] would be a byte array
+                                        "types": [t for _, t in topics] or [""]})
         assert probe.success, probe.error_message
         self.probe_id = probe.unique_id
         loaded = client.load(PLAYER, name=name, extra=IPC,
@@ -435,6 +437,71 @@ def test_plays_bags_of_other_writers(container: Any, tmp_path: Path, writer: str
     assert stats["published"] == {"/chatter": 30}
     assert received(handle.report(), "/chatter") == [digest(chatter(n)) for n in range(30)]
     handle.unload()
+
+
+# --- services ------------------------------------------------------------------------------------------------
+def service_event_bag(path: Path) -> tuple[Path, list[bool]]:
+    """A recorded SetBool service: for each call the four introspection events (client sent, service
+    received, service responded, client received); returns the bag and the requests' values in order."""
+    values = [n % 3 == 0 for n in range(6)]
+    with BagWriter(path) as writer:
+        writer.add_topic(TopicInfo("/set_flag/_service_event", "std_srvs/srv/SetBool_Event",
+                                   offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+        t = T0
+        for value in values:
+            for kind in (ServiceEventInfo.REQUEST_SENT, ServiceEventInfo.REQUEST_RECEIVED,
+                         ServiceEventInfo.RESPONSE_SENT, ServiceEventInfo.RESPONSE_RECEIVED):
+                event = SetBool.Event()
+                event.info.event_type = kind
+                if kind in (ServiceEventInfo.REQUEST_SENT, ServiceEventInfo.REQUEST_RECEIVED):
+                    event.request = [SetBool.Request(data=value)]
+                else:
+                    event.response = [SetBool.Response(success=True, message="ok")]
+                t += 10 * MS
+                writer.write("/set_flag/_service_event", wire(event), t, t)
+    return path, values
+
+
+@pytest.mark.parametrize("source, events", [("SERVICE_INTROSPECTION", "received"),
+                                            ("CLIENT_INTROSPECTION", "sent")])
+def test_recorded_requests_are_sent_to_the_live_service(container: Any, tmp_path: Path, source: str,
+                                                        events: str) -> None:
+    """play.publish_service_request: each recorded request (of the chosen side) calls the service once."""
+    node, client, process = container
+    bag, values = service_event_bag(tmp_path / "bag")
+    calls: list[bool] = []
+
+    def serve(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        calls.append(request.data)
+        response.success = True
+        return response
+
+    service = node.create_service(SetBool, "/set_flag", serve)
+    try:
+        handle = PlayerHandle(node, client, bag, {"play.publish_service_request": True,
+                                                  "play.service_requests_source": source,
+                                                  "play.delay.sec": 2}, topics=())
+        assert wait_until(lambda: len(calls) >= len(values), 20.0, node), calls
+        wait_until(lambda: False, 1.0, node)  # nothing more arrives
+        assert calls == values
+        handle.unload()
+    finally:
+        node.destroy_service(service)
+
+
+def test_service_events_are_published_and_filtered(container: Any, tmp_path: Path) -> None:
+    """Without publish_service_request the event topic is played like any topic; services_to_filter and
+    exclude_services_to_filter name the service, not the topic."""
+    node, client, process = container
+    bag, values = service_event_bag(tmp_path / "bag")
+    topics = (("/set_flag/_service_event", "std_srvs/srv/SetBool_Event"),)
+    handle = PlayerHandle(node, client, bag, {"play.services_to_filter": ["/set_flag"]}, topics=topics)
+    assert handle.wait_finished()["published"] == {"/set_flag/_service_event": 4 * len(values)}
+    assert len(received(handle.report(), "/set_flag/_service_event")) == 4 * len(values)
+    handle.unload()
+    excluded = PlayerHandle(node, client, bag, {"play.exclude_services_to_filter": ["/set_flag"]}, topics=topics)
+    assert excluded.wait_finished()["published"] == {}
+    excluded.unload()
 
 
 @pytest.mark.parametrize("parameters, message", [
