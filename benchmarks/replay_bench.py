@@ -64,7 +64,6 @@ from typing import Any, Callable, Iterator  # noqa: E402
 
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rosbag2_interfaces.srv import Resume  # noqa: E402
@@ -76,7 +75,7 @@ from baglib.writer import BagWriter  # noqa: E402
 from components.camera_driver import CameraDriver  # noqa: E402
 from components.imu_driver import ImuDriver  # noqa: E402
 from components.lidar_driver import LidarDriver  # noqa: E402
-from container_process import REPO, ContainerClient, ContainerProcess  # noqa: E402
+from container_process import REPO, ContainerClient, ContainerProcess, call_until_answered  # noqa: E402
 from record_bench import Scenario, cpu_seconds, fmt, git_state, machine_snapshot, other_cpu, table  # noqa: E402
 
 IPC = {"use_intra_process_comms": True}
@@ -181,18 +180,7 @@ class Caller:
             client = self._clients[(srv_type, service)] = self.node.create_client(srv_type, service)
         if not client.wait_for_service(timeout_sec=timeout):
             raise TimeoutError(f"{service} did not appear within {timeout:g} s")
-        deadline = time.monotonic() + timeout
-        while True:  # Fast DDS drops a reply to a client it has not matched yet: ask again (calls are idempotent)
-            future = client.call_async(request or srv_type.Request())
-            executor = SingleThreadedExecutor(context=self.node.context)
-            executor.add_node(self.node)
-            executor.spin_until_future_complete(future, timeout_sec=1.0)
-            executor.remove_node(self.node)
-            if future.done():
-                return future.result()
-            client.remove_pending_request(future)
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no reply from {service} within {timeout:g} s")
+        return call_until_answered(self.node, client, request or srv_type.Request(), timeout)
 
     def json(self, service: str) -> dict[str, Any]:
         return json.loads(self.call(Trigger, service).message)

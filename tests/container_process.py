@@ -132,6 +132,23 @@ class ContainerClient:
         return self._call(self._list, ListNodes.Request())
 
 
+def call_until_answered(node: Node, client: Any, request: Any, timeout: float = 20.0) -> Any:
+    """Call a service (already discovered) and return its response, asking again every second until it
+    answers: Fast DDS drops a reply to a client it has not matched yet. Only for idempotent calls."""
+    deadline = time.monotonic() + timeout
+    while True:
+        future = client.call_async(request)
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        executor.spin_until_future_complete(future, timeout_sec=1.0)
+        executor.remove_node(node)
+        if future.done():
+            return future.result()
+        client.remove_pending_request(future)
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no reply from {client.srv_name} within {timeout:g} s")
+
+
 # --- helpers of the container tests ---------------------------------------------------------------------
 def pid_alive(pid: int) -> bool:
     try:

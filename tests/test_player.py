@@ -17,7 +17,6 @@ from typing import Any
 import pytest
 from builtin_interfaces.msg import Duration as DurationMsg
 from builtin_interfaces.msg import Time as TimeMsg
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbag2_interfaces.msg import ReadSplitEvent
@@ -45,7 +44,7 @@ from std_srvs.srv import SetBool, Trigger
 from baglib.cdr_fast import serialize
 from baglib.metadata import TopicInfo, qos_profile_dict
 from baglib.writer import BagWriter
-from container_process import ContainerClient, wait_until
+from container_process import ContainerClient, call_until_answered, wait_until
 
 IPC = {"use_intra_process_comms": True}
 PLAYER = "components::Player"
@@ -140,16 +139,7 @@ class PlayerHandle:
         client = self.node.create_client(srv_type, service)
         try:
             assert client.wait_for_service(timeout_sec=timeout), f"{service} not available"
-            deadline = time.monotonic() + timeout
-            while True:  # Fast DDS drops a reply to a client it has not matched yet: ask again
-                future = client.call_async(request or srv_type.Request())
-                executor = SingleThreadedExecutor(context=self.node.context)
-                executor.add_node(self.node)
-                executor.spin_until_future_complete(future, timeout_sec=1.0)
-                executor.remove_node(self.node)
-                if future.done():
-                    return future.result()
-                assert time.monotonic() < deadline, f"no reply from {service}"
+            return call_until_answered(self.node, client, request or srv_type.Request(), timeout)
         finally:
             self.node.destroy_client(client)
 
