@@ -6,6 +6,12 @@ end or the "until" time, again and again with ``loop``); ``pause``/``resume``/``
 message is never published twice or skipped; ``stop`` ends the run. Messages with equal timestamps keep the
 bag's order (the reader's guarantee; the queue never reorders).
 
+Preparing: turning a recorded message into the object in-process subscribers get (deserializing a 6 MB
+frame: 0.3 to several ms, holding the GIL) is done by this same thread, in the time it would otherwise sleep:
+before waiting for a message, it prepares that message and then as many of the queued ones after it as fit
+before it is due (costs measured per topic). Done on another thread, it would hold the GIL exactly when the
+playback thread wakes up for a due message.
+
 Falling behind: a message that goes out more than :data:`BEHIND_NS` after its scheduled time moves the whole
 schedule back by that lateness instead of publishing the following messages in a catch-up burst; the shifts
 are counted and logged (once a second at most), so a player that cannot keep up slows down smoothly and says so.
@@ -20,15 +26,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from components.player.playback_clock import PlaybackClock
+from baglib.reader import BagMessage
 from components.player.read_ahead import Queued, ReadAhead
 
 #: Lateness (steady time) beyond which the schedule is moved instead of caught up.
 BEHIND_NS = 10_000_000
-#: How long before a message is due the read-ahead leaves the interpreter to the playback thread: its
-#: deserializing holds the GIL (a 6 MB frame: 0.3 ms, several ms on fresh pages).
-SLACK_NS = 2_000_000
-#: The read-ahead never waits longer than this for slack in a row (it must keep the queue filled).
-MAX_YIELD_NS = 20_000_000
+#: How many queued messages the playback thread looks at to prepare while it waits for the next one.
+PREPARE_AHEAD = 64
+#: Time kept free before a message is due when preparing others ahead of it.
+PREPARE_MARGIN_NS = 500_000
 #: Publish-time errors kept for the percentiles (the newest ones).
 TIMING_SAMPLES = 100_000
 _WARN_EVERY_NS = 1_000_000_000
@@ -73,11 +79,14 @@ class Playback:
     """Runs the playback thread of a player node; every method is thread-safe."""
 
     def __init__(self, clock: PlaybackClock, read_ahead: ReadAhead, bag_start_ns: int,
-                 publish: Callable[[Queued], bool], log: Any, loop: bool = False, delay_ns: int = 0,
+                 prepare: Callable[[BagMessage], Any], publish: Callable[[Queued], bool], log: Any,
+                 loop: bool = False, delay_ns: int = 0,
                  on_run_end: Callable[[], None] = lambda: None,
                  on_bag_end: Callable[[], None] = lambda: None) -> None:
         self.clock = clock
         self._read_ahead = read_ahead
+        self._make = prepare
+        self._costs: dict[str, int] = {}   # topic -> recent preparing time (moving average), ns
         self._publish = publish
         self._on_run_end = on_run_end
         self._on_bag_end = on_bag_end
@@ -94,7 +103,6 @@ class Playback:
         self.limits = RunLimits(bag_start_ns)
         self.timing = PublishTiming()
         self.position_ns = bag_start_ns     # log time of the last message published
-        self._next_due_ns = 0               # steady time of the message being waited for; 0: none
         self.behind_count = 0
         self.behind_ns = 0                  # total schedule shift, steady ns
         self._last_warning = 0
@@ -175,10 +183,9 @@ class Playback:
             log_time = item.message.log_time_ns
             if self.limits.stops_at(log_time):
                 return False
-            self._next_due_ns = self.clock.steady_for(log_time) or 0
-            woke = self.clock.sleep_until(log_time)
-            self._next_due_ns = 0
-            if not woke:
+            self._prepare(item)
+            self._prepare_ahead(self.clock.steady_for(log_time))
+            if not self.clock.sleep_until(log_time):
                 continue  # the schedule moved (pause, rate, seek, take-over, stop): look again
             with self._take_over:
                 if self._skip:
@@ -194,15 +201,25 @@ class Playback:
                     self._fall_behind(log_time, late)
         return False
 
-    def wait_for_slack(self) -> None:
-        """Called by the read-ahead before it deserializes: wait while a message is due within SLACK_NS, so
-        that the playback thread gets the GIL the moment it wakes (at most MAX_YIELD_NS in a row)."""
-        start = time.monotonic_ns()
-        while True:
-            due, now = self._next_due_ns, time.monotonic_ns()
-            if not due or due - now > SLACK_NS or now - start > MAX_YIELD_NS:
-                return
-            time.sleep(max(due - now, 0) / 1e9 + 0.0002)
+    def _prepare(self, item: Queued) -> None:
+        if item.ready:
+            return
+        started = time.monotonic_ns()
+        item.prepared = self._make(item.message)
+        item.ready = True
+        topic = item.message.connection.topic
+        cost = time.monotonic_ns() - started
+        self._costs[topic] = (3 * self._costs.get(topic, cost) + cost) // 4  # a moving average
+
+    def _prepare_ahead(self, due_ns: int | None) -> None:
+        """Prepare queued messages after the next one while they fit before it is due (None: paused)."""
+        for item in self._read_ahead.head(PREPARE_AHEAD)[1:]:
+            if item.ready:
+                continue
+            if due_ns is not None and (time.monotonic_ns() + self._costs.get(item.message.connection.topic, 0)
+                                       + PREPARE_MARGIN_NS > due_ns):
+                continue  # does not fit before the next one is due; a cheaper one further on may
+            self._prepare(item)
 
     def _next(self) -> Queued | None:
         item = self._read_ahead.peek(0.1)
@@ -215,6 +232,7 @@ class Playback:
         return item
 
     def _publish_now(self, item: Queued) -> bool:
+        self._prepare(item)
         published = self._publish(item)
         self.position_ns = item.message.log_time_ns
         self._read_ahead.pop()

@@ -43,6 +43,7 @@ from baglib.message_definitions import message_class
 from baglib.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
+from components.player.allocator import reuse_large_buffers
 from components.player.playback import Playback, RunLimits
 from components.player.playback_clock import PlaybackClock, ShortSwitchInterval
 from components.player.player_options import PlayOptions, declare_play_options
@@ -88,14 +89,15 @@ class Player(ComponentNode):
             self._split_events = self.create_publisher(ReadSplitEvent, SPLIT_EVENT_TOPIC, 1)
             self._file_index = 0
             self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
-                                         self._options.read_ahead_max_bytes, self._prepare, self._on_read_error,
-                                         lambda: self._playback.wait_for_slack())
+                                         self._options.read_ahead_max_bytes, self._on_read_error)
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
-            self._playback = Playback(clock, self._read_ahead, self._reader.starting_time_ns, self._publish,
+            self._playback = Playback(clock, self._read_ahead, self._reader.starting_time_ns, self._prepare,
+                                      self._publish,
                                       self.get_logger(), self._options.loop, self._options.delay_ns,
                                       self._wait_for_acks, self._finish_files)
             ShortSwitchInterval.acquire()
             self._holds_switch_interval = True
+            reuse_large_buffers()
         except Exception:
             with contextlib.suppress(Exception):  # the caller needs the original error, not a cleanup's
                 self._close_bag()

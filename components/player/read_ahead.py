@@ -1,38 +1,43 @@
-"""The player's read-ahead: messages read (and, for in-process subscribers, deserialized) on a thread of
-their own, ahead of the playback thread, in a queue bounded by count and bytes.
+"""The player's read-ahead: messages read on a thread of their own, ahead of the playback thread, in a
+queue bounded by count and bytes.
 
 rosbag2's player keeps ``read_ahead_queue_size`` messages queued by a loader thread; this does the same and
 also bounds the queue's bytes (a count alone lets 1000 camera frames take 6 GB). A run is one pass over the
 bag from a start time: ``restart`` (play, seek, loop) drops what is queued and starts a new pass; the
-playback thread sees the new pass's messages only.
+playback thread sees the new pass's messages only. Reading mostly waits on the file (the GIL released);
+turning messages into objects is left to the playback thread (see playback.py), which knows when it has time.
 """
 from __future__ import annotations
 
 import threading
 from collections import deque
 from collections.abc import Callable, Collection
-from typing import Any, NamedTuple
+from itertools import islice
+from typing import Any
 
 from baglib.reader import BagMessage, BagReader
 
 
-class Queued(NamedTuple):
-    message: BagMessage
-    prepared: Any  # what ``prepare`` made of it (the in-process object), or None
+class Queued:
+    """A queued message and what the playback thread prepared for it (``None``: not yet, or nothing)."""
+
+    __slots__ = ("message", "prepared", "ready")
+
+    def __init__(self, message: BagMessage) -> None:
+        self.message = message
+        self.prepared: Any = None
+        self.ready = False
 
 
 class ReadAhead:
     """A loader thread over one BagReader; the playback thread ``peek``s and ``pop``s."""
 
     def __init__(self, reader: BagReader, topics: Collection[str], max_messages: int, max_bytes: int,
-                 prepare: Callable[[BagMessage], Any], on_error: Callable[[BaseException], None],
-                 before_prepare: Callable[[], None] = lambda: None) -> None:
+                 on_error: Callable[[BaseException], None]) -> None:
         self._reader = reader
         self._topics = list(topics)
         self._max_messages = max_messages
         self._max_bytes = max_bytes
-        self._prepare = prepare
-        self._before_prepare = before_prepare
         self._on_error = on_error
         self._queue: deque[Queued] = deque()
         self._bytes = 0
@@ -64,6 +69,11 @@ class ReadAhead:
                 self.starved += 1
                 self._changed.wait_for(lambda: self._queue or self._pass_done or self._closed, timeout)
             return self._queue[0] if self._queue else None
+
+    def head(self, count: int) -> list[Queued]:
+        """The first ``count`` queued messages (a snapshot: the loader may append meanwhile)."""
+        with self._changed:
+            return list(islice(self._queue, count))
 
     def pop(self) -> None:
         with self._changed:
@@ -105,14 +115,12 @@ class ReadAhead:
         messages = self._reader.messages(self._topics, start_ns, stop_ns)
         try:
             for message in messages:
-                self._before_prepare()
-                prepared = self._prepare(message)
                 size = _size(message)
                 with self._changed:
                     self._changed.wait_for(lambda: self._pass != current or not self._full(size))
                     if self._pass != current:
                         return
-                    self._queue.append(Queued(message, prepared))
+                    self._queue.append(Queued(message))
                     self._bytes += size
                     self._changed.notify_all()
         finally:
