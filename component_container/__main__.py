@@ -7,8 +7,9 @@ Usage: ``python -m component_container [--executor single|multi|isolated|events]
 SIGINT and SIGTERM unload every component (newest first, so a recorder finalizes its bag) within the shutdown
 timeout and exit 0; a second signal, or a shutdown that overruns, exits at once with status 1. A component
 error under ``--on-component-error exit`` and a dead container thread exit with status 1 too, and so does a
-shutdown that leaves a component callback running (without finalizing the interpreter, which would wait for
-that thread or, with ``--executor events``, abort in the C++ executor's destructor).
+shutdown that leaves a component callback running: the shutdown overran, and the interpreter is not finalized
+under running component code (nor under rclpy's C++ EventsExecutor, which aborts the process when it is torn
+down while a thread is in it).
 """
 from __future__ import annotations
 

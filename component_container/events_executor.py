@@ -29,12 +29,13 @@ also reproduced against the installed wheel) needs these changes to run componen
   iterates while it calls the nodes' properties (Python code, which lets other threads run): a load or unload
   on the service thread could end ``spin()`` with "Set changed size during iteration". Here both are posted to
   the executor's own thread. A new component therefore starts when that thread is free, as with ``single``.
-* **Entities destroyed on another thread.** The update registers entities from a snapshot; one destroyed in
-  between (an unload destroying its node on the unload thread) raises InvalidHandle inside the update, which
+* **Entities destroyed on another thread.** The update registers entities from a snapshot; one whose destroy
+  was requested in between (an unload destroying its node on the unload thread) raises InvalidHandle inside the
+  update (rclpy refuses new users of a handle once its destroy is requested, even while it is in use), which
   leaves the executor's entity sets half-updated ("Attempt to replace existing callback" from then on), so it
-  cannot be retried like the wait-set race of :class:`SpinThread`. A NodeView marks every entity it reports as
-  in use until the update is over (rclpy then defers a destroy until the last user exits), and shows a node
-  that is being removed as empty.
+  cannot be retried like the wait-set race of :class:`SpinThread`. A NodeView *pins* every entity it reports
+  until the update is over: the entity's ``destroy()`` (which ``Node.destroy_*`` call) is postponed to then
+  (:class:`DestroyPins`); and it shows a node that is being removed as empty.
 * **spin() without a timeout** runs nothing and keeps a core busy (seen with 7.1.6); :class:`EventsSpinThread`
   spins in slices of ``SPIN_SLICE`` seconds.
 
@@ -42,13 +43,15 @@ What stays unsafe, hence opt-in (README "Executors"): errors outside user callba
 A message the C++ fails to take or deserialize, or an rcl error in its timer or entity bookkeeping, ends the
 executor thread and so the container (status 1, like any dead container thread), where the wait-set models
 blame the component. Tasks (a component's ``create_task`` coroutines, futures' done callbacks such as a client's
-response callback) are not attributed in any model; an exception in one ends the thread in every model. An
-EventsExecutor destroyed while a thread still spins it aborts the process (``terminate called without an
-active exception``), so ``__main__`` leaves with ``os._exit`` when a component callback never returns. The
-C++ timer manager scans all timers on every tick and prints a warning from 8 timers per clock on.
+response callback) are not attributed in any model; an exception in one ends the thread in every model. The
+interpreter exiting while a thread still spins an EventsExecutor aborts the process (``terminate called
+without an active exception``): the executor is always shut down first, and ``__main__`` leaves with
+``os._exit`` if a component callback never returns. The C++ timer manager scans all timers of a clock on
+every tick and prints a warning from 8 timers per clock on.
 """
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import functools
 import inspect
@@ -112,6 +115,7 @@ class SupervisedEventsExecutor(_rclpy.EventsExecutor):
         self._views: dict[Node, NodeView] = {}
         self._unarmed: dict[Node, list[TaskWakeup]] = {}  # wake-ups of nodes not added yet
         self._supervised: weakref.WeakSet[Any] = weakref.WeakSet()
+        self._pins = DestroyPins()
 
     # --- nodes -----------------------------------------------------------------------------------------
     def add_node(self, node: Node) -> bool:
@@ -177,23 +181,21 @@ class SupervisedEventsExecutor(_rclpy.EventsExecutor):
 
     # --- what the C++ sees of a node ---------------------------------------------------------------------
     def present(self, view: NodeView, entities: Iterable[Any], supervise: Callable[[Node, Any], None],
-                enter: Callable[[Any], Any]) -> list[Any]:
-        """``entities`` of ``view``'s node as the C++ may register them: supervised, and in use until the
+                alive: Callable[[Any], bool]) -> list[Any]:
+        """``entities`` of ``view``'s node as the C++ may register them: supervised, and pinned until the
         entity update that asked has finished (a task posted now runs after it)."""
         if view.released:
             return []
-        shown, entered = [], []
+        shown = []
         for entity in entities:
             if entity not in self._supervised:
                 supervise(view.node, entity)
+                self._pins.guard(entity)
                 self._supervised.add(entity)
-            try:
-                entered.append(enter(entity))
-            except InvalidHandle:
-                continue  # destroyed already: the C++ must not see it
-            shown.append(entity)
-        if entered:
-            self.create_task(_exit_all, entered)
+            if self._pins.pin(entity, alive):
+                shown.append(entity)
+        if shown:
+            self.create_task(self._pins.unpin_all, shown)
         return shown
 
     def refuse(self, view: NodeView, what: str) -> None:
@@ -283,25 +285,70 @@ def _supervise_nothing(_node: Node, _entity: Any) -> None:
     """Clients run no component code in the C++: it only completes the request's future."""
 
 
-def _enter_handle(entity: Any) -> Any:
-    entity.handle.__enter__()
-    return entity.handle
+def _handle_alive(entity: Any) -> bool:
+    try:
+        with entity.handle:
+            return True
+    except InvalidHandle:
+        return False
 
 
-def _enter_waitable(waitable: Any) -> Any:
-    waitable.__enter__()
-    return waitable
+def _waitable_alive(waitable: Any) -> bool:
+    try:
+        waitable.__enter__()  # the handles of a waitable that has them (QoS events, actions)
+    except InvalidHandle:
+        return False
+    waitable.__exit__(None, None, None)
+    return True
 
 
-def _exit_all(entered: list[Any]) -> None:
-    for thing in entered:
-        thing.__exit__(None, None, None)
+class DestroyPins:
+    """Entities the C++ may be registering right now; a ``destroy()`` of one of them waits until it is not."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pinned: dict[Any, int] = {}
+        self._postponed: dict[Any, Callable[[], None]] = {}
+
+    def guard(self, entity: Any) -> None:
+        """Route ``entity.destroy()`` (what ``Node.destroy_*`` call) through the pins."""
+        destroy = entity.destroy
+
+        def pinned_destroy() -> None:
+            with self._lock:
+                if entity in self._pinned:
+                    self._postponed[entity] = destroy
+                    return
+            destroy()
+
+        entity.destroy = pinned_destroy
+
+    def pin(self, entity: Any, alive: Callable[[Any], bool]) -> bool:
+        """Pin ``entity`` if it is still alive (False: its destroy was requested before it was guarded)."""
+        with self._lock:
+            self._pinned[entity] = self._pinned.get(entity, 0) + 1
+        if alive(entity):
+            return True
+        self.unpin_all([entity])
+        return False
+
+    def unpin_all(self, entities: list[Any]) -> None:
+        for entity in entities:
+            with self._lock:
+                self._pinned[entity] -= 1
+                if self._pinned[entity]:
+                    continue
+                del self._pinned[entity]
+                destroy = self._postponed.pop(entity, None)
+            if destroy is not None:
+                with contextlib.suppress(InvalidHandle):  # Node.destroy_* would have ignored it too
+                    destroy()
 
 
 class NodeView:
-    """What the C++ executor gets instead of a component's node: its entities, supervised and held in use
-    while the C++ registers them (see the module docstring), none once the node is being removed, and none
-    of what it cannot run. Everything else is the node's."""
+    """What the C++ executor gets instead of a component's node: its entities, supervised and pinned while the
+    C++ registers them (see the module docstring), none once the node is being removed, and none of what it
+    cannot run. Everything else is the node's."""
 
     def __init__(self, node: Node, executor: SupervisedEventsExecutor) -> None:
         self.node = node
@@ -311,9 +358,9 @@ class NodeView:
         self.refused = False
 
     def _present(self, entities: Iterable[Any], supervise: Callable[[Node, Any], None],
-                 enter: Callable[[Any], Any] = _enter_handle) -> list[Any]:
+                 alive: Callable[[Any], bool] = _handle_alive) -> list[Any]:
         executor = self._executor()
-        return [] if executor is None else executor.present(self, entities, supervise, enter)
+        return [] if executor is None else executor.present(self, entities, supervise, alive)
 
     @property
     def subscriptions(self) -> list[Any]:
@@ -345,7 +392,7 @@ class NodeView:
                 executor.refuse(self, "a waitable with guard conditions")
             else:
                 runnable.append(waitable)
-        return self._present(runnable, executor.supervise_waitable, _enter_waitable)
+        return self._present(runnable, executor.supervise_waitable, _waitable_alive)
 
     @property
     def guards(self) -> list[Any]:

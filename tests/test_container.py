@@ -296,6 +296,7 @@ EXECUTOR_ARGS = {
     "single": ("--executor", "single"),
     "multi": ("--executor", "multi", "--ros-args", "-p", "thread_num:=2"),
     "isolated": ("--executor", "isolated"),
+    "events": ("--executor", "events"),
 }
 
 
