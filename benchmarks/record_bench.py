@@ -1177,7 +1177,7 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p.add_argument("--s3-rate", type=float, default=1000.0)
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     p.add_argument("--cache-mb", type=float, default=DEFAULT_CACHE / 2**20, help="storage.max_cache_size in MiB")
-    p.add_argument("--executor", choices=("single", "multi", "isolated"), default="single")
+    p.add_argument("--executor", choices=("single", "multi", "isolated", "events"), default="single")
     p.add_argument("--threads", type=int, default=2, help="thread_num for --executor multi")
     p.add_argument("--settle", type=float, default=1.0, help="seconds between start_recording and the window")
     p.add_argument("--drain", type=float, default=1.0, help="seconds recorded after the window")

@@ -1,12 +1,15 @@
 """``python -m component_container``: run a component container process.
 
-Usage: ``python -m component_container [--executor single|multi|isolated] [--use-intra-process-comms]
-[--allow-module-plugins] [--allow-plugins PATTERN]... [--bag-root DIR] [--on-component-error unload|exit]
-[--shutdown-timeout SECONDS] [--load FILE.yaml]... [--ros-args ...]``
+Usage: ``python -m component_container [--executor single|multi|isolated|events]
+[--use-intra-process-comms] [--allow-module-plugins] [--allow-plugins PATTERN]... [--bag-root DIR]
+[--on-component-error unload|exit] [--shutdown-timeout SECONDS] [--load FILE.yaml]... [--ros-args ...]``
 
 SIGINT and SIGTERM unload every component (newest first, so a recorder finalizes its bag) within the shutdown
 timeout and exit 0; a second signal, or a shutdown that overruns, exits at once with status 1. A component
-error under ``--on-component-error exit`` and a dead container thread exit with status 1 too.
+error under ``--on-component-error exit`` and a dead container thread exit with status 1 too, and so does a
+shutdown that leaves a component callback running: the shutdown overran, and the interpreter is not finalized
+under running component code (nor under rclpy's C++ EventsExecutor, which aborts the process when it is torn
+down while a thread is in it).
 """
 from __future__ import annotations
 
@@ -22,11 +25,8 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from component_container.bag_root import bag_root_directory
-from component_container.component_executors import (
-    EXECUTOR_KINDS,
-    SpinThread,
-    SupervisedSingleThreadedExecutor,
-)
+from component_container.callback_supervision import SpinThread
+from component_container.component_executors import EXECUTOR_KINDS, SupervisedSingleThreadedExecutor
 from component_container.component_manager import ComponentManager
 from component_container.discovery_profile import use_container_profile
 from component_container.startup_file import StartupFileError, load_requests
@@ -54,7 +54,8 @@ def existing_directory(text: str) -> Path:
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m component_container", description=__doc__.splitlines()[0])
     parser.add_argument("--executor", choices=EXECUTOR_KINDS, default="single",
-                        help="executor model for the components (default: single)")
+                        help="executor model for the components (default: single; events: rclpy's "
+                             "EventsExecutor, see README \"Executors\")")
     parser.add_argument("--use-intra-process-comms", action="store_true",
                         help="components use intra-process communication unless a load request says false")
     parser.add_argument("--allow-module-plugins", action="store_true",
@@ -139,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     if finisher.is_alive():
         print(f"Shutdown did not finish within {args.shutdown_timeout:.1f} s: exiting with status 1",
               file=sys.stderr)
+        force_exit(1)
+    if any(thread.is_alive() for thread in manager.threads().values()):
+        print("A component callback was still running after the shutdown: exiting with status 1", file=sys.stderr)
         force_exit(1)
     return status[0]
 

@@ -1,15 +1,18 @@
-"""Where component callbacks run: the three executor models of rclcpp's component containers, supervised.
+"""Where component callbacks run: rclcpp's three component-container executor models and its events one.
 
 * ``single``: one single-threaded executor, one thread, for every component (``component_container``);
 * ``multi``: one multi-threaded executor with ``thread_num`` threads (``component_container_mt``);
-* ``isolated``: a single-threaded executor and thread per component (``component_container_isolated``).
+* ``isolated``: a single-threaded executor and thread per component (``component_container_isolated``);
+* ``events``: rclpy's C++ EventsExecutor, one thread, for every component (``component_container_event``);
+  opt-in, with the limits its module (component_container.events_executor) documents.
 
 rclpy re-raises a callback's exception out of ``spin()``, which would end the thread that runs every other
-component too. Here every callback is wrapped where rclpy makes its handler (``Executor._make_handler``, the one
-place that knows the entity *and* its node): an exception is handed to ``on_error(node, exc)`` and the thread
-goes on. The same wrapper counts each node's in-flight callbacks, so that unloading can *drain* a component
-(stop scheduling it, wait for the callbacks already running) before its node is destroyed, and skips callbacks
-of a node that is being removed. Anything that still escapes ``spin()`` is an executor failure, reported to
+component too. In the wait-set models every callback is wrapped where rclpy makes its handler
+(``Executor._make_handler``, the one place that knows the entity *and* its node): an exception is handed to
+``on_error(node, exc)`` and the thread goes on. The same wrapper counts each node's in-flight callbacks in a
+CallbackGate (component_container.callback_supervision), so that unloading can *drain* a component (stop
+scheduling it, wait for the callbacks already running) before its node is destroyed, and skips callbacks of a
+node that is being removed. Anything that still escapes ``spin()`` is an executor failure, reported to
 ``on_fatal``: the container then shuts down instead of listing components nobody runs.
 
 The container node itself is never spun here: it has its own executor thread so that LoadNode/UnloadNode
@@ -18,57 +21,26 @@ answer even while a component callback is busy or blocked.
 from __future__ import annotations
 
 import threading
-import weakref
-from collections import Counter
 from typing import Any, Callable, Protocol
 
+from rclpy.callback_groups import CallbackGroup
 from rclpy.context import Context
-from rclpy.exceptions import InvalidHandle
 from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 
-EXECUTOR_KINDS = ("single", "multi", "isolated")
-#: What a component callback may raise and still be handled as that component's failure (SystemExit too:
-#: a component calling sys.exit() must not end a thread that runs other components).
-COMPONENT_ERRORS = (Exception, SystemExit)
+from component_container.callback_supervision import (
+    COMPONENT_ERRORS,
+    DRAIN_TIMEOUT,
+    CallbackGate,
+    ErrorHandler,
+    FatalHandler,
+    SpinThread,
+    reraise,
+)
+from component_container.events_executor import EventsSpinThread, SupervisedEventsExecutor
+from component_container.intra_process import GuardConditionWakeup, Wakeup
 
-ErrorHandler = Callable[[Node, BaseException], None]
-FatalHandler = Callable[[str, BaseException], None]
-#: How long removing a node waits for its running callbacks unless the caller says otherwise.
-DRAIN_TIMEOUT = 5.0
-#: InvalidHandle errors in a row, from the executor's own wait-set code, that still count as unload races.
-TRANSIENT_INVALID_HANDLES = 100
-
-
-class CallbackGate:
-    """Which nodes may run callbacks, and how many of their callbacks are running right now."""
-
-    def __init__(self) -> None:
-        # Weak: a removed node stays refused for as long as a stale handler could still name it, no longer.
-        self._closed: weakref.WeakSet[Node] = weakref.WeakSet()
-        self._running: Counter[Node] = Counter()
-        self._idle = threading.Condition()
-
-    def enter(self, node: Node | None) -> bool:
-        """Start one callback of ``node``; False (do not run it) if the node is being removed."""
-        with self._idle:
-            if node in self._closed:
-                return False
-            self._running[node] += 1
-            return True
-
-    def leave(self, node: Node | None) -> None:
-        with self._idle:
-            self._running[node] -= 1
-            if self._running[node] <= 0:
-                del self._running[node]
-                self._idle.notify_all()
-
-    def close(self, node: Node, timeout: float) -> bool:
-        """Admit no more callbacks of ``node`` and wait for the running ones; False if they did not finish."""
-        with self._idle:
-            self._closed.add(node)
-            return self._idle.wait_for(lambda: self._running[node] <= 0, timeout)
+EXECUTOR_KINDS = ("single", "multi", "isolated", "events")
 
 
 class SupervisedExecutor(Executor):
@@ -78,7 +50,7 @@ class SupervisedExecutor(Executor):
         """``on_error(node, exc)`` gets what a callback of ``node`` raised; without it, it is re-raised."""
         super().__init__(*args, **kwargs)
         self.gate = CallbackGate()
-        self._on_error = on_error or _reraise
+        self._on_error = on_error or reraise
 
     def _make_handler(self, entity: Any, node: Node, take_from_wait_list: Callable) -> Any:
         gate, on_error = self.gate, self._on_error
@@ -108,9 +80,9 @@ class SupervisedExecutor(Executor):
 
         return super()._make_handler(entity, node, supervised_take)
 
-
-def _reraise(_node: Node, exc: BaseException) -> None:
-    raise exc
+    def make_wakeup(self, node: Node, callback: Callable[[], None], group: CallbackGroup | None) -> Wakeup:
+        """A wait-set executor is woken by a guard condition of the node."""
+        return GuardConditionWakeup(node, callback, group)
 
 
 class SupervisedSingleThreadedExecutor(SupervisedExecutor, SingleThreadedExecutor):
@@ -119,53 +91,6 @@ class SupervisedSingleThreadedExecutor(SupervisedExecutor, SingleThreadedExecuto
 
 class SupervisedMultiThreadedExecutor(SupervisedExecutor, MultiThreadedExecutor):
     """rclpy's MultiThreadedExecutor, supervised."""
-
-
-class SpinThread:
-    """A daemon thread spinning one executor until :meth:`stop`; what escapes ``spin()`` before that goes to
-    ``on_fatal`` (without one it is raised). Escapes while stopping are expected and ignored: rclpy's
-    MultiThreadedExecutor can raise InvalidHandle from a worker that triggers the guard condition that
-    ``shutdown()`` just destroyed."""
-
-    def __init__(self, executor: Executor, name: str, on_fatal: FatalHandler | None = None) -> None:
-        self.executor = executor
-        self.name = name
-        self._on_fatal = on_fatal
-        self._stopping = False
-        self.thread = threading.Thread(target=self._spin, name=name, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self._spin_through_unloads()
-        except BaseException as exc:  # noqa: BLE001 - whatever ends this thread must be reported
-            if self._stopping or not self.executor.context.ok():
-                return
-            if self._on_fatal is None:
-                raise
-            self._on_fatal(self.name, exc)
-
-    def _spin_through_unloads(self) -> None:
-        """rclpy's ``spin()``, except for one race it does not guard against: the executor gathers its wait set
-        from a snapshot of its nodes, so a node removed and destroyed on another thread (an unload) in between
-        makes ``wait_for_ready_callbacks`` raise InvalidHandle, outside any callback. The next wait set no
-        longer holds that node, so the error is transient; only a run of them is a real failure."""
-        in_a_row = 0
-        while self.executor.context.ok() and not self._stopping:
-            try:
-                self.executor.spin_once()
-            except InvalidHandle:
-                in_a_row += 1
-                if in_a_row > TRANSIENT_INVALID_HANDLES:
-                    raise
-            else:
-                in_a_row = 0
-
-    def stop(self, timeout: float) -> None:
-        """Shut the executor down and wait up to ``timeout`` s for the thread."""
-        self._stopping = True
-        self.executor.shutdown(timeout_sec=timeout)
-        self.thread.join(timeout)
 
 
 class ComponentExecutor(Protocol):
@@ -184,13 +109,18 @@ class ComponentExecutor(Protocol):
     def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
         """Stop all threads."""
 
+    def make_wakeup(self, node: Node, callback: Callable[[], None], group: CallbackGroup | None) -> Wakeup:
+        """How the intra-process path makes this executor run ``callback`` for ``node`` (see intra_process)."""
+
 
 class SharedExecutor:
-    """One supervised executor, single- or multi-threaded, shared by every component."""
+    """One supervised executor (single-threaded, multi-threaded or events) shared by every component."""
 
-    def __init__(self, executor: SupervisedExecutor, on_fatal: FatalHandler | None = None) -> None:
+    def __init__(self, executor: SupervisedExecutor | SupervisedEventsExecutor, on_fatal: FatalHandler | None = None,
+                 spinner: type[SpinThread] = SpinThread) -> None:
         self._executor = executor
-        self._spinner = SpinThread(executor, "components", on_fatal)
+        self._spinner = spinner(executor, "components", on_fatal)
+        self.make_wakeup = executor.make_wakeup
 
     def add(self, node: Node) -> None:
         self._executor.add_node(node)
@@ -238,6 +168,10 @@ class IsolatedExecutors:
         with self._lock:
             return [spinner.thread for spinner in self._running.values()]
 
+    @staticmethod
+    def make_wakeup(node: Node, callback: Callable[[], None], group: CallbackGroup | None) -> Wakeup:
+        return GuardConditionWakeup(node, callback, group)
+
     def shutdown(self, timeout: float = DRAIN_TIMEOUT) -> None:
         with self._lock:
             nodes = list(self._running)
@@ -255,4 +189,6 @@ def make_component_executor(kind: str, context: Context, thread_num: int, on_err
                                                               on_error=on_error), on_fatal)
     if kind == "isolated":
         return IsolatedExecutors(context, on_error, on_fatal)
+    if kind == "events":
+        return SharedExecutor(SupervisedEventsExecutor(context, on_error), on_fatal, EventsSpinThread)
     raise ValueError(f"Unknown executor '{kind}': choose one of {', '.join(EXECUTOR_KINDS)}")

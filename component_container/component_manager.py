@@ -25,7 +25,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 
-from component_container.component_executors import COMPONENT_ERRORS, ComponentExecutor, make_component_executor
+from component_container.callback_supervision import COMPONENT_ERRORS
+from component_container.component_executors import ComponentExecutor, make_component_executor
 from component_container.component_node import ComponentNode
 from component_container.component_options import LoadRequestError, options_from_request
 from component_container.diagnostics import DiagnosticsPublisher, component_health, status, threads_health
@@ -84,7 +85,6 @@ class ComponentManager(Node):
         self.exit_request = exit_request or ExitRequest()
         self.supervisor = Supervisor(on_component_error, self.get_logger(), self._unload_failed,
                                      self.exit_request)
-        self.intra_process_manager = IntraProcessManager(on_callback_error=self._component_raised)
         thread_num = self.declare_parameter(
             "thread_num", os.cpu_count() or 1,
             ParameterDescriptor(read_only=True, description="threads of the multi-threaded executor")).value
@@ -93,6 +93,8 @@ class ComponentManager(Node):
         self.executor_kind = executor_kind
         self._executor: ComponentExecutor = make_component_executor(
             executor_kind, self.context, thread_num, self._component_raised, self.supervisor.thread_died)
+        self.intra_process_manager = IntraProcessManager(on_callback_error=self._component_raised,
+                                                         make_wakeup=self._executor.make_wakeup)
         self._components: dict[int, LoadedComponent] = {}
         self._failed_components: dict[int, LoadedComponent] = {}  # delisted, waiting for the policy
         self._last_id = 0

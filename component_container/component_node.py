@@ -218,12 +218,11 @@ class IntraProcessSubscriber:
         self.dds_subscription = Node.create_subscription(
             node, msg_type, topic, self._on_dds_message, qos_profile, **kwargs)
         self.topic_name = self.dds_subscription.topic_name
-        self._guard = node.create_guard_condition(self._drain, kwargs.get("callback_group"))
-        self._node = node
+        self._wakeup = manager.make_wakeup(node, self._drain, kwargs.get("callback_group"))
         on_error = (functools.partial(manager.on_callback_error, node)
                     if manager.on_callback_error is not None else None)
         self.queue = IntraProcessSubscription(self.topic_name, self.dds_subscription.qos_profile,
-                                              self._guard.trigger, self._deliver if inline else None, on_error)
+                                              self._wakeup.trigger, self._deliver if inline else None, on_error)
         manager.add_subscription(self.queue)
 
     @property
@@ -243,7 +242,7 @@ class IntraProcessSubscriber:
                 return
             self._deliver(*item)
         if self.queue.queue:
-            self._guard.trigger()  # more arrived meanwhile: run again after others had their turn
+            self._wakeup.trigger()  # more arrived meanwhile: run again after others had their turn
 
     def _deliver(self, message: Any, stamps: tuple[int, int]) -> None:
         if self._with_info:
@@ -263,7 +262,7 @@ class IntraProcessSubscriber:
 
     def unregister(self) -> None:
         self._manager.remove_subscription(self.queue)
-        self._node.destroy_guard_condition(self._guard)
+        self._wakeup.destroy()
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.dds_subscription, name)  # qos_profile, msg_type, handle, ...

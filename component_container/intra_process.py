@@ -2,8 +2,10 @@
 
 rclpy has no intra-process transport; this module is it. Publishers and subscriptions of components that opt
 in register here by topic. ``publish(msg)`` appends the very object to the bounded queue of every compatible
-in-process subscription and triggers that subscription's guard condition, so the callback runs on the
-container's executor with the object the publisher built: no serialization, no copy, no C conversion.
+in-process subscription and wakes that subscription's executor (a :class:`Wakeup`: a guard condition of the
+subscriber's node for the wait-set executors, a task posted to rclpy's EventsExecutor, which has no guard
+conditions), so the callback runs on the container's executor with the object the publisher built: no
+serialization, no copy, no C conversion.
 
 DDS still carries the topic for everyone else: a publisher writes to DDS only while out-of-process (or
 non-intra-process) subscribers are matched, and an in-process subscription keeps a DDS reader for publishers
@@ -19,11 +21,13 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
+from rclpy.callback_groups import CallbackGroup
+from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from component_container.component_executors import COMPONENT_ERRORS
+from component_container.callback_supervision import COMPONENT_ERRORS
 
 # How many recent DDS writes of a volatile publisher stay recognisable to the local DDS readers.
 PUBLICATION_LOG_DEPTH = 256
@@ -34,6 +38,34 @@ KEEP_ALL_MAX_MESSAGES = 1000
 KEEP_ALL_MAX_BYTES = 256 * 1024 * 1024
 # How long closing a subscription waits for its inline callbacks (which must never block) to return.
 INLINE_DRAIN_TIMEOUT = 1.0
+
+
+class Wakeup(Protocol):
+    """Makes the executor that runs a node call one callback of it soon, from any thread."""
+
+    def trigger(self) -> None:
+        """Ask for one call (triggers before that call coalesce into it)."""
+
+    def destroy(self) -> None:
+        """No more calls: the subscription is going away."""
+
+
+#: ``make_wakeup(node, callback, callback_group)``: what each executor model provides (component_executors).
+WakeupFactory = Callable[[Node, Callable[[], None], CallbackGroup | None], Wakeup]
+
+
+class GuardConditionWakeup:
+    """A wait-set executor's wake-up: a guard condition of the node, with ``callback`` as its callback."""
+
+    def __init__(self, node: Node, callback: Callable[[], None], group: CallbackGroup | None) -> None:
+        self._node = node
+        self._guard = node.create_guard_condition(callback, group)
+
+    def trigger(self) -> None:
+        self._guard.trigger()
+
+    def destroy(self) -> None:
+        self._node.destroy_guard_condition(self._guard)
 
 
 def qos_compatible(offered: QoSProfile, requested: QoSProfile) -> bool:
@@ -126,7 +158,7 @@ class IntraProcessSubscription:
             elif len(self.queue) == self.queue.maxlen:
                 self.dropped += 1
             self.queue.append((message, stamps))
-            self.wake()  # under the lock: close() cannot destroy the guard condition in between
+            self.wake()  # under the lock: close() cannot destroy the wake-up in between
 
     def _offer_inline(self, message: Any, stamps: tuple[int, int]) -> None:
         with self._lock:
@@ -182,10 +214,13 @@ class IntraProcessPublication:
 class IntraProcessManager:
     """The container-wide registry that routes published objects to in-process subscriptions."""
 
-    def __init__(self, on_callback_error: Callable[[Any, BaseException], None] | None = None) -> None:
+    def __init__(self, on_callback_error: Callable[[Any, BaseException], None] | None = None,
+                 make_wakeup: WakeupFactory = GuardConditionWakeup) -> None:
         """``on_callback_error(node, exc)`` gets what an inline subscription callback raised (the container
-        handles it as that component's failure); without it the exception propagates."""
+        handles it as that component's failure); without it the exception propagates. ``make_wakeup`` is how
+        the executor that runs the subscribers is woken (the container passes its executor model's)."""
         self.on_callback_error = on_callback_error
+        self.make_wakeup = make_wakeup
         self._lock = threading.Lock()
         self._subscriptions: dict[str, list[IntraProcessSubscription]] = {}
         self._publications: dict[str, list[IntraProcessPublication]] = {}

@@ -66,6 +66,14 @@ class LoggingComponent(Node):
         self.get_logger().info(f"info-probe from {self.get_name()}")
 
 
+class GuardedComponent(Node):
+    """A component with a guard condition (rclpy's EventsExecutor cannot run it)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("guarded_component", **kwargs)
+        self._guard = self.create_guard_condition(lambda: None)
+
+
 class NotANode:
     """Not an rclpy Node: the container must refuse to load it."""
 

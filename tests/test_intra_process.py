@@ -201,9 +201,10 @@ def test_fan_out_and_qos_compatibility(contexts, ipm):
 
 
 @pytest.mark.parametrize("kind", EXECUTOR_KINDS)
-def test_all_executor_models_deliver_in_process(contexts, ipm, kind):
+def test_all_executor_models_deliver_in_process(contexts, kind):
     inside, _ = contexts
     executor = make_component_executor(kind, inside, thread_num=2)
+    ipm = IntraProcessManager(make_wakeup=executor.make_wakeup)
     pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
     sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
     got: list[String] = []

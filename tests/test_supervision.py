@@ -19,6 +19,7 @@ from rclpy.node import Node
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from component_container.component_executors import EXECUTOR_KINDS
 from container_process import Containers, Received, listing, node_names, wait_until
 
 PLUGINS = "tests.container_test_plugins"
@@ -65,7 +66,7 @@ class Diagnostics:
 
 
 # --- a callback that raises ---------------------------------------------------------------------------------
-@pytest.mark.parametrize("executor", ["single", "multi", "isolated"])
+@pytest.mark.parametrize("executor", EXECUTOR_KINDS)
 def test_a_raising_callback_unloads_only_its_component(containers: Containers, probe: Node, executor: str) -> None:
     diagnostics = Diagnostics(probe)
     process, client = containers.start("--allow-module-plugins", "--executor", executor)
@@ -88,9 +89,11 @@ def test_a_raising_callback_unloads_only_its_component(containers: Containers, p
     assert "Traceback" in process.output and "_tick" in process.output  # the traceback is in the log
 
 
+@pytest.mark.parametrize("executor", ["single", "events"])
 def test_exit_policy_finalizes_bags_and_exits_1(containers: Containers, probe: Node,
-                                                tmp_path: pathlib.Path) -> None:
-    process, client = containers.start("--allow-module-plugins", "--on-component-error", "exit")
+                                                tmp_path: pathlib.Path, executor: str) -> None:
+    process, client = containers.start("--allow-module-plugins", "--on-component-error", "exit",
+                                       "--executor", executor)
     uri = tmp_path / "exit_policy_bag"
     recorder = client.load("components::Recorder", extra=IPC, parameters={
         "storage.uri": str(uri), "record.topics": ["/sup_exit_chatter"]})
@@ -105,7 +108,7 @@ def test_exit_policy_finalizes_bags_and_exits_1(containers: Containers, probe: N
 
 
 # --- unloading while callbacks run or deliver ----------------------------------------------------------------
-@pytest.mark.parametrize("executor", ["single", "multi"])
+@pytest.mark.parametrize("executor", ["single", "multi", "events"])
 def test_unload_during_a_running_callback_keeps_the_others_running(containers: Containers, probe: Node,
                                                                    executor: str) -> None:
     process, client = containers.start("--allow-module-plugins", "--executor", executor)
@@ -125,11 +128,13 @@ def test_unload_during_a_running_callback_keeps_the_others_running(containers: C
     assert not SUPERVISOR_ERRORS.search(process.output), process.output
 
 
+@pytest.mark.parametrize("executor", ["single", "events"])
 def test_load_unload_cycles_of_a_1080p60_camera_next_to_imu_and_recorder(containers: Containers, probe: Node,
-                                                                         tmp_path: pathlib.Path) -> None:
+                                                                         tmp_path: pathlib.Path,
+                                                                         executor: str) -> None:
     """200 load/unload cycles of a 1920x1080 60 Hz camera (its timer callback is often running, and its
     camera_info goes to the recorder inline) while an IMU at 200 Hz is recorded in the same container."""
-    process, client = containers.start("--use-intra-process-comms")
+    process, client = containers.start("--use-intra-process-comms", "--executor", executor)
     imu = client.load("components::ImuDriver", parameters={"rate": 200.0})
     uri = tmp_path / "cycles_bag"
     recorder = client.load("components::Recorder", parameters={
@@ -154,9 +159,44 @@ def test_load_unload_cycles_of_a_1080p60_camera_next_to_imu_and_recorder(contain
     assert not SUPERVISOR_ERRORS.search(process.output), process.output
 
 
+def test_events_refuses_a_component_it_cannot_run(containers: Containers, probe: Node) -> None:
+    process, client = containers.start("--allow-module-plugins", "--executor", "events")
+    guarded = client.load(f"{PLUGINS}:GuardedComponent", "tests")
+    assert not guarded.success
+    assert guarded.error_message == (
+        "Component could not be started: /guarded_component has guard conditions, which rclpy's EventsExecutor "
+        "cannot run; load it into a container with --executor single, multi or isolated"), guarded.error_message
+    assert wait_until(lambda: ("guarded_component", "/") not in node_names(probe), 5.0, probe)
+    received = Received(probe, "/sup_guard_chatter")
+    talker_id = talker(client, "sup_guard_chatter")
+    assert listing(client) == [(talker_id, "/talker")]
+    assert still_publishing(received, probe)
+    assert process.stop() == 0
+    assert not SUPERVISOR_ERRORS.search(process.output), process.output
+
+
+@pytest.mark.parametrize("executor", ["single", "events"])
+def test_a_callback_that_never_returns_does_not_hold_the_exit(containers: Containers, probe: Node,
+                                                              tmp_path: pathlib.Path, executor: str) -> None:
+    """A component stuck in a callback at shutdown: the shutdown overran, so the container exits within the
+    bound with status 1 and says why."""
+    process, client = containers.start("--allow-module-plugins", "--shutdown-timeout", "2", "--executor", executor)
+    marker = tmp_path / "stuck"
+    stuck = client.load(f"{PLUGINS}:BlockingComponent", "tests",
+                        parameters={"block_seconds": 600.0, "marker": str(marker)})
+    assert stuck.success, stuck
+    assert wait_until(marker.exists, 10.0), "the blocking callback never ran"
+    start = time.monotonic()
+    assert process.stop(signal.SIGTERM, timeout=15.0) == 1, process.output
+    assert time.monotonic() - start < 8.0
+    assert "A component callback was still running after the shutdown" in process.output, process.output
+
+
 # --- the manager's own thread ------------------------------------------------------------------------------
-def test_manager_survives_a_self_destroyed_node_and_sys_exit(containers: Containers, probe: Node) -> None:
-    process, client = containers.start("--allow-module-plugins")
+@pytest.mark.parametrize("executor", ["single", "events"])
+def test_manager_survives_a_self_destroyed_node_and_sys_exit(containers: Containers, probe: Node,
+                                                            executor: str) -> None:
+    process, client = containers.start("--allow-module-plugins", "--executor", executor)
     gone = client.load(f"{PLUGINS}:SelfDestroyingComponent", "tests")
     assert gone.success, gone
     time.sleep(0.5)  # its timer has destroyed its node: it is no longer running, so it is not listed
@@ -185,8 +225,10 @@ def test_a_raising_destroy_node_still_destroys_the_node(containers: Containers, 
     assert process.stop() == 0
 
 
-def test_unload_and_shutdown_are_bounded_by_the_shutdown_timeout(containers: Containers, probe: Node) -> None:
-    process, client = containers.start("--allow-module-plugins", "--shutdown-timeout", "2")
+@pytest.mark.parametrize("executor", ["single", "events"])
+def test_unload_and_shutdown_are_bounded_by_the_shutdown_timeout(containers: Containers, probe: Node,
+                                                                 executor: str) -> None:
+    process, client = containers.start("--allow-module-plugins", "--shutdown-timeout", "2", "--executor", executor)
     received = Received(probe, "/sup_bound_chatter")
     talker_id = talker(client, "sup_bound_chatter")
     hanging = client.load(f"{PLUGINS}:HangingDestructor", "tests")

@@ -1,0 +1,299 @@
+"""``--executor events`` in-process, with real rclpy nodes over Fast DDS: every callback kind supervised (the
+same checks for every executor model), what rclpy 7.1.6's EventsExecutor cannot run refused cleanly, node
+changes from other threads while it spins, unloads racing traffic, and a bounded shutdown.
+
+See component_container/events_executor.py for why each of these needed work.
+"""
+from __future__ import annotations
+
+import random
+import resource
+import threading
+import time
+from typing import Any, Callable, Iterator
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from component_container.component_executors import EXECUTOR_KINDS, ComponentExecutor, make_component_executor
+from component_container.component_node import ComponentNode
+from component_container.events_executor import UnsupportedByEventsExecutor
+from component_container.intra_process import IntraProcessManager
+
+
+class Harness:
+    """One executor model in its own context, recording what it reports."""
+
+    def __init__(self, kind: str) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.errors: list[tuple[str, BaseException]] = []
+        self.fatal: list[tuple[str, BaseException]] = []
+        self._lock = threading.Lock()
+        self.executor: ComponentExecutor = make_component_executor(kind, self.context, 2, self._on_error,
+                                                                   self._on_fatal)
+        self.ipm = IntraProcessManager(on_callback_error=self._on_error, make_wakeup=self.executor.make_wakeup)
+        self.nodes: list[Node] = []
+
+    def _on_error(self, node: Node, exc: BaseException) -> None:
+        with self._lock:
+            self.errors.append((node.get_name(), exc))
+
+    def _on_fatal(self, name: str, exc: BaseException) -> None:
+        with self._lock:
+            self.fatal.append((name, exc))
+
+    def failed(self) -> dict[str, str]:
+        """Node name -> the first error it reported."""
+        with self._lock:
+            first: dict[str, str] = {}
+            for name, exc in self.errors:
+                first.setdefault(name, str(exc))
+            return first
+
+    def node(self, name: str, ipc: bool = False) -> Node:
+        node: Node = (ComponentNode(name, context=self.context, intra_process_manager=self.ipm) if ipc
+                      else Node(name, context=self.context))
+        self.nodes.append(node)
+        return node
+
+    def alive(self) -> bool:
+        return bool(self.executor.threads()) and all(t.is_alive() for t in self.executor.threads())
+
+    def close(self) -> None:
+        for node in self.nodes:
+            self.executor.remove(node, 1.0)
+            node.destroy_node()
+        self.executor.shutdown(2.0)
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def harness(request: pytest.FixtureRequest) -> Iterator[Harness]:
+    made = Harness(request.param)
+    yield made
+    made.close()
+
+
+def wait_for(condition: Callable[[], Any], timeout: float = 10.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        result = condition()
+        if result:
+            return result
+        time.sleep(0.02)
+    return condition()
+
+
+def raising(kind: str) -> Callable[..., None]:
+    def callback(*_args: Any) -> None:
+        raise RuntimeError(f"deliberate failure in a {kind} callback")
+    return callback
+
+
+# --- exceptions in every kind of callback --------------------------------------------------------------------
+@pytest.mark.parametrize("harness", EXECUTOR_KINDS, indirect=True)
+def test_each_callback_kind_reports_its_exception_as_its_nodes_failure(harness: Harness) -> None:
+    """One failing node per callback kind; each failure is attributed to its own node, and the healthy node
+    next to them keeps running on the same thread."""
+    feeder = harness.node("feeder", ipc=True)
+    ticks: list[int] = []
+    ipc_pub = feeder.create_publisher(String, "fault_ipc", 10)
+    dds_pub = feeder.create_publisher(String, "fault_dds", 10)
+    info_pub = feeder.create_publisher(String, "fault_info", 10)
+    feeder.create_publisher(String, "fault_qos", QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    client = feeder.create_client(Trigger, "fault_service")
+    requests: list[Any] = []
+
+    def tick() -> None:
+        ticks.append(1)
+        for publisher in (ipc_pub, dds_pub, info_pub):
+            publisher.publish(String(data=str(len(ticks))))
+        if len(ticks) % 10 == 0 and client.service_is_ready():
+            requests.append(client.call_async(Trigger.Request()))
+
+    feeder.create_timer(0.02, tick)
+
+    harness.node("timer").create_timer(0.02, raising("timer"))
+
+    async def coroutine_timer() -> None:
+        raising("coroutine timer")()
+    harness.node("coroutine_timer").create_timer(0.02, coroutine_timer)
+    harness.node("subscription").create_subscription(String, "fault_dds", raising("subscription"), 10)
+
+    def with_info(message: String, info: dict) -> None:
+        assert isinstance(message, String) and info["source_timestamp"] > 0, (message, info)
+        raising("subscription with message info")()
+    harness.node("info_subscription").create_subscription(String, "fault_info", with_info, 10)
+    harness.node("ipc_subscription", ipc=True).create_subscription(
+        String, "fault_ipc", raising("intra-process subscription"), 10)
+    harness.node("service").create_service(Trigger, "fault_service", raising("service"))
+    harness.node("waitable").create_subscription(
+        String, "fault_qos", lambda _msg: None, 10,
+        event_callbacks=SubscriptionEventCallbacks(incompatible_qos=raising("QoS event")))
+
+    for node in harness.nodes:
+        harness.executor.add(node)
+    expected = {"timer": "timer", "coroutine_timer": "coroutine timer", "subscription": "subscription",
+                "info_subscription": "subscription with message info",
+                "ipc_subscription": "intra-process subscription", "service": "service", "waitable": "QoS event"}
+    assert wait_for(lambda: set(harness.failed()) >= set(expected), 15.0), harness.failed()
+    failed = harness.failed()
+    assert {name: failed[name] for name in expected} == {
+        name: f"deliberate failure in a {kind} callback" for name, kind in expected.items()}
+    assert "feeder" not in failed and not harness.fatal, (failed, harness.fatal)
+    count = len(ticks)
+    assert wait_for(lambda: len(ticks) >= count + 5, 5.0), "the healthy node stopped with the failing ones"
+    assert harness.alive()
+    assert not any(request.done() for request in requests), "a service that raised must not answer"
+
+
+@pytest.mark.parametrize("harness", EXECUTOR_KINDS, indirect=True)
+def test_services_clients_and_message_info_work(harness: Harness) -> None:
+    """The healthy paths the events executor needed fixes for: a client's response, a coroutine service, a
+    subscription that takes message info."""
+    server, caller = harness.node("server"), harness.node("caller")
+
+    def answer(_request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = True, "plain"
+        return response
+
+    async def answer_later(_request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = True, "coroutine"
+        return response
+
+    server.create_service(Trigger, "plain", answer)
+    server.create_service(Trigger, "coroutine", answer_later)
+    infos: list[dict] = []
+    server.create_subscription(String, "with_info", lambda _msg, info: infos.append(info), 10)
+    publisher = caller.create_publisher(String, "with_info", 10)
+    clients = [caller.create_client(Trigger, name) for name in ("plain", "coroutine")]
+    harness.executor.add(server)
+    harness.executor.add(caller)
+    assert wait_for(lambda: all(c.service_is_ready() for c in clients))
+    futures = [c.call_async(Trigger.Request()) for c in clients]
+    assert wait_for(lambda: all(f.done() for f in futures)), "no response"
+    assert [f.result().message for f in futures] == ["plain", "coroutine"]
+    assert wait_for(lambda: publisher.get_subscription_count() == 1)
+    publisher.publish(String(data="x"))
+    assert wait_for(lambda: infos), "the subscription taking message info got nothing"
+    assert infos[0]["publication_sequence_number"] >= 1
+    assert not harness.errors and not harness.fatal, (harness.errors, harness.fatal)
+
+
+# --- what rclpy's EventsExecutor cannot run --------------------------------------------------------------------
+@pytest.mark.parametrize("harness", ["events"], indirect=True)
+def test_events_refuses_a_node_with_guard_conditions(harness: Harness) -> None:
+    node = harness.node("guarded")
+    node.create_guard_condition(lambda: None)
+    with pytest.raises(UnsupportedByEventsExecutor, match=r"/guarded has guard conditions.*--executor single"):
+        harness.executor.add(node)
+    harness.nodes.remove(node)
+    node.destroy_node()
+
+
+@pytest.mark.parametrize("harness", ["events"], indirect=True)
+def test_events_a_guard_condition_created_later_fails_only_its_component(harness: Harness) -> None:
+    healthy = harness.node("healthy")
+    ticks: list[int] = []
+    healthy.create_timer(0.02, lambda: ticks.append(1))
+    late = harness.node("late_guard")
+    late_timer = late.create_timer(0.02, lambda: (late_timer.cancel(), late.create_guard_condition(lambda: None)))
+    harness.executor.add(healthy)
+    harness.executor.add(late)
+    assert wait_for(lambda: "late_guard" in harness.failed())
+    assert "guard conditions, which rclpy's EventsExecutor cannot run" in harness.failed()["late_guard"]
+    count = len(ticks)
+    assert wait_for(lambda: len(ticks) >= count + 5, 5.0)
+    assert harness.alive() and not harness.fatal
+
+
+# --- node changes while spinning ------------------------------------------------------------------------------
+@pytest.mark.parametrize("harness", EXECUTOR_KINDS, indirect=True)
+def test_unloads_racing_traffic_and_load_unload_cycles(harness: Harness) -> None:
+    """150 components added and removed from another thread (sometimes before the executor got to them) while
+    a 1 kHz publisher feeds each over DDS and in-process, each with a 1 kHz timer and a service; every
+    removed one is destroyed at once, as an unload does."""
+    feeder = harness.node("cycle_feeder", ipc=True)
+    ipc_pub = feeder.create_publisher(String, "cycle_ipc", 100)
+    dds_pub = feeder.create_publisher(String, "cycle_dds", 100)
+    fed: list[int] = []
+
+    def feed() -> None:
+        fed.append(1)
+        ipc_pub.publish(String(data="i"))
+        dds_pub.publish(String(data="d"))
+
+    feeder.create_timer(0.001, feed)
+    harness.executor.add(feeder)
+    received: list[int] = []
+    rng = random.Random(12)
+    for cycle in range(150):
+        victim = ComponentNode(f"victim_{cycle}", context=harness.context, intra_process_manager=harness.ipm)
+        victim.create_subscription(String, "cycle_ipc", lambda _m: received.append(1), 10)
+        victim.create_subscription(String, "cycle_dds", lambda _m, _i: received.append(2), 10)
+        victim.create_timer(0.001, lambda: None)
+        victim.create_service(Trigger, f"victim_{cycle}/trigger", lambda _q, r: r)
+        harness.executor.add(victim)
+        time.sleep(rng.choice([0.0, 0.0, 0.002, 0.01, 0.03]))
+        assert harness.executor.remove(victim, 2.0), cycle
+        victim.destroy_node()
+        assert not harness.fatal and harness.alive(), (cycle, harness.fatal)
+    assert received, "no victim ever received anything"
+    count = len(fed)
+    assert wait_for(lambda: len(fed) >= count + 50, 5.0), "the feeder stopped"
+    assert not harness.errors and not harness.fatal, (harness.errors[:3], harness.fatal)
+
+
+@pytest.mark.parametrize("harness", EXECUTOR_KINDS, indirect=True)
+def test_in_process_delivery_before_and_after_the_node_runs(harness: Harness) -> None:
+    """Transient-local messages reach a subscriber while its node is being constructed (before the executor
+    runs it): they are delivered once it runs, exactly once, never to a node already removed."""
+    latched = QoSProfile(depth=3, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = harness.node("map_server", ipc=True).create_publisher(String, "map", latched)
+    for index in range(5):
+        publisher.publish(String(data=str(index)))
+    late = harness.node("late", ipc=True)
+    got: list[str] = []
+    late.create_subscription(String, "map", lambda m: got.append(m.data), latched)
+    time.sleep(0.3)
+    assert got == [], "a callback ran before its node was added to the executor"
+    harness.executor.add(late)
+    assert wait_for(lambda: len(got) == 3)
+    time.sleep(0.5)
+    assert got == ["2", "3", "4"]
+    harness.executor.remove(late, 1.0)
+    publisher.publish(String(data="after"))
+    time.sleep(0.3)
+    assert got == ["2", "3", "4"]
+    assert not harness.errors and not harness.fatal
+
+
+# --- spinning and stopping --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("harness", ["events"], indirect=True)
+def test_events_thread_sleeps_when_idle_and_stops_within_the_timeout(harness: Harness) -> None:
+    node = harness.node("idle")
+    node.create_subscription(String, "nobody_publishes", lambda _m: None, 10)
+    harness.executor.add(node)
+    time.sleep(0.5)
+    before = resource.getrusage(resource.RUSAGE_SELF)
+    time.sleep(2.0)
+    after = resource.getrusage(resource.RUSAGE_SELF)
+    used = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    assert used < 0.5, f"an idle events executor used {used:.2f} s of CPU in 2 s"
+    assert harness.alive()
+    busy = harness.node("busy")
+    busy.create_timer(0.001, lambda: None)
+    harness.executor.add(busy)
+    time.sleep(0.2)
+    start = time.monotonic()
+    harness.executor.shutdown(2.0)
+    assert time.monotonic() - start < 2.5
+    assert not any(thread.is_alive() for thread in harness.executor.threads())
+    assert not harness.fatal
