@@ -209,7 +209,8 @@ def stop_process(process: subprocess.Popen, timeout: float = 20.0) -> None:
 
 @contextlib.contextmanager
 def in_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path) -> Iterator[Setup]:
-    with ContainerProcess("--use-intra-process-comms", "--allow-module-plugins", cwd=str(REPO)) as container:
+    with ContainerProcess("--use-intra-process-comms", "--allow-module-plugins", "--executor", args.executor,
+                          cwd=str(REPO)) as container:
         try:
             client = ContainerClient(caller.node)
             client.wait(args.startup_timeout)
@@ -225,7 +226,7 @@ def in_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path
 @contextlib.contextmanager
 def out_of_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path) -> Iterator[Setup]:
     pairs = [f"{topic}={type_name}" for topic, type_name in bag.types.items()]
-    with ContainerProcess("--use-intra-process-comms", cwd=str(REPO)) as container, \
+    with ContainerProcess("--use-intra-process-comms", "--executor", args.executor, cwd=str(REPO)) as container, \
             open(workdir / "consumer.log", "w") as log:
         consumer = subprocess.Popen([sys.executable, "-m", "benchmarks.replay_consumer", *pairs], cwd=str(REPO),
                                     stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
@@ -416,6 +417,7 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seconds", type=float, default=10.0, help="bag length")
     p.add_argument("--rates", default="1,2,4,8,16", help="rate multipliers, tried in order up to a failure")
     p.add_argument("--modes", default="in-process,out-of-process", help="comma-separated subset")
+    p.add_argument("--executor", default="single", help="the containers' --executor")
     p.add_argument("--slack", type=float, default=1.10, help="sustained: wall <= ideal x this")
     p.add_argument("--settle", type=float, default=2.0, help="seconds between matching and ~/resume")
     p.add_argument("--startup-timeout", type=float, default=60.0)
