@@ -25,8 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from components.player.playback_clock import PlaybackClock
 from baglib.reader import BagMessage
+from components.player.playback_clock import PlaybackClock
 from components.player.read_ahead import Queued, ReadAhead
 
 #: Lateness (steady time) beyond which the schedule is moved instead of caught up.

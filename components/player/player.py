@@ -92,9 +92,8 @@ class Player(ComponentNode):
                                          self._options.read_ahead_max_bytes, self._on_read_error)
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
             self._playback = Playback(clock, self._read_ahead, self._reader.starting_time_ns, self._prepare,
-                                      self._publish,
-                                      self.get_logger(), self._options.loop, self._options.delay_ns,
-                                      self._wait_for_acks, self._finish_files)
+                                      self._publish, self.get_logger(), self._options.loop,
+                                      self._options.delay_ns, self._wait_for_acks, self._finish_files)
             ShortSwitchInterval.acquire()
             self._holds_switch_interval = True
             reuse_large_buffers()
