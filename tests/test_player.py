@@ -371,6 +371,23 @@ def test_loop_filters_and_split_events(container: Any, tmp_path: Path) -> None:
         node.destroy_subscription(subscription)
 
 
+def test_a_truncated_bag_plays_what_is_intact(container: Any, tmp_path: Path) -> None:
+    """A file cut short (a crash while recording, metadata.yaml from the last split) plays up to the damage:
+    a prefix of the messages, in order; the container stays up."""
+    node, client, process = container
+    plan = [("/chatter", n * 10 * MS, chatter(n)) for n in range(200)]
+    bag = write_bag(tmp_path / "bag", plan, storage_preset_profile="fastwrite")  # one record per message
+    (file,) = bag.glob("*.mcap")
+    file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
+    handle = PlayerHandle(node, client, bag, topics=(("/chatter", "std_msgs/msg/String"),))
+    handle.wait_finished()
+    got = received(handle.report(), "/chatter")
+    assert 50 < len(got) < 200
+    assert got == expected(plan, "/chatter")[: len(got)]
+    handle.unload()
+    assert process.alive()
+
+
 # --- bags of other writers ----------------------------------------------------------------------------------
 def chatter_messages(count: int) -> list[tuple[str, int, int, bytes]]:
     return [("/chatter", T0 + n * 20 * MS, T0 + n * 20 * MS, chatter(n)) for n in range(count)]
