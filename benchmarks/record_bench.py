@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Recording benchmark: the zero-copy in-container recorder against DDS recording, on the same scenario.
 
-Usage: ``python benchmarks/record_bench.py [--quick] [--scenarios s1,s2,s3] [--json FILE|-] [--plot FILE]``
-(``--help`` lists every knob). One run measures, for each scenario, these modes one after the other:
+Usage: ``python benchmarks/record_bench.py [--quick] [--scenarios s1,s2,s3] [--repeat N] [--json FILE|-]
+[--plot FILE]`` (``--help`` lists every knob). One run measures, for each scenario, these modes one after the other:
 
 * ``ipc``: the drivers and ``components::Recorder`` in one container, every component loaded with
   ``extra_arguments: {use_intra_process_comms: true}`` (the recorder gets the drivers' message objects by
@@ -15,10 +15,24 @@ Usage: ``python benchmarks/record_bench.py [--quick] [--scenarios s1,s2,s3] [--j
   a file on the same filesystem as the bags (the write-speed limit of this machine in this run); the median
   of ``--ceiling-repeats`` runs; every run is listed, and a "warm" run reusing just-freed pages too.
 
-Every run (recorder modes, drivers, each ceiling run) starts ``--page-pause`` s after the benchmark last
-deleted a bag or file: on this kind of VM the kernel's cost of a buffered write depends several-fold on
-whether its page-cache pages were freed moments ago (cheap) or are fresh (1.5-2 CPU s/GB, what a continuously
-writing recorder gets), and without the pause whichever mode runs second would write for less.
+Once per benchmark run, before the scenarios (unless ``--direct-mb 0``), the **direct-write limit** of the
+filesystem the bags go to: ``--direct-mb`` MiB written with ``O_DIRECT`` (``baglib.direct_file``) in 8 MiB
+page-aligned blocks of random bytes to a file in the bag directory, then fsync, then the file is deleted; the
+median of ``--ceiling-repeats`` runs, each after the page pause. It bypasses the page cache, so it is the disk's
+own sequential-write bandwidth (what ``dd oflag=direct`` reports), the physical limit a recorder can approach;
+the buffered ceiling above is a Python write loop through the page cache, which may exceed it for a while.
+
+``--repeat N`` runs S1's selected recorder modes (ipc, split, dds) N times back to back, each run exactly as a
+single run (fresh processes, page pause, read-back); drivers and ceiling run once, after them. The tables show
+run 1 in full, then a per-run table and the distribution per mode: lossless runs k of N, min / median / max
+lost %, and per run the ratio ipc / dds of total CPU s/GB. Two targets exist only with ``--repeat``: "ipc
+lossless in 5 of 5 consecutive runs" (evaluated when N >= 5; every one of the N runs must be lossless) and
+"ipc total CPU per GB <= 0.33 of dds in every run" (evaluated when dds ran).
+
+Every run (recorder modes, drivers, each ceiling and direct-write run) starts ``--page-pause`` s after the
+benchmark last deleted a bag or file: on this kind of VM the kernel's cost of a buffered write depends
+several-fold on whether its page-cache pages were freed moments ago (cheap) or are fresh (1.5-2 CPU s/GB, what
+a continuously writing recorder gets), and without the pause whichever mode runs second would write for less.
 
 Scenarios: S1 multi-camera rig (2x 1920x1080 rgb8 @ 30 Hz, LiDAR 131072 points @ 10 Hz, IMU @ 200 Hz, 10 s);
 S2 ramp (1080p 30 Hz cameras added one at a time, on top of the S1 LiDAR and IMU unless ``--s2-base cameras``,
@@ -56,7 +70,9 @@ Definitions
   **lost** = published - recorded; **pub%** = published / (nominal rate x window): below 100 % the drivers
   themselves could not keep their rate (source skips, not counted as lost but a failure to sustain the load);
 * **MB/s** = serialized bytes of the window's recorded messages / window seconds (MB = 1e6 bytes,
-  GB = 1e9 bytes); **CPU s** = utime+stime over the window; **CPU s/GB** = that CPU / recorded GB;
+  GB = 1e9 bytes); **% direct** = that MB/s as a percentage of the direct-write limit's MB/s (bytes over the
+  time of the writes plus the final fsync) measured in the same benchmark run; **CPU s** = utime+stime over
+  the window; **CPU s/GB** = that CPU / recorded GB;
 * **recorder CPU** (``rec CPU s``): ``dds``: the recorder process; ``ipc``: ipc total minus drivers-only total
   for the same scenario (they share one process, so it includes the intra-process delivery and any
   contention). ``writer s`` is the CPU of the recorder's bag-writer thread alone (the thread that appears
@@ -72,8 +88,8 @@ Definitions
 * a step of S2 is **lossless** when no topic lost a message *and* every topic published >= 97 % of nominal.
 
 Environment: ``ROS_DOMAIN_ID`` is set to a random 1..100 when unset and ``ROS_AUTOMATIC_DISCOVERY_RANGE`` to
-LOCALHOST before anything starts. Bags and the ceiling file go to a temporary directory under ``--output-dir``
-(default: the current directory), removed at the end.
+LOCALHOST before anything starts. Bags and the ceiling and direct-write files go to a temporary directory under
+``--output-dir`` (default: the current directory), removed at the end.
 """
 from __future__ import annotations
 
@@ -81,10 +97,12 @@ import argparse
 import contextlib
 import json
 import math
+import mmap
 import os
 import random
 import shutil
 import signal
+import statistics
 import struct
 import subprocess
 import sys
@@ -102,6 +120,7 @@ DEFAULT_CACHE = 100 * 1024 * 1024  # rosbag2's storage.max_cache_size default
 MB = 1e6
 GB = 1e9
 PUBLISH_RATE_OK = 0.97  # a driver that published less than this share of its nominal rate did not keep up
+DIRECT_BLOCK = 8 * 1024 * 1024  # bytes per O_DIRECT write of the direct-write limit (a multiple of every block size)
 
 CEILING_WORKER = textwrap.dedent("""
     import json, os, sys, time
@@ -593,6 +612,7 @@ class Bench:
 
 #: The recorder modes: ipc, ipc splitting its files every --split-mb MiB, and dds.
 RECORDER_MODES = ("ipc", "split", "dds")
+IPC_MODES = ("ipc", "split")  # the modes that record in the drivers' process
 
 
 def recorder_component(name: str, topics: list[str], uri: Path, args: argparse.Namespace,
@@ -832,6 +852,58 @@ def run_ceiling(bench: Bench, scenario: Scenario) -> dict[str, Any]:
             "warm_cpu_s_per_gb": warm["cpu_s"] / (warm["bytes"] / GB)}
 
 
+def direct_write_once(path: Path, total: int) -> dict[str, Any]:
+    """Write ``total`` bytes (whole 8 MiB blocks) to a new file with O_DIRECT, fsync; seconds and CPU."""
+    from baglib.direct_file import DirectFile, open_exclusive
+    out = open_exclusive(path, buffering=0)
+    if not isinstance(out, DirectFile):  # open_exclusive falls back to a buffered file without O_DIRECT
+        out.close()
+        raise RuntimeError(f"the filesystem of {path.parent} does not support O_DIRECT")
+    block = mmap.mmap(-1, DIRECT_BLOCK)  # anonymous mappings are page-aligned, as O_DIRECT needs
+    block.write(os.urandom(DIRECT_BLOCK))
+    view = memoryview(block)
+    try:
+        cpu0, t0 = time.process_time(), time.perf_counter()
+        for _ in range(total // DIRECT_BLOCK):
+            done = 0
+            while done < DIRECT_BLOCK:
+                done += os.write(out.fileno(), view[done:])
+        t1 = time.perf_counter()
+        out.close(sync=True)
+        t2, cpu1 = time.perf_counter(), time.process_time()
+    finally:
+        out.close()
+        view.release()
+        block.close()
+    return {"bytes": total // DIRECT_BLOCK * DIRECT_BLOCK, "write_s": t1 - t0, "fsync_s": t2 - t1,
+            "cpu_s": cpu1 - cpu0}
+
+
+def run_direct_write(bench: Bench) -> dict[str, Any]:
+    """The direct-write limit of the bags' filesystem: median of --ceiling-repeats runs (module docstring)."""
+    path = bench.workdir / "direct_write.bin"
+    total = int(bench.args.direct_mb * 2**20)
+    runs = []
+    try:
+        for _ in range(max(1, bench.args.ceiling_repeats)):
+            wait_for_fresh_pages(bench)
+            machine0 = machine_snapshot()
+            run = direct_write_once(path, total)
+            machine1 = machine_snapshot()
+            path.unlink()
+            bench.last_free = time.monotonic()
+            run["background_cpu_s"], run["kernel_cpu_s"] = other_cpu(machine0, machine1, run["cpu_s"], {os.getpid()})
+            run["mb_per_s"] = run["bytes"] / MB / (run["write_s"] + run["fsync_s"])
+            runs.append(run)
+    finally:
+        path.unlink(missing_ok=True)
+    median = sorted(runs, key=lambda r: r["mb_per_s"])[len(runs) // 2]
+    return {"mode": "direct", "path": str(path.parent), "block_bytes": DIRECT_BLOCK, **median,
+            "window_s": median["write_s"] + median["fsync_s"],
+            "cpu_s_per_gb": median["cpu_s"] / (median["bytes"] / GB),
+            "all_runs_mb_per_s": [r["mb_per_s"] for r in runs]}
+
+
 # ----------------------------------------------------------------------------------------------- reporting
 def fmt(value: Any, spec: str = ".1f", missing: str = "-") -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
@@ -894,22 +966,23 @@ def mode_table(results: dict[str, Any]) -> str:
         if not e:
             continue
         if "error" in e:
-            rows.append([mode, "ERROR: " + e["error"][:60]] + [""] * 14)
+            rows.append([mode, "ERROR: " + e["error"][:60]] + [""] * 15)
             continue
         lat = e.get("latency_ms") or {}
         rss = e.get("peak_rss_mb") or {}
         rss_text = "/".join(f"{v:.0f}" for v in rss.values()) if rss else "-"
         rows.append([
             mode, str(e.get("published", "-")), str(e.get("recorded", "-")),
-            fmt(e.get("lost_pct"), ".2f"), fmt(e.get("mb_per_s"), ".1f"),
+            fmt(e.get("lost_pct"), ".2f"), fmt(e.get("mb_per_s"), ".1f"), fmt(e.get("direct_write_pct"), ".0f"),
             fmt(e.get("recorder_cpu_s"), ".2f"), fmt(e.get("writer_thread_cpu_s"), ".2f"),
             fmt(e.get("total_cpu_s"), ".2f"),
             fmt(sum(e["cpu_sys_s"].values()) if "cpu_sys_s" in e else e.get("cpu_sys_s"), ".2f"),
             fmt(e.get("recorder_cpu_s_per_gb"), ".2f"), fmt(e.get("total_cpu_s_per_gb"), ".2f"), rss_text,
             fmt(lat.get("p50"), ".1f"), fmt(lat.get("p99"), ".1f"), fmt(e.get("kernel_cpu_s"), ".1f"),
             fmt(e.get("background_cpu_s"), ".1f")])
-    return table(["mode", "published", "recorded", "lost %", "MB/s", "rec CPU s", "writer s", "tot CPU s", "sys s", "rec s/GB",
-                  "tot s/GB", "peak RSS MB", "lat p50 ms", "p99 ms", "kernel s", "other s"], rows)
+    return table(["mode", "published", "recorded", "lost %", "MB/s", "% direct", "rec CPU s", "writer s",
+                  "tot CPU s", "sys s", "rec s/GB", "tot s/GB", "peak RSS MB", "lat p50 ms", "p99 ms",
+                  "kernel s", "other s"], rows)
 
 
 def notes(results: dict[str, Any]) -> list[str]:
@@ -957,6 +1030,86 @@ def notes(results: dict[str, Any]) -> list[str]:
     return out
 
 
+def apply_direct_share(report: dict[str, Any]) -> None:
+    """Every ipc row's MB/s (and each buffered ceiling's) as a percentage of the direct-write limit."""
+    direct = report.get("direct_write")
+    if not direct or "error" in direct:
+        return
+    entries: list[Optional[dict[str, Any]]] = []
+    for key in ("S1", "S3"):
+        block = report.get(key) or {}
+        entries += [block.get(mode) for mode in (*IPC_MODES, "ceiling")]
+        for run in (block.get("repeat") or {}).get("results", []):
+            entries += [run.get(mode) for mode in IPC_MODES]
+    s2 = report.get("S2") or {}
+    entries += [step for step in s2.get("steps", []) if step.get("mode") in IPC_MODES]
+    entries.append(s2.get("ceiling"))
+    for entry in entries:
+        if entry and "error" not in entry and entry.get("mb_per_s"):
+            entry["direct_write_pct"] = 100.0 * entry["mb_per_s"] / direct["mb_per_s"]
+
+
+def cpu_per_gb_ratio(ipc: Optional[dict[str, Any]], dds: Optional[dict[str, Any]]) -> Optional[float]:
+    """ipc total CPU s/GB over dds total CPU s/GB, None when either is missing or failed."""
+    if not ipc or not dds or "error" in ipc or "error" in dds:
+        return None
+    a, b = ipc.get("total_cpu_s_per_gb"), dds.get("total_cpu_s_per_gb")
+    return a / b if a and b else None
+
+
+def repeat_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The loss distribution of --repeat runs of S1 per recorder mode, and the ipc / dds CPU ratio per run."""
+    per_mode: dict[str, Any] = {}
+    for mode in RECORDER_MODES:
+        entries = [run[mode] for run in runs if mode in run]
+        if not entries:
+            continue
+        pcts = [e["lost_pct"] for e in entries if "error" not in e]
+        per_mode[mode] = {"runs": len(entries), "failed_runs": len(entries) - len(pcts),
+                          "lossless_runs": sum(1 for e in entries if "error" not in e and e["lossless"]),
+                          "lost_pct_min": min(pcts, default=None), "lost_pct_max": max(pcts, default=None),
+                          "lost_pct_median": statistics.median(pcts) if pcts else None}
+    both = "ipc" in per_mode and "dds" in per_mode
+    return {"per_mode": per_mode,
+            "ipc_dds_cpu_per_gb_ratio": [cpu_per_gb_ratio(r.get("ipc"), r.get("dds")) for r in runs] if both else None}
+
+
+def print_repeat(repeat: dict[str, Any]) -> None:
+    runs = repeat["results"]
+    print(f"\n== S1 repeated: {len(runs)} runs back to back (run 1 is the one shown in full above)")
+    rows = []
+    for number, run in enumerate(runs, 1):
+        for mode, e in run.items():
+            if "error" in e:
+                rows.append([str(number), mode, "ERROR " + e["error"][:50]] + [""] * 6)
+                continue
+            rows.append([str(number), mode, str(e["published"]), str(e["lost"]), fmt(e["lost_pct"], ".2f"),
+                         fmt(e["mb_per_s"], ".1f"), fmt(e.get("direct_write_pct"), ".0f"),
+                         fmt(e.get("total_cpu_s_per_gb"), ".2f"), verdict(e)])
+    print(table(["run", "mode", "published", "lost", "lost %", "MB/s", "% direct", "tot s/GB", "lossless"], rows))
+    for mode, m in repeat["per_mode"].items():
+        print(f"  {mode}: lossless in {m['lossless_runs']} of {m['runs']} runs"
+              + (f" ({m['failed_runs']} failed)" if m["failed_runs"] else "")
+              + f"; lost % min {fmt(m['lost_pct_min'], '.2f')} / median {fmt(m['lost_pct_median'], '.2f')} / "
+              f"max {fmt(m['lost_pct_max'], '.2f')}")
+    if repeat["ipc_dds_cpu_per_gb_ratio"] is not None:
+        print("  ipc / dds total CPU s/GB per run: "
+              + ", ".join(fmt(r, ".2f") for r in repeat["ipc_dds_cpu_per_gb_ratio"]))
+
+
+def print_direct(report: dict[str, Any]) -> None:
+    d = report["direct_write"]
+    if "error" in d:
+        print(f"\n== Direct-write limit: ERROR {d['error']}")
+        return
+    ceiling = (report.get("S1") or {}).get("ceiling") or {}
+    print(f"\n== Direct-write limit of {d['path']}: {d['mb_per_s']:.0f} MB/s (O_DIRECT, {d['bytes'] / 2**20:.0f} MiB "
+          f"in {d['block_bytes'] // 2**20} MiB blocks + fsync, {d['cpu_s_per_gb']:.2f} CPU s/GB; median of "
+          + ", ".join(f"{v:.0f}" for v in d["all_runs_mb_per_s"]) + " MB/s)"
+          + (f"; buffered ceiling (S1) {ceiling['mb_per_s']:.0f} MB/s = {ceiling['direct_write_pct']:.0f} % of it"
+             if "direct_write_pct" in ceiling else ""))
+
+
 def print_s1(s1: dict[str, Any], scenario: Scenario, args: argparse.Namespace) -> None:
     print(f"\n== {scenario.title}: {scenario.describe()}; {args.storage}, cache {args.cache_mb:g} MiB, "
           f"executor {args.executor}")
@@ -985,13 +1138,15 @@ def print_s2(s2: dict[str, Any]) -> None:
     rows = []
     for step in s2["steps"]:
         if "error" in step:
-            rows.append([step["mode"], str(step["cameras"]), "ERROR " + step["error"][:50]] + [""] * 7)
+            rows.append([step["mode"], str(step["cameras"]), "ERROR " + step["error"][:50]] + [""] * 8)
             continue
         rows.append([step["mode"], str(step["cameras"]), str(step["lost"]), fmt(step["lost_pct"], ".2f"),
                      fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".1f"),
-                     fmt(step["total_cpu_s"], ".2f"), fmt(step.get("kernel_cpu_s"), ".1f"),
+                     fmt(step.get("direct_write_pct"), ".0f"), fmt(step["total_cpu_s"], ".2f"),
+                     fmt(step.get("kernel_cpu_s"), ".1f"),
                      fmt(step.get("background_cpu_s"), ".1f"), verdict(step)])
-    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "tot CPU s", "kernel s", "other s",
+    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "% direct", "tot CPU s", "kernel s",
+                 "other s",
                  "lossless"],
                 rows))
     for mode, best in s2["largest_lossless"].items():
@@ -1079,6 +1234,23 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
             f"{per_msg:.1f} us/msg ({how})")
     else:
         add("S3 ipc zero loss and recorder CPU < 30 us/msg", None, "not measured")
+    repeat = s1.get("repeat")
+    if repeat:
+        name = "S1 ipc lossless in 5 of 5 consecutive runs"
+        m = repeat["per_mode"].get("ipc")
+        if m and args.repeat >= 5:
+            add(name, m["lossless_runs"] == m["runs"] if default_cfg else None,
+                f"lossless in {m['lossless_runs']} of {m['runs']} consecutive runs (all must be); lost % max "
+                f"{fmt(m['lost_pct_max'], '.2f')}" + ("" if default_cfg else " (not the default storage/cache)"))
+        else:
+            add(name, None, "needs ipc and --repeat >= 5")
+        name = "S1 ipc total CPU per GB <= 0.33 of dds in every run"
+        ratios = repeat["ipc_dds_cpu_per_gb_ratio"]
+        if ratios:
+            add(name, all(r is not None and r <= 0.33 for r in ratios),
+                "ratio per run: " + ", ".join(fmt(r, ".2f") for r in ratios))
+        else:
+            add(name, None, "needs ipc and dds")
     if good(ipc):
         limit = args.cache_mb * 1024 * 1024 / 2**20 + 300
         add("S1 ipc container peak RSS < max_cache_size + 300 MB", ipc["recorder_rss_mb"] < limit,
@@ -1155,7 +1327,7 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--quick", action="store_true",
-                   help="smoke run: S1 only, 3 s window, 3 s page pause, one ceiling run, no repeats")
+                   help="smoke run: S1 only, 3 s window, 3 s page pause, one ceiling and direct-write run, no retries")
     p.add_argument("--scenarios", default="s1,s2,s3", help="comma-separated subset of s1,s2,s3")
     p.add_argument("--modes", default="ipc,split,dds,drivers,ceiling",
                    help="S1/S3 modes to run (S2 always ipc,dds); split = ipc with --split-mb files (S1 only)")
@@ -1189,7 +1361,14 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
                    help="repeat a run during which other processes used more than --retry-cpu CPUs on average "
                         "this many times; the least perturbed run is reported")
     p.add_argument("--retry-cpu", type=float, default=0.5)
-    p.add_argument("--ceiling-repeats", type=int, default=3, help="ceiling runs per scenario; the median counts")
+    p.add_argument("--ceiling-repeats", type=int, default=3,
+                   help="ceiling runs per scenario, and direct-write runs; the median counts")
+    p.add_argument("--direct-mb", type=float, default=2048.0,
+                   help="MiB written with O_DIRECT to measure the direct-write limit of the bags' filesystem "
+                        "(0: skip; at least 8)")
+    p.add_argument("--repeat", type=int, default=0,
+                   help="run S1's recorder modes this many times back to back and report the loss distribution "
+                        "(0: once, the plain single-run output)")
     p.add_argument("--page-pause", type=float, default=10.0,
                    help="seconds between deleting a bag (or ceiling file) and the next run, so every run writes "
                         "to fresh page-cache pages as a continuously writing recorder does (see run_ceiling)")
@@ -1211,6 +1390,10 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {*RECORDER_MODES, "drivers", "ceiling"})
     if unknown:
         p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
+    if args.repeat < 0:
+        p.error("--repeat must be >= 0")
+    if 0 < args.direct_mb < DIRECT_BLOCK / 2**20:
+        p.error(f"--direct-mb must be 0 (skip) or at least {DIRECT_BLOCK // 2**20}")
     return args
 
 
@@ -1286,6 +1469,30 @@ def guarded(bench: Bench, label: str, run: Callable[[], dict[str, Any]], retry: 
     return best
 
 
+def run_s1_recorders(bench: Bench, scenario: Scenario, run: int) -> dict[str, Any]:
+    """One run of S1's selected recorder modes; ``run`` numbers it in the log under --repeat."""
+    label = f" (run {run} of {bench.args.repeat})" if bench.args.repeat else ""
+    return {mode: guarded(bench, f"S1 {mode}{label}", lambda: run_recorder_mode(bench, scenario, mode))
+            for mode in RECORDER_MODES if mode in bench.args.mode_set}
+
+
+def run_s1(bench: Bench) -> dict[str, Any]:
+    """S1: the recorder modes (--repeat times), then drivers only and the ceiling once."""
+    args = bench.args
+    scenario = s1_scenario(args)
+    runs = [run_s1_recorders(bench, scenario, run) for run in range(1, max(1, args.repeat) + 1)]
+    s1: dict[str, Any] = dict(runs[0])
+    if "drivers" in args.mode_set:
+        s1["drivers"] = guarded(bench, "S1 drivers only", lambda: run_drivers_only(bench, scenario))
+    if "ceiling" in args.mode_set:
+        s1["ceiling"] = guarded(bench, "S1 ceiling", lambda: run_ceiling(bench, scenario), retry=False)
+    for run in runs:  # run 1's entries are s1's own
+        apply_recorder_cpu({**run, "drivers": s1.get("drivers")})
+    if args.repeat:
+        s1["repeat"] = {"results": runs, **repeat_summary(runs)}
+    return s1
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     args = parse_arguments(argv)
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
@@ -1303,18 +1510,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ros = RosClient()
     bench = Bench(args, workdir, ros, log=log)
     try:
+        if args.direct_mb > 0:
+            report["direct_write"] = guarded(bench, "direct-write limit", lambda: run_direct_write(bench),
+                                             retry=False)
         if "s1" in args.scenario_set:
-            scenario = s1_scenario(args)
-            s1: dict[str, Any] = {}
-            for mode in RECORDER_MODES:
-                if mode in args.mode_set:
-                    s1[mode] = guarded(bench, f"S1 {mode}", lambda: run_recorder_mode(bench, scenario, mode))
-            if "drivers" in args.mode_set:
-                s1["drivers"] = guarded(bench, "S1 drivers only", lambda: run_drivers_only(bench, scenario))
-            if "ceiling" in args.mode_set:
-                s1["ceiling"] = guarded(bench, "S1 ceiling", lambda: run_ceiling(bench, scenario), retry=False)
-            apply_recorder_cpu(s1)
-            report["S1"] = s1
+            report["S1"] = run_s1(bench)
         if "s2" in args.scenario_set:
             s2: dict[str, Any] = {"base": "S1 lidar + IMU + cameras" if args.s2_base == "rig" else "cameras only",
                                   "cap": args.s2_max_cameras, "seconds": args.s2_seconds, "steps": [],
@@ -1358,11 +1558,16 @@ def main(argv: Optional[list[str]] = None) -> int:
     report["elapsed_s"] = time.monotonic() - started
     report["environment"]["loadavg_end"] = os.getloadavg()
 
+    apply_direct_share(report)
     report["targets"] = evaluate_targets(report, args)
     # with --json - the JSON alone goes to stdout, the tables to stderr
     with contextlib.redirect_stdout(sys.stderr if args.json == "-" else sys.stdout):
+        if "direct_write" in report:
+            print_direct(report)
         if "S1" in report:
             print_s1(report["S1"], s1_scenario(args), args)
+            if "repeat" in report["S1"]:
+                print_repeat(report["S1"]["repeat"])
         if "S2" in report:
             print_s2(report["S2"])
         if "S3" in report:
