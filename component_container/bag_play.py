@@ -9,6 +9,7 @@ one progress line (bag position / duration, rate, state), updated in place. The 
 from __future__ import annotations
 
 import argparse
+import re
 import signal
 import sys
 import threading
@@ -93,6 +94,11 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
     return parameters
 
 
+def container_name(bag_path: str) -> str:
+    """``bag_play_<bag name>``, with what a node name cannot hold replaced by ``_``."""
+    return "bag_play_" + re.sub(r"[^A-Za-z0-9_]", "_", bag_path.rstrip("/").rsplit("/", 1)[-1])
+
+
 def progress_line(stats: dict[str, Any]) -> str:
     """``[PLAYING]  12.345 / 60.000 s  rate 1.00  1234 msgs``, as the player's stats say."""
     state = "PAUSED" if stats["paused"] else ("PLAYING" if stats["playing"] else "FINISHED")
@@ -117,8 +123,7 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     rclpy.init(args=["ipc-component", *ros_args], context=context)
     manager = None
     try:
-        manager = ComponentManager("single", node_name=f"bag_play_{args.bag_path.strip('/').split('/')[-1]}"
-                                   .replace("-", "_").replace(".", "_"), context=context)
+        manager = ComponentManager("single", node_name=container_name(args.bag_path), context=context)
         request = load_request({"package": "components", "plugin": PLAYER_PLUGIN,
                                 "parameters": player_parameters(args),
                                 "remaps": args.remap}, 1, "bag play")
