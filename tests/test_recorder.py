@@ -57,7 +57,9 @@ from container_process import ContainerClient, small_filesystem
 
 REPO = Path(__file__).resolve().parents[1]
 IPC = {"use_intra_process_comms": True}
-NOT_INFRASTRUCTURE = "^/(rosout|parameter_events|diagnostics|events/.*)$"
+#: Topics that are not the rig's: ROS infrastructure, and /chatter, which earlier test modules publish on this
+#: test session's domain (a participant's endpoints can stay in the graph for its lease, 20 s, after it is gone).
+NOT_INFRASTRUCTURE = "^/(rosout|parameter_events|diagnostics|events/.*|chatter)$"
 
 CAMERA = {"width": 320, "height": 240, "fps": 30.0}
 IMU = {"rate": 200.0}
