@@ -5,9 +5,10 @@ By default glibc serves a 6 MB request from fresh ``mmap`` pages and returns the
 into each 4 KiB page is then a page fault. A player deserializes every frame into a new buffer (the message
 belongs to its subscribers), so a 1080p rgb8 frame costs ~1500 faults, several ms of copying *while holding
 the GIL*: measured on the S1 replay (benchmarks/replay_bench.py --quick, in-process, rate 1), the publish-time
-error p99 was 9.9 ms with the default and 1.45 ms with the thresholds below, and the container's CPU 2.6 s
-against 1.7 s. Raising the mmap threshold makes such buffers come from the heap, and raising the trim
-threshold keeps freed heap memory for the next frame instead of giving it back at once.
+error p99 was 9.9 ms with the default and 1.45 ms with a 64 MiB mmap and 1 GiB trim threshold, and the
+container's CPU 2.6 s against 1.7 s (the 32 MiB trim threshold below gave 2.8 ms on the current player, in the
+range of the larger one). Raising the mmap threshold makes such buffers come from the heap, and raising the
+trim threshold keeps freed heap memory for the next frame instead of giving it back at once.
 """
 from __future__ import annotations
 
