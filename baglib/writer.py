@@ -3,7 +3,9 @@
 It owns the bag directory (``<uri>/metadata.yaml`` plus ``<name>_<N>.mcap`` or ``.db3``), splits
 files by size or duration, and keeps ``metadata.yaml`` true to the files: it is rewritten
 atomically at every split (so a crash later still leaves a readable bag of the closed files) and
-at close. A failed write (disk full, ...) never leaves an unreadable bag behind: the current file is
+at close. A split does not wait for the full file: the next one is prepared ahead, and the full one is
+finished (last chunk, summary, fsync) and then listed in ``metadata.yaml`` by a thread of its own, while
+writes go on into the next file. A failed write (disk full, ...) never leaves an unreadable bag behind: the current file is
 finalized with what reached it, ``metadata.yaml`` counts exactly that, and the caller gets a
 :class:`BagWriteError` naming the file and the OS reason.
 """
@@ -72,6 +74,17 @@ class _Storage(Protocol):
 #: Share of the size or duration limit at which the next file is created ahead of the split.
 PREPARE_AT = 0.9
 
+
+@dataclasses.dataclass
+class _ClosingFile:
+    """A file being finished in the background after a split (see :meth:`BagWriter._split`)."""
+
+    storage: _Storage
+    entry: FileInfo  # its metadata entry as the writer counted it, for the counts while it closes
+    opened: Path  # the file that took its place
+    done: threading.Event = dataclasses.field(default_factory=threading.Event)
+    info: FileInfo | None = None  # what the storage says it holds, once closed
+
 _STORAGES: dict[str, type[McapStorage] | type[SqliteStorage]] = {
     McapStorage.storage_id: McapStorage,
     SqliteStorage.storage_id: SqliteStorage,
@@ -91,8 +104,9 @@ class BagWriter:
         storage_preset_profile: rosbag2's presets: ``none``, ``fastwrite``, ``zstd_fast``,
             ``zstd_small`` for MCAP; ``none``, ``resilient`` for sqlite3.
         custom_data: string pairs stored in ``metadata.yaml``.
-        on_split: called after a file is closed, with its path and the next file's path
-            (``""`` when the bag is closed); it runs with the writer's (reentrant) lock held.
+        on_split: called after a file is closed and listed in ``metadata.yaml``, with its path and the
+            next file's path (``""`` when the bag is closed); it runs with the writer's (reentrant) lock
+            held, on the writing thread or on the thread that finished the file after a split.
 
     Raises:
         ValueError: unknown storage id or preset, negative limits.
@@ -138,6 +152,7 @@ class BagWriter:
         self.deleted_files: list[str] = []
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the current file
         self._prepared: _Storage | None = None  # the next file, created ahead of the split
+        self._closing: _ClosingFile | None = None  # the previous file, finished in the background
         self._prepare_failed = False
         self._max_size = int(max_bagfile_size)
         self._max_duration_ns = round(max_bagfile_duration * _NS_PER_S)
@@ -191,6 +206,8 @@ class BagWriter:
         """All storage files listed in the bag so far, the current one included."""
         with self._lock:
             paths = [self._path / info.path for info in self._metadata.files]
+            if self._closing is not None:
+                paths.append(self._closing.storage.path)
             if self._storage is not None:
                 paths.append(self._storage.path)
             return paths
@@ -204,8 +221,12 @@ class BagWriter:
         """Messages written per topic (every added topic is present, possibly with 0)."""
         with self._lock:
             counts = self._metadata.topic_message_counts()
-            for name, count in self._file_counts.items():
-                counts[name] += count
+            unlisted = [self._file_counts]
+            if self._closing is not None:
+                unlisted.append(self._closing.entry.topic_message_counts)
+            for file_counts in unlisted:
+                for name, count in file_counts.items():
+                    counts[name] += count
             return counts
 
     @property
@@ -216,7 +237,8 @@ class BagWriter:
     def bytes_written(self) -> int:
         """Size of the closed files plus what the current file holds or is about to."""
         with self._lock:
-            return self._closed_bytes + (self._storage.size if self._storage is not None else 0)
+            open_files = [self._storage, self._closing.storage if self._closing is not None else None]
+            return self._closed_bytes + sum(storage.size for storage in open_files if storage is not None)
 
     @property
     def closed(self) -> bool:
@@ -278,6 +300,7 @@ class BagWriter:
             self._require_writable()
             if topic not in self._topics:
                 raise KeyError(f"unknown topic {topic!r}: add_topic() it first")
+            self._settle_closing()
             if self._split_due(log_time_ns):
                 self._split()
             assert self._storage is not None
@@ -294,10 +317,12 @@ class BagWriter:
                 self._prepare_next()
 
     def split(self) -> None:
-        """Close the current file (complete with its summary) and continue in the next one."""
+        """Close the current file (complete with its summary, listed in ``metadata.yaml`` on return) and
+        continue in the next one."""
         with self._lock:
             self._require_writable()
             self._split()
+            self._settle_closing(wait=True)
 
     def flush(self) -> None:
         """Make every message written so far a complete record in the current file, handed to the OS: a
@@ -315,6 +340,7 @@ class BagWriter:
     def _on_current_file(self, action: Callable[[_Storage], None]) -> None:
         with self._lock:
             self._require_writable()
+            self._settle_closing()
             assert self._storage is not None
             try:
                 action(self._storage)
@@ -337,6 +363,7 @@ class BagWriter:
         with self._lock:
             if self._closed or self._failure is not None or self._storage is None:
                 return
+            self._settle_closing(wait=True)
             try:
                 status = os.stat(self._storage.path)
                 identity: tuple[int, int] | None = (status.st_dev, status.st_ino)
@@ -361,6 +388,7 @@ class BagWriter:
                 return
             self._closed = True
             self._discard_prepared()
+            self._settle_closing(wait=True)  # may raise the failure of the file split off last
             closed: Path | None = None
             error: BagWriteError | None = None
             cause: OSError | None = None
@@ -475,46 +503,83 @@ class BagWriter:
         return bool(self._max_duration_ns) and log_time_ns - self._file_first_ns > self._max_duration_ns
 
     def _split(self) -> None:
-        assert self._storage is not None
-        closed = self._storage.path
-        error = self._close_storage()
-        if error is not None:
-            self._stop(error, closed)
+        """Switch to the next file at once and finish the full one on a thread of its own: closing a file
+        (its last chunk, summary and fsync, then ``metadata.yaml``) took 10-45 ms, during which every
+        message waited, and each split showed as a spike in the receive-to-write latency."""
+        self._settle_closing(wait=True)  # files are listed in order; a failure of the last one stops here
+        storage, entry, closing_metadata = self._detach_storage()
         self._file_index += 1
         self._prepare_failed = False
         try:
             self._storage = self._open_storage()
         except BagWriteError as open_error:
+            self._list_closed(storage, storage.close(closing_metadata.to_yaml()))
             self._failure = open_error
             self._write_metadata_quietly()
             if self._on_split is not None:
-                self._on_split(str(closed), "")
+                self._on_split(str(storage.path), "")
             raise
+        closing = self._closing = _ClosingFile(storage, entry, self._storage.path)
+        threading.Thread(target=self._close_in_background, args=(closing, closing_metadata),
+                         name=f"bag_close:{storage.path.name}", daemon=True).start()
+
+    def _close_in_background(self, closing: _ClosingFile, metadata: BagMetadata) -> None:
+        closing.info = closing.storage.close(metadata.to_yaml())
+        closing.done.set()
+        if closing.storage.error is None:  # a failure is raised to the writing thread, at its next call
+            with self._lock:
+                if self._closing is closing:
+                    self._settle_closing()
+
+    def _settle_closing(self, wait: bool = False) -> None:
+        """List a file finished in the background (circular deletion, ``metadata.yaml``, ``on_split``); with
+        ``wait``, wait for it first. If it failed, the bag stops as after a failed write (raises)."""
+        closing = self._closing
+        if closing is None or not (wait or closing.done.is_set()):
+            return
+        closing.done.wait()
+        self._closing = None
+        assert closing.info is not None
+        error = self._list_closed(closing.storage, closing.info)
+        if error is not None:
+            if self._storage is not None:
+                self._close_storage()  # what reached the next file is kept too
+            self._stop(error, closing.storage.path)
         self._delete_oldest_files()
         self._write_metadata_quietly()
         if self._on_split is not None:
-            self._on_split(str(closed), str(self._storage.path))
+            self._on_split(str(closing.storage.path), str(closing.opened))
 
-    def _close_storage(self) -> OSError | None:
-        """Close the current file, record it in the metadata; return the storage's error, if any."""
+    def _detach_storage(self) -> tuple[_Storage, FileInfo, BagMetadata]:
+        """Take the current file out of use: it, its metadata entry, and the metadata its close records."""
         storage = self._storage
         assert storage is not None
         self._storage = None
-        current = FileInfo.from_log_times(
+        entry = FileInfo.from_log_times(
             storage.path.name, self._file_first_ns, self._file_last_ns, self._file_counts
         )
-        closing = dataclasses.replace(self._metadata, files=[*self._metadata.files, current])
-        info = storage.close(closing.to_yaml())
+        closing = dataclasses.replace(self._metadata, topics=list(self._metadata.topics),
+                                      files=[*self._metadata.files, entry])
         self._file_counts = {}
         self._file_first_ns = self._file_last_ns = None
+        return storage, entry, closing
+
+    def _list_closed(self, storage: _Storage, info: FileInfo) -> OSError | None:
+        """Record a closed file in the metadata (if readable); return the storage's error, if any."""
         with contextlib.suppress(OSError):
             self._closed_bytes += storage.path.stat().st_size
         if storage.readable:
             self._metadata.files.append(info)
         return storage.error
 
+    def _close_storage(self) -> OSError | None:
+        """Close the current file, record it in the metadata; return the storage's error, if any."""
+        storage, _, closing = self._detach_storage()
+        return self._list_closed(storage, storage.close(closing.to_yaml()))
+
     def _fail(self, error: OSError) -> NoReturn:
         """The current file failed: finalize what reached it, then stop (see :meth:`_stop`)."""
+        self._settle_closing(wait=True)  # the file split off before it is listed first
         assert self._storage is not None
         closed = self._storage.path
         self._close_storage()

@@ -25,9 +25,10 @@ the buffered ceiling above is a Python write loop through the page cache, which 
 ``--repeat N`` runs S1's selected recorder modes (ipc, split, dds) N times back to back, each run exactly as a
 single run (fresh processes, page pause, read-back); drivers and ceiling run once, after them. The tables show
 run 1 in full, then a per-run table and the distribution per mode: lossless runs k of N, min / median / max
-lost %, and per run the ratio ipc / dds of total CPU s/GB. Two targets exist only with ``--repeat``: "ipc
-lossless in 5 of 5 consecutive runs" (evaluated when N >= 5; every one of the N runs must be lossless) and
-"ipc total CPU per GB <= 0.33 of dds in every run" (evaluated when dds ran).
+lost %, and per run the ratios ipc / dds of total CPU s/GB and split / ipc of the receive-to-write p99. Three
+targets exist only with ``--repeat``: "ipc lossless in 5 of 5 consecutive runs" (evaluated when N >= 5; every
+one of the N runs must be lossless), "ipc total CPU per GB <= 0.33 of dds in every run" (evaluated when dds
+ran) and "split lossless, p99 <= 2x unsplit in every run" (when split ran).
 
 Every run (recorder modes, drivers, each ceiling and direct-write run) starts ``--page-pause`` s after the
 benchmark last deleted a bag or file: on this kind of VM the kernel's cost of a buffered write depends
@@ -109,7 +110,7 @@ import sys
 import tempfile
 import textwrap
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional
 
@@ -1057,8 +1058,15 @@ def cpu_per_gb_ratio(ipc: Optional[dict[str, Any]], dds: Optional[dict[str, Any]
     return a / b if a and b else None
 
 
+def p99_ratio(split: Optional[dict[str, Any]], ipc: Optional[dict[str, Any]]) -> Optional[float]:
+    """split over unsplit receive-to-write latency p99, None when either is missing or failed."""
+    a, b = ((e.get("latency_ms") or {}).get("p99") if e and "error" not in e else None for e in (split, ipc))
+    return a / b if a and b else None
+
+
 def repeat_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The loss distribution of --repeat runs of S1 per recorder mode, and the ipc / dds CPU ratio per run."""
+    """The loss distribution of --repeat runs of S1 per recorder mode, the ipc / dds CPU ratio and the
+    split / ipc latency p99 ratio per run."""
     per_mode: dict[str, Any] = {}
     for mode in RECORDER_MODES:
         entries = [run[mode] for run in runs if mode in run]
@@ -1070,8 +1078,10 @@ def repeat_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
                           "lost_pct_min": min(pcts, default=None), "lost_pct_max": max(pcts, default=None),
                           "lost_pct_median": statistics.median(pcts) if pcts else None}
     both = "ipc" in per_mode and "dds" in per_mode
+    split = "ipc" in per_mode and "split" in per_mode
     return {"per_mode": per_mode,
-            "ipc_dds_cpu_per_gb_ratio": [cpu_per_gb_ratio(r.get("ipc"), r.get("dds")) for r in runs] if both else None}
+            "ipc_dds_cpu_per_gb_ratio": [cpu_per_gb_ratio(r.get("ipc"), r.get("dds")) for r in runs] if both else None,
+            "split_ipc_p99_ratio": [p99_ratio(r.get("split"), r.get("ipc")) for r in runs] if split else None}
 
 
 def print_repeat(repeat: dict[str, Any]) -> None:
@@ -1081,12 +1091,14 @@ def print_repeat(repeat: dict[str, Any]) -> None:
     for number, run in enumerate(runs, 1):
         for mode, e in run.items():
             if "error" in e:
-                rows.append([str(number), mode, "ERROR " + e["error"][:50]] + [""] * 6)
+                rows.append([str(number), mode, "ERROR " + e["error"][:50]] + [""] * 7)
                 continue
             rows.append([str(number), mode, str(e["published"]), str(e["lost"]), fmt(e["lost_pct"], ".2f"),
                          fmt(e["mb_per_s"], ".1f"), fmt(e.get("direct_write_pct"), ".0f"),
-                         fmt(e.get("total_cpu_s_per_gb"), ".2f"), verdict(e)])
-    print(table(["run", "mode", "published", "lost", "lost %", "MB/s", "% direct", "tot s/GB", "lossless"], rows))
+                         fmt(e.get("total_cpu_s_per_gb"), ".2f"), fmt((e.get("latency_ms") or {}).get("p99"), ".1f"),
+                         verdict(e)])
+    print(table(["run", "mode", "published", "lost", "lost %", "MB/s", "% direct", "tot s/GB", "p99 ms", "lossless"],
+                rows))
     for mode, m in repeat["per_mode"].items():
         print(f"  {mode}: lossless in {m['lossless_runs']} of {m['runs']} runs"
               + (f" ({m['failed_runs']} failed)" if m["failed_runs"] else "")
@@ -1095,6 +1107,9 @@ def print_repeat(repeat: dict[str, Any]) -> None:
     if repeat["ipc_dds_cpu_per_gb_ratio"] is not None:
         print("  ipc / dds total CPU s/GB per run: "
               + ", ".join(fmt(r, ".2f") for r in repeat["ipc_dds_cpu_per_gb_ratio"]))
+    if repeat["split_ipc_p99_ratio"] is not None:
+        print("  split / ipc receive-to-write p99 per run: "
+              + ", ".join(fmt(r, ".2f") for r in repeat["split_ipc_p99_ratio"]))
 
 
 def print_direct(report: dict[str, Any]) -> None:
@@ -1251,6 +1266,12 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
                 "ratio per run: " + ", ".join(fmt(r, ".2f") for r in ratios))
         else:
             add(name, None, "needs ipc and dds")
+        m, ratios = repeat["per_mode"].get("split"), repeat["split_ipc_p99_ratio"]
+        if m and ratios:
+            add(f"S1 split lossless, write latency p99 <= 2x unsplit in every run ({m['runs']})",
+                m["lossless_runs"] == m["runs"] and all(r is not None and r <= 2 for r in ratios),
+                f"split lossless in {m['lossless_runs']} of {m['runs']} runs; p99 ratio per run: "
+                + ", ".join(fmt(r, ".2f") for r in ratios))
     if good(ipc):
         limit = args.cache_mb * 1024 * 1024 / 2**20 + 300
         add("S1 ipc container peak RSS < max_cache_size + 300 MB", ipc["recorder_rss_mb"] < limit,

@@ -13,6 +13,8 @@ import struct
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -42,7 +44,7 @@ from std_msgs.msg import String
 from baglib import message_definitions
 from baglib.writer import BagExistsError, BagWriteError, BagWriter
 from baglib.cdr_fast import SerializedBuffers
-from baglib.mcap_storage import DEFAULT_CHUNK_SIZE
+from baglib.mcap_storage import DEFAULT_CHUNK_SIZE, McapStorage
 from baglib.message_definitions import (
     MessageDefinitionNotFoundError,
     message_definition,
@@ -612,6 +614,50 @@ def test_manual_split(tmp_path: Path, storage_id: str) -> None:
         writer.write("/imu", b"", T0, T0)
 
 
+def test_a_split_does_not_wait_for_the_full_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The write that splits returns while the full file is still being finished (summary, fsync); the file
+    is listed, and the split reported, once that is done. Before, every message waited for it."""
+    release = threading.Event()
+    closing = threading.Event()
+    close = McapStorage.close
+
+    def slow_close(storage: McapStorage, serialized_metadata: str = "") -> Any:
+        if storage.path.name == "slow_0.mcap":
+            closing.set()
+            release.wait(30)  # a disk slow to take the summary and the fsync
+        return close(storage, serialized_metadata)
+
+    monkeypatch.setattr(McapStorage, "close", slow_close)
+    bag = tmp_path / "slow"
+    events: list[tuple[str, str]] = []
+    writer = BagWriter(bag, max_bagfile_size=200_000, on_split=lambda a, b: events.append((a, b)))
+    writer.add_topic(topic_info("/points"))
+    written: list[Written] = []
+
+    def write_through_the_split() -> None:
+        while writer.current_file != bag / "slow_1.mcap":
+            written.extend(write_messages(writer, [("/points", len(written))], start=T0 + len(written) * 10**7))
+        written.extend(write_messages(writer, [("/points", len(written))], start=T0 + len(written) * 10**7))
+
+    worker = threading.Thread(target=write_through_the_split)
+    worker.start()
+    worker.join(10)
+    try:
+        assert not worker.is_alive(), "writes waited for the full file to be finished"
+        assert closing.is_set() and not events and writer.files == [bag / "slow_0.mcap", bag / "slow_1.mcap"]
+        assert writer.topic_message_counts["/points"] == len(written)  # the closing file's messages count
+    finally:
+        release.set()
+    deadline = time.monotonic() + 10
+    while not events and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert events == [(str(bag / "slow_0.mcap"), str(bag / "slow_1.mcap"))]
+    assert load_metadata(bag)["relative_file_paths"] == ["slow_0.mcap"]
+    writer.close()
+    meta = check_split_bag(bag, written, "mcap")
+    assert meta["relative_file_paths"] == ["slow_0.mcap", "slow_1.mcap"]
+
+
 # --- errors -----------------------------------------------------------------------------------
 
 
@@ -835,8 +881,12 @@ def test_the_next_file_is_prepared_before_the_split(tmp_path: Path, storage_id: 
     write_until("/points", (bag / f"ahead_1{ext}").exists)
     assert writer.files == [bag / f"ahead_0{ext}"] and not events  # not split yet, but the next file is ready
     writer.add_topic(topic_info("/imu"))  # a topic added now goes into the prepared file too
-    write_until("/points", lambda: bool(events))
-    assert events[0] == (str(bag / f"ahead_0{ext}"), str(bag / f"ahead_1{ext}"))  # the prepared file
+    write_until("/points", lambda: writer.current_file == bag / f"ahead_1{ext}")  # the prepared file
+    deadline = time.monotonic() + 10
+    while not events and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert events[0] == (str(bag / f"ahead_0{ext}"), str(bag / f"ahead_1{ext}"))  # listed in metadata.yaml now
+    assert load_metadata(bag)["relative_file_paths"] == [f"ahead_0{ext}"]
     write_until("/imu", lambda: any(w.topic == "/imu" for w in written))
     write_until("/points", (bag / f"ahead_2{ext}").exists)
     writer.close()  # the prepared ahead_2 was never used: removed
