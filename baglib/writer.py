@@ -82,6 +82,8 @@ class _ClosingFile:
     storage: _Storage
     entry: FileInfo  # its metadata entry as the writer counted it, for the counts while it closes
     opened: Path  # the file that took its place
+    listed: BagMetadata  # metadata.yaml once it is closed: it listed, the files circular recording drops not
+    dropped: list[FileInfo]  # the oldest files, deleted once it is closed (max_bag_files)
     done: threading.Event = dataclasses.field(default_factory=threading.Event)
     info: FileInfo | None = None  # what the storage says it holds, once closed
 
@@ -486,14 +488,6 @@ class BagWriter:
             prepared.close()
             prepared.path.unlink(missing_ok=True)
 
-    def _delete_oldest_files(self) -> None:
-        """Circular recording: keep the newest ``max_bag_files`` files (the current one included)."""
-        while self._max_bag_files and len(self._metadata.files) + 1 > self._max_bag_files:
-            oldest = self._metadata.files.pop(0)
-            with contextlib.suppress(FileNotFoundError):
-                (self._path / oldest.path).unlink()
-            self.deleted_files.append(oldest.path)
-
     def _split_due(self, log_time_ns: int) -> bool:
         if self._file_first_ns is None:
             return False  # never split off an empty file
@@ -519,20 +513,34 @@ class BagWriter:
             if self._on_split is not None:
                 self._on_split(str(storage.path), "")
             raise
-        closing = self._closing = _ClosingFile(storage, entry, self._storage.path)
+        listed = [*self._metadata.files, entry]
+        # circular recording keeps the newest max_bag_files files, the new current one among them
+        drop = max(0, len(listed) - (self._max_bag_files - 1)) if self._max_bag_files else 0
+        closing = self._closing = _ClosingFile(storage, entry, self._storage.path,
+                                               dataclasses.replace(closing_metadata, files=listed[drop:]),
+                                               listed[:drop])
         threading.Thread(target=self._close_in_background, args=(closing, closing_metadata),
                          name=f"bag_close:{storage.path.name}", daemon=True).start()
 
     def _close_in_background(self, closing: _ClosingFile, metadata: BagMetadata) -> None:
+        """Finish the file, write ``metadata.yaml`` naming it, then delete what circular recording drops: all
+        without the writer's lock (the fsyncs take milliseconds), and before ``done``, so that every later
+        ``metadata.yaml`` (written only after waiting for ``done``) replaces this one."""
         closing.info = closing.storage.close(metadata.to_yaml())
-        closing.done.set()
         if closing.storage.error is None:  # a failure is raised to the writing thread, at its next call
+            with contextlib.suppress(OSError):  # the next split or the close writes it again
+                closing.listed.write(self._path)
+            for info in closing.dropped:
+                with contextlib.suppress(FileNotFoundError):
+                    (self._path / info.path).unlink()
+        closing.done.set()
+        if closing.storage.error is None:
             with self._lock:
                 if self._closing is closing:
                     self._settle_closing()
 
     def _settle_closing(self, wait: bool = False) -> None:
-        """List a file finished in the background (circular deletion, ``metadata.yaml``, ``on_split``); with
+        """Account for a file finished in the background (listed, dropped files gone, ``on_split``); with
         ``wait``, wait for it first. If it failed, the bag stops as after a failed write (raises)."""
         closing = self._closing
         if closing is None or not (wait or closing.done.is_set()):
@@ -545,8 +553,9 @@ class BagWriter:
             if self._storage is not None:
                 self._close_storage()  # what reached the next file is kept too
             self._stop(error, closing.storage.path)
-        self._delete_oldest_files()
-        self._write_metadata_quietly()
+        dropped = {info.path for info in closing.dropped}
+        self._metadata.files = [info for info in self._metadata.files if info.path not in dropped]
+        self.deleted_files.extend(info.path for info in closing.dropped)
         if self._on_split is not None:
             self._on_split(str(closing.storage.path), str(closing.opened))
 
