@@ -257,7 +257,7 @@ class McapStorage:
 
     def flush(self) -> None:
         """Close the open chunk and hand every byte written so far to the OS: from now on a crash of the
-        process cannot lose or cut a message written before this call (a power loss can, until :meth:`sync`).
+        process cannot lose or cut a message written before this call (a power loss can, until an fsync).
         """
         self._require_open()
         try:
@@ -266,15 +266,6 @@ class McapStorage:
                 self._file.write_through()
             else:
                 self._file.flush()
-        except OSError as error:
-            self._fail(error)
-            raise
-
-    def sync(self) -> None:
-        """:meth:`flush`, then fsync: what was written survives a power loss too."""
-        self.flush()
-        try:
-            os.fsync(self._file.fileno())
         except OSError as error:
             self._fail(error)
             raise

@@ -202,16 +202,6 @@ class SqliteStorage:
         self._require_open()
         self._commit()
 
-    def sync(self) -> None:
-        """:meth:`flush`, then fsync the database: committed rows survive a power loss too."""
-        self.flush()
-        try:
-            _fsync_files(self.path)
-        except OSError as error:
-            if self.error is None:
-                self.error = error
-            raise
-
     def close(self, serialized_metadata: str = "") -> FileInfo:
         """Commit, store the bag metadata, leave no journal behind, fsync and describe what is stored.
 

@@ -658,6 +658,56 @@ def test_a_split_does_not_wait_for_the_full_file(tmp_path: Path, monkeypatch: py
     assert meta["relative_file_paths"] == ["slow_0.mcap", "slow_1.mcap"]
 
 
+def test_sync_does_not_wait_for_the_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """sync() hands the fsync to a thread of its own (a busy disk took up to 130 ms), and a failed fsync
+    stops the bag at the next call like a failed write, with everything written before it readable."""
+    release = threading.Event()
+    fsync = os.fsync
+    calls: list[int] = []
+    finished: list[int] = []
+
+    def slow_fsync(fd: int) -> None:
+        calls.append(fd)
+        try:
+            if len(calls) == 1:
+                release.wait(30)
+                return fsync(fd)
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        finally:
+            finished.append(fd)
+
+    def wait_finished(count: int) -> None:
+        deadline = time.monotonic() + 10
+        while len(finished) < count and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)  # past the thread's bookkeeping after the call
+
+    bag = tmp_path / "synced"
+    writer = BagWriter(bag)
+    writer.add_topic(topic_info("/chatter"))
+    written = write_messages(writer, [("/chatter", i) for i in range(3)])
+    monkeypatch.setattr(os, "fsync", slow_fsync)
+    worker = threading.Thread(target=writer.sync)
+    worker.start()
+    worker.join(10)
+    try:
+        assert not worker.is_alive(), "sync() waited for the fsync"
+        assert len(calls) == 1
+        written += write_messages(writer, [("/chatter", i) for i in range(3, 5)], start=T0 + 10**9)
+        writer.sync()  # the first fsync still runs: no second one
+        assert len(calls) == 1
+    finally:
+        release.set()
+    wait_finished(1)
+    writer.sync()  # this fsync fails with EIO ...
+    wait_finished(2)
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(BagWriteError, match="Input/output error"):  # ... and the next call says so
+        write_messages(writer, [("/chatter", 5)], start=T0 + 2 * 10**9)
+    writer.close()
+    assert len(read_rosbags(bag)) == len(written) == 5
+
+
 # --- errors -----------------------------------------------------------------------------------
 
 
