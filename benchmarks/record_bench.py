@@ -1091,14 +1091,14 @@ def print_repeat(repeat: dict[str, Any]) -> None:
     for number, run in enumerate(runs, 1):
         for mode, e in run.items():
             if "error" in e:
-                rows.append([str(number), mode, "ERROR " + e["error"][:50]] + [""] * 7)
+                rows.append([str(number), mode, "ERROR " + e["error"][:50]] + [""] * 8)
                 continue
             rows.append([str(number), mode, str(e["published"]), str(e["lost"]), fmt(e["lost_pct"], ".2f"),
                          fmt(e["mb_per_s"], ".1f"), fmt(e.get("direct_write_pct"), ".0f"),
                          fmt(e.get("total_cpu_s_per_gb"), ".2f"), fmt((e.get("latency_ms") or {}).get("p99"), ".1f"),
-                         verdict(e)])
-    print(table(["run", "mode", "published", "lost", "lost %", "MB/s", "% direct", "tot s/GB", "p99 ms", "lossless"],
-                rows))
+                         fmt(e.get("kernel_cpu_s"), ".1f"), verdict(e)])
+    print(table(["run", "mode", "published", "lost", "lost %", "MB/s", "% direct", "tot s/GB", "p99 ms", "kernel s",
+                 "lossless"], rows))
     for mode, m in repeat["per_mode"].items():
         print(f"  {mode}: lossless in {m['lossless_runs']} of {m['runs']} runs"
               + (f" ({m['failed_runs']} failed)" if m["failed_runs"] else "")
