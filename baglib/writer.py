@@ -84,6 +84,7 @@ class _ClosingFile:
     dropped: list[FileInfo]  # the oldest files, deleted once it is closed (max_bag_files)
     done: threading.Event = dataclasses.field(default_factory=threading.Event)
     info: FileInfo | None = None  # what the storage says it holds, once closed
+    failure: Exception | None = None  # what finishing it raised (storages report I/O errors, never raise them)
 
 _STORAGES: dict[str, type[McapStorage] | type[SqliteStorage]] = {
     McapStorage.storage_id: McapStorage,
@@ -546,15 +547,19 @@ class BagWriter:
         """Finish the file, write ``metadata.yaml`` naming it, then delete what circular recording drops: all
         without the writer's lock (the fsyncs take milliseconds), and before ``done``, so that every later
         ``metadata.yaml`` (written only after waiting for ``done``) replaces this one."""
-        closing.info = closing.storage.close(metadata.to_yaml())
-        if closing.storage.error is None:  # a failure is raised to the writing thread, at its next call
-            with contextlib.suppress(OSError):  # the next split or the close writes it again
-                closing.listed.write(self._path)
-            for info in closing.dropped:
-                with contextlib.suppress(FileNotFoundError):
-                    (self._path / info.path).unlink()
-        closing.done.set()
-        if closing.storage.error is None:
+        try:
+            closing.info = closing.storage.close(metadata.to_yaml())
+            if closing.storage.error is None:  # a failure is raised to the writing thread, at its next call
+                with contextlib.suppress(OSError):  # the next split or the close writes it again
+                    closing.listed.write(self._path)
+                for info in closing.dropped:
+                    with contextlib.suppress(FileNotFoundError):
+                        (self._path / info.path).unlink()
+        except Exception as exc:  # noqa: BLE001 - a bug here must stop the bag, not leave the writer waiting
+            closing.failure = exc
+        finally:
+            closing.done.set()
+        if closing.info is not None and closing.storage.error is None:
             with self._lock:
                 if self._closing is closing:
                     self._settle_closing()
@@ -575,8 +580,10 @@ class BagWriter:
             return
         closing.done.wait()
         self._closing = None
-        assert closing.info is not None
-        error = self._list_closed(closing.storage, closing.info)
+        if closing.info is None:  # left unfinished, out of metadata.yaml: `bag recover` completes it
+            error: OSError | None = OSError(errno.EIO, f"finishing the file failed: {closing.failure!r}")
+        else:
+            error = self._list_closed(closing.storage, closing.info)
         if error is not None:
             if self._storage is not None:
                 self._close_storage()  # what reached the next file is kept too

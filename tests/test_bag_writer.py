@@ -658,6 +658,41 @@ def test_a_split_does_not_wait_for_the_full_file(tmp_path: Path, monkeypatch: py
     assert meta["relative_file_paths"] == ["slow_0.mcap", "slow_1.mcap"]
 
 
+def test_a_bug_while_finishing_a_split_off_file_stops_the_bag(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """What finishing a file in the background raises beyond I/O errors (a bug) stops the bag with an error
+    at the next call; the writer never waits forever for a thread that died."""
+    close = McapStorage.close
+
+    def broken_close(storage: McapStorage, serialized_metadata: str = "") -> Any:
+        if storage.path.name == "broken_0.mcap":
+            raise RuntimeError("a bug")
+        return close(storage, serialized_metadata)
+
+    monkeypatch.setattr(McapStorage, "close", broken_close)
+    bag = tmp_path / "broken"
+    writer = BagWriter(bag, max_bagfile_size=200_000)
+    writer.add_topic(topic_info("/points"))
+    written: list[Written] = []
+    raised: list[BaseException] = []
+
+    def write_until_stopped() -> None:
+        try:
+            for index in range(1000):
+                written.extend(write_messages(writer, [("/points", index)], start=T0 + index * 10**7))
+        except BagWriteError as error:
+            raised.append(error)
+
+    worker = threading.Thread(target=write_until_stopped, daemon=True)
+    worker.start()
+    worker.join(20)
+    assert not worker.is_alive(), "the writer waits for a thread that died"
+    assert raised and "finishing the file failed: RuntimeError" in str(raised[0])
+    writer.close()
+    assert load_metadata(bag)["relative_file_paths"] == ["broken_1.mcap"]  # the unfinished file is left out
+    assert 0 < len(read_rosbags(bag)) < len(written)
+
+
 def test_sync_does_not_wait_for_the_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """sync() hands the fsync to a thread of its own (a busy disk took up to 130 ms), and a failed fsync
     stops the bag at the next call like a failed write, with everything written before it readable."""
