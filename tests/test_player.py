@@ -93,14 +93,20 @@ def regular_plan(count: int, period_ms: int = 20, height: int = 24) -> list[tupl
     return plan
 
 
-def assert_spacing(times: list[int], nominal_ms: float) -> None:
+def assert_spacing(times: list[int], nominal_ms: float, behind: dict[str, float] | None = None) -> None:
     """Receive times follow the schedule: the median gap is the nominal one and the whole span is the
     nominal one (receive times include the subscriber's executor latency, which a loaded 2-core CI machine
-    stretches for single messages; punctuality itself is the benchmark's measure)."""
+    stretches for single messages; punctuality itself is the benchmark's measure).
+
+    ``behind`` is the player's own report of falling behind (``get_stats``): each time a stall of the machine
+    made it more than 10 ms late it moved the schedule back by that lateness, by design. Those moves must
+    account for the extra span, and each stretches at most one gap (left out of the median)."""
+    count, shifted_ms = (int(behind["count"]), behind["total_s"] * 1000) if behind else (0, 0.0)
     gaps = sorted((b - a) / MS for a, b in zip(times, times[1:]))
-    assert abs(gaps[len(gaps) // 2] - nominal_ms) < 0.2 * nominal_ms, gaps
+    kept = gaps[:len(gaps) - count] or gaps
+    assert abs(kept[len(kept) // 2] - nominal_ms) < 0.2 * nominal_ms, (gaps, behind)
     span = (times[-1] - times[0]) / MS
-    assert abs(span - nominal_ms * len(gaps)) < 0.1 * nominal_ms * len(gaps) + 50, (span, gaps)
+    assert abs(span - shifted_ms - nominal_ms * len(gaps)) < 0.1 * nominal_ms * len(gaps) + 50, (span, gaps, behind)
 
 
 def digest(data: bytes) -> str:
@@ -207,7 +213,7 @@ def test_plays_every_message_in_order_on_schedule(container: Any, tmp_path: Path
         assert received(report, topic) == expected(plan, topic)
     assert stats["published"] == {"/chatter": 60, "/image": 20}
     # Receive-time offsets follow the bag's (20 ms apart) within a few ms; the player's own error is tighter.
-    assert_spacing(report["/chatter"]["times"], 20)
+    assert_spacing(report["/chatter"]["times"], 20, stats["behind"])
     assert stats["publish_error_ms"]["count"] == 80
     handle.unload()
 
