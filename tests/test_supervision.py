@@ -76,8 +76,12 @@ def test_a_raising_callback_unloads_only_its_component(containers: Containers, p
     assert raising.success, raising
     assert wait_until(lambda: listing(client) == [(talker_id, "/talker")], 10.0), listing(client)
     assert still_publishing(received, probe), "the other component stopped with the failing one"
-    failed = wait_until(lambda: diagnostics.find(": /raising_component"), 5.0, probe)
-    assert failed is not None and failed.level == DiagnosticStatus.ERROR, diagnostics.latest
+    def failure_reported() -> DiagnosticStatus | None:  # not the "running" status published before it raised
+        status = diagnostics.find(": /raising_component")
+        return status if status is not None and status.level == DiagnosticStatus.ERROR else None
+
+    failed = wait_until(failure_reported, 5.0, probe)
+    assert failed is not None, diagnostics.latest
     assert "deliberate failure in RaisingComponent" in failed.message
     running = diagnostics.find(": /talker")
     assert running is not None and running.level == DiagnosticStatus.OK
