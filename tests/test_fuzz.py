@@ -52,6 +52,7 @@ def test_random_requests_leave_the_container_healthy(probe: Node, fuzz_node: Nod
         for topic, (_type, rate) in RATES.items():
             assert rates[topic] >= RATE_SHARE * rate, (seed, rates)
         growth = rss_bytes(scene.process.pid) - rss_before
+        print(f"container RSS {rss_before / 2**20:.1f} MiB before, grew by {growth / 2**20:.1f} MiB")
         assert growth < RSS_GROWTH_LIMIT, f"seed {seed}: RSS grew by {growth / 2**20:.1f} MiB"
         assert not report.internal_errors, (seed, report.internal_errors[:5])
 

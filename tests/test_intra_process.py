@@ -208,8 +208,9 @@ def test_all_executor_models_deliver_in_process(contexts, kind):
     pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
     sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
     got: list[String] = []
-    sub_node.create_subscription(String, "chatter", got.append, 1000)
-    publisher = pub_node.create_publisher(String, "chatter", 10)
+    topic = f"chatter_{kind}"  # apart from every other test's chatter, so that only this publisher reaches it
+    sub_node.create_subscription(String, topic, got.append, 1000)
+    publisher = pub_node.create_publisher(String, topic, 10)
     executor.add(pub_node)
     executor.add(sub_node)
     published = [String(data=str(i)) for i in range(200)]
@@ -218,7 +219,9 @@ def test_all_executor_models_deliver_in_process(contexts, kind):
     deadline = time.monotonic() + 10
     while len(got) < 200 and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert len(got) == 200
+    data = [m.data for m in got]
+    assert len(got) == 200, ("twice:", sorted({d for d in data if data.count(d) > 1}), "missing:",
+                             sorted(set(map(str, range(200))) - set(data)))
     assert delivered(sorted(got, key=lambda m: int(m.data)), published)
     executor.remove(sub_node)
     sub_node.destroy_node()

@@ -46,7 +46,7 @@ from baglib.writer import BagWriter
 from components.recorder.recorder_options import RecordOptions
 from components.recorder.topic_selection import TopicFilter
 
-from container_process import Containers
+from container_process import Containers, wait_until
 
 HERE = Path(__file__).resolve().parent
 IPC_COMPONENT = Path(sys.executable).with_name("ipc-component")
@@ -357,6 +357,12 @@ def received(probe: Node, recorder: str) -> dict[str, int]:
 
 
 def test_recorders_record_service_events_as_selected(tmp_path: Path, probe: Node, containers: Containers) -> None:
+    # The recorders list the publishers the graph shows when they subscribe: wait out any a finished test's
+    # process may still have there (a participant is gone from the graph only once its removal is processed).
+    def stale() -> list[tuple[str, str]]:
+        return [(p.node_name, p.node_namespace) for topic in (SET_FLAG_EVENTS, TRIGGER_EVENTS)
+                for p in probe.get_publishers_info_by_topic(topic)]
+    assert wait_until(lambda: not stale(), 30.0), stale()
     _, container = containers.start()
     ids = {}
     for name, (parameters, _) in RECORDERS.items():
@@ -376,6 +382,8 @@ def test_recorders_record_service_events_as_selected(tmp_path: Path, probe: Node
             while (counts := received(probe, name)) != expected and time.monotonic() < deadline:
                 time.sleep(0.1)
             assert counts == expected, f"recorder {name} received {counts}, expected {expected}"
+        graph = [(p.node_name, p.node_namespace, str(p.qos_profile.durability))
+                 for topic in (SET_FLAG_EVENTS, TRIGGER_EVENTS) for p in probe.get_publishers_info_by_topic(topic)]
         for name, unique_id in ids.items():
             assert container.unload(unique_id).success, name
     finally:
@@ -389,7 +397,8 @@ def test_recorders_record_service_events_as_selected(tmp_path: Path, probe: Node
             meta = listed[topic]["topic_metadata"]
             assert meta["type"] == (SET_FLAG_EVENT_TYPE if topic == SET_FLAG_EVENTS else TRIGGER_EVENT_TYPE)
             assert meta["type_description_hash"] == type_hash(meta["type"])  # as the publishers announced it
-            assert [q["durability"] for q in meta["offered_qos_profiles"]] == ["transient_local"] * 2  # server, client
+            durabilities = [q["durability"] for q in meta["offered_qos_profiles"]]
+            assert durabilities == ["transient_local"] * 2, (meta["offered_qos_profiles"], graph)  # server, client
         check_events(tmp_path / name, expected)
 
     check_mcap_events(tmp_path / "all_services" / "all_services_0.mcap")
