@@ -47,6 +47,9 @@ class Reference:
             self.value("uint32", len(value))
             for element in value:
                 self.value(type_name[len("sequence<"):-1], element)
+        elif type_name.endswith("]"):  # a fixed-size array: the elements (of any shape, in C order), no length
+            for element in getattr(value, "flat", value):
+                self.value(type_name[:type_name.index("[")], element)
         elif "/" in type_name:
             self.message(value)
         else:
