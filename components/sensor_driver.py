@@ -120,11 +120,16 @@ class SensorDriver(ComponentNode):
     MIN_TIMER_PERIOD = 0.002
     #: How much backlog, in seconds of frames, one tick may catch up before older frames are skipped.
     MAX_CATCH_UP = 0.1
+    #: Seconds between two "cannot keep up" warnings. Throttled here, not with rclpy's throttle_duration_sec:
+    #: that one inspects the caller's source file on every call, and an overloaded driver skips on most ticks.
+    SKIP_WARNING_INTERVAL = 5.0
 
     def __init__(self, node_name: str, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         self._published_count = 0
         self._skipped_count = 0
+        self._skip_warned_ns: int | None = None
+        self._skipped_unreported = 0
         self._sequences: dict[int, int] = {}
         self._timer = None
         self._dynamic: dict[str, tuple[Validator, Callable[[Any], None]]] = {}
@@ -235,13 +240,22 @@ class SensorDriver(ComponentNode):
             self._skipped_count += skipped
             self._frames_due_done += skipped
             due = self._max_burst
-            self.get_logger().warn(
-                f"cannot keep up with {self.rate:g} Hz: skipped {skipped} frame(s), {self._skipped_count} in total",
-                throttle_duration_sec=5.0)
+            self._report_skips(skipped, now_ns)
         for _ in range(due):
             self.publish_frame()
             self._published_count += 1
             self._frames_due_done += 1
+
+    def _report_skips(self, skipped: int, now_ns: int) -> None:
+        """Warn about skipped frames at most every SKIP_WARNING_INTERVAL seconds, counting all of them."""
+        self._skipped_unreported += skipped
+        if self._skip_warned_ns is not None and now_ns - self._skip_warned_ns < self.SKIP_WARNING_INTERVAL * 1e9:
+            return
+        since = ("" if self._skip_warned_ns is None
+                 else f" in the last {(now_ns - self._skip_warned_ns) / 1e9:.1f} s")
+        self.get_logger().warn(f"cannot keep up with {self.rate:g} Hz: skipped {self._skipped_unreported} frame(s)"
+                               f"{since}, {self._skipped_count} in total")
+        self._skip_warned_ns, self._skipped_unreported = now_ns, 0
 
     # ------------------------------------------------------------------ parameters
     def _declare(self, name: str, default: Any, description: str, validate: Validator, *,

@@ -386,6 +386,22 @@ def test_rate_loop_catches_up_and_caps_bursts(ros, monkeypatch):
     assert sequences == list(range(imu.published_count)), "sequence numbers must stay gap-free"
 
 
+def test_skipped_frames_are_warned_about_every_five_seconds_with_every_one_counted(ros, monkeypatch):
+    clock = FakeClock()
+    monkeypatch.setattr(sensor_driver, "time", types.SimpleNamespace(monotonic_ns=clock.monotonic_ns))
+    imu = ros.driver(ImuDriver, "imu", rate=100.0)
+    warnings: list[str] = []
+    monkeypatch.setattr(imu, "get_logger", lambda: types.SimpleNamespace(warn=warnings.append))
+    imu._on_tick()
+    for _ in range(30):  # a stall of 0.5 s before each tick: 50 due, 10 published, 40 skipped each time
+        clock.advance(0.5)
+        imu._on_tick()
+    assert imu.skipped_count == 30 * 40
+    assert warnings == ["cannot keep up with 100 Hz: skipped 40 frame(s), 40 in total",
+                        "cannot keep up with 100 Hz: skipped 400 frame(s) in the last 5.0 s, 440 in total",
+                        "cannot keep up with 100 Hz: skipped 400 frame(s) in the last 5.0 s, 840 in total"]
+
+
 def test_rate_change_restarts_the_schedule_without_a_burst(ros, monkeypatch):
     """``rate`` set at run time: the next frame is due one new period after the change, never a catch-up burst."""
     clock = FakeClock()
