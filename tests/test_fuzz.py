@@ -2,7 +2,8 @@
 against a real container running a camera, an IMU and a recorder (see tests/fuzz_scene.py).
 
 Afterwards the container is alive and answers ListNodes, the drivers publish at their rate, the recorder's
-bag reads back, RSS grew by less than 50 MB, and nothing was written outside the bag root (the container's
+bag reads back, RSS grew by less than 10 MiB over the second half of the requests (the first half warms
+the container up), and nothing was written outside the bag root (the container's
 fresh working directory is unchanged, and no file carrying the fuzz marker appeared in /tmp).
 
 The seed is printed; ``IPC_FUZZ_SEED=<seed>`` replays a run and ``IPC_FUZZ_REQUESTS`` scales it (default
@@ -22,7 +23,7 @@ from container_process import listing
 from fuzz_scene import RATES, FuzzScene, environment_seed, file_listing, rss_bytes
 
 TMP = pathlib.Path("/tmp")
-RSS_GROWTH_LIMIT = 50 * 1024 * 1024
+RSS_GROWTH_LIMIT = 10 * 1024 * 1024  # over the second half (2500 requests): 2.7-5.2 MiB measured
 RATE_SHARE = 0.5  # generous: a loaded 2-core machine, a plain rclpy subscriber in the test process
 
 
@@ -41,9 +42,14 @@ def test_random_requests_leave_the_container_healthy(probe: Node, fuzz_node: Nod
     with FuzzScene(probe, tmp_path) as scene:
         cwd_before = file_listing(scene.cwd)
         tmp_before = scene.escaped(TMP)
+        # The first half warms up what a long-running container keeps (allocator arenas, DDS endpoint pools,
+        # the recorder's bag machinery): RSS rises by 30-45 MiB and then levels off (+5 MiB over another 10 000
+        # requests). A leak keeps growing: the second half must stay under RSS_GROWTH_LIMIT (rclpy's type description
+        # service, switched back on, made the second half grow by 15.7 MiB: see README Known limitations).
+        warm_up = scene.fuzz(seed, requests // 2, fuzz_node)
+        print(warm_up.summary())
         rss_before = rss_bytes(scene.process.pid)
-
-        report = scene.fuzz(seed, requests, fuzz_node)
+        report = scene.fuzz(seed + 1, requests - requests // 2, fuzz_node)
         print(report.summary())
 
         assert scene.process.alive(), scene.process.output
@@ -52,9 +58,10 @@ def test_random_requests_leave_the_container_healthy(probe: Node, fuzz_node: Nod
         for topic, (_type, rate) in RATES.items():
             assert rates[topic] >= RATE_SHARE * rate, (seed, rates)
         growth = rss_bytes(scene.process.pid) - rss_before
-        print(f"container RSS {rss_before / 2**20:.1f} MiB before, grew by {growth / 2**20:.1f} MiB")
-        assert growth < RSS_GROWTH_LIMIT, f"seed {seed}: RSS grew by {growth / 2**20:.1f} MiB"
-        assert not report.internal_errors, (seed, report.internal_errors[:5])
+        print(f"container RSS {rss_before / 2**20:.1f} MiB after the first half, grew by {growth / 2**20:.1f} MiB")
+        assert growth < RSS_GROWTH_LIMIT, f"seed {seed}: RSS grew by {growth / 2**20:.1f} MiB in the second half"
+        assert not warm_up.internal_errors + report.internal_errors, (seed, warm_up.internal_errors[:5],
+                                                                      report.internal_errors[:5])
 
         scene.finish_recorder()
         bags = scene.bags()
