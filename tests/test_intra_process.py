@@ -207,26 +207,30 @@ def test_all_executor_models_deliver_in_process(contexts, kind):
     ipm = IntraProcessManager(make_wakeup=executor.make_wakeup)
     pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
     sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
-    got: list[String] = []
-    topic = f"chatter_{kind}"  # apart from every other test's chatter, so that only this publisher reaches it
-    sub_node.create_subscription(String, topic, got.append, 1000)
-    publisher = pub_node.create_publisher(String, topic, 10)
-    executor.add(pub_node)
-    executor.add(sub_node)
-    published = [String(data=str(i)) for i in range(200)]
-    for msg in published:
-        publisher.publish(msg)
-    deadline = time.monotonic() + 10
-    while len(got) < 200 and time.monotonic() < deadline:
-        time.sleep(0.02)
-    data = [m.data for m in got]
-    assert len(got) == 200, ("twice:", sorted({d for d in data if data.count(d) > 1}), "missing:",
-                             sorted(set(map(str, range(200))) - set(data)))
-    assert delivered(sorted(got, key=lambda m: int(m.data)), published)
-    executor.remove(sub_node)
-    sub_node.destroy_node()
-    publisher.publish(String(data="after unload"))  # nobody left: must not raise
-    executor.shutdown()
+    try:
+        got: list[String] = []
+        topic = f"chatter_{kind}"  # apart from every other test's chatter, so that only this publisher reaches it
+        sub_node.create_subscription(String, topic, got.append, 1000)
+        publisher = pub_node.create_publisher(String, topic, 10)
+        executor.add(pub_node)
+        executor.add(sub_node)
+        published = [String(data=str(i)) for i in range(200)]
+        for msg in published:
+            publisher.publish(msg)
+        deadline = time.monotonic() + 10
+        while len(got) < 200 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        data = [m.data for m in got]
+        assert len(got) == 200, ("twice:", sorted({d for d in data if data.count(d) > 1}), "missing:",
+                                 sorted(set(map(str, range(200))) - set(data)))
+        assert delivered(sorted(got, key=lambda m: int(m.data)), published)
+        executor.remove(sub_node)
+        sub_node.destroy_node()
+        publisher.publish(String(data="after unload"))  # nobody left: must not raise
+    finally:
+        executor.shutdown()
+        for node in (sub_node, pub_node):  # a node left alive keeps its topic in the graph of later tests
+            node.destroy_node()
 
 
 def test_components_that_do_not_opt_in_use_plain_dds(contexts):
