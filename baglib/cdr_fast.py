@@ -12,7 +12,8 @@ that needs one buffer gets it from ``bytes(buffers)`` (one copy).
 
 ``sensor_msgs/msg/Imu`` is small but comes at kilohertz rates, where ``serialize_message`` (a C struct
 built field by field, then the CDR, then the padding check of :func:`_wire_exact`) is most of the writer's
-cost per message; its fixed layout (a header, then 37 float64) is written here with two ``struct`` calls.
+cost per message; its fixed layout (a header, then 37 float64) is written here with ``struct`` and the
+covariance arrays' own bytes.
 
 The encoding is what rmw_fastrtps_cpp produces: XCDR1 little endian with the encapsulation header
 ``00 01 00 00``, primitives aligned to their size relative to the end of that header, strings as a
@@ -30,6 +31,7 @@ import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image, Imu, PointCloud2
 from std_msgs.msg import Header
@@ -50,6 +52,8 @@ _U32_PAIR = struct.Struct("<II")
 _PADDING = (b"", b"\x00\x00\x00", b"\x00\x00", b"\x00")
 _QUATERNION = struct.Struct("<4d")
 _VECTOR3 = struct.Struct("<3d")
+_FLOAT64 = np.dtype(np.float64)
+_FLOAT64X9 = struct.Struct("<9d")
 
 Buffer = bytes | bytearray | memoryview
 
@@ -184,19 +188,28 @@ def _compressed_image(msg: CompressedImage) -> bytes | SerializedBuffers | None:
     return _finish(buffer, data, b"")
 
 
-def _imu(msg: Imu) -> bytes:
-    """Header; orientation and its covariance; angular_velocity and its; linear_acceleration and its.
+def _float64x9(values: Any) -> bytes:
+    """A ``float64[9]`` field as CDR.
 
-    rclpy holds every ``float64[9]`` as a float64 numpy array (its setter converts anything else), whose
-    ``tobytes()`` is the little-endian CDR of the nine values on this little-endian platform.
+    rclpy's setter keeps every accepted value as a native float64 numpy array of 9 elements, whose
+    ``tobytes()`` is the little-endian CDR of the nine values on this little-endian platform. Anything else
+    was put into the slot behind the setter's back (rclpy's own serializer crashes the process on a list
+    there); it is packed value by value, and raises ``struct.error`` unless it is nine numbers.
     """
+    if type(values) is np.ndarray and values.dtype == _FLOAT64 and values.size == 9:
+        return values.tobytes()
+    return _FLOAT64X9.pack(*values)
+
+
+def _imu(msg: Imu) -> bytes:
+    """Header; orientation and its covariance; angular_velocity and its; linear_acceleration and its."""
     buffer = bytearray(CDR_LE_HEADER)
     _header(buffer, msg.header)
     buffer += bytes(-(len(buffer) - len(CDR_LE_HEADER)) & 7)  # the doubles align to 8 within the body
     o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
-    return b"".join((buffer, _QUATERNION.pack(o.x, o.y, o.z, o.w), msg.orientation_covariance.tobytes(),
-                     _VECTOR3.pack(w.x, w.y, w.z), msg.angular_velocity_covariance.tobytes(),
-                     _VECTOR3.pack(a.x, a.y, a.z), msg.linear_acceleration_covariance.tobytes()))
+    return b"".join((buffer, _QUATERNION.pack(o.x, o.y, o.z, o.w), _float64x9(msg.orientation_covariance),
+                     _VECTOR3.pack(w.x, w.y, w.z), _float64x9(msg.angular_velocity_covariance),
+                     _VECTOR3.pack(a.x, a.y, a.z), _float64x9(msg.linear_acceleration_covariance)))
 
 
 # Exact types only: a subclass may add fields these encoders would not write.
@@ -233,10 +246,9 @@ def _wire_exact(msg: Any) -> bytes | memoryview:
 def serialize(msg: Any) -> bytes | memoryview | SerializedBuffers:
     """The CDR serialization of ``msg``: exactly the sample a raw subscription would receive for it.
 
-    Imu messages are written here too (as ``bytes``). Image, PointCloud2 and CompressedImage messages with a
-    payload of at least
-    :data:`MIN_BUFFERS_SIZE` bytes come back as :class:`SerializedBuffers` that reference
-    ``msg.data``; other messages of at least that size whose ``serialize_message`` output had to be cut
+    Imu messages are written here too (as ``bytes``). Image, PointCloud2 and CompressedImage messages with
+    a payload of at least :data:`MIN_BUFFERS_SIZE` bytes come back as :class:`SerializedBuffers` that
+    reference ``msg.data``; other messages of at least that size whose ``serialize_message`` output had to be cut
     or cleaned as a read-only ``memoryview``; everything else as ``bytes``.
     """
     encoder = _ENCODERS.get(type(msg))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import array
 import itertools
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -246,6 +247,16 @@ def test_big_payload_is_a_view_of_msg_data() -> None:
     assert view.obj is cloud.data and suffix == b"\x01"
 
 
+def test_imu_covariance_put_behind_the_setter() -> None:
+    """A list in the slot (rclpy's serializer crashes the process on it) is packed value by value."""
+    imu = Imu()
+    imu._angular_velocity_covariance = [0.5] * 9
+    assert serialize(imu) == reference(imu)[0]
+    imu._angular_velocity_covariance = [0.5] * 8
+    with pytest.raises(struct.error):
+        serialize(imu)
+
+
 def test_data_sources() -> None:
     """``data`` assigned as bytes, list, array or numpy ends up an array.array('B') either way."""
     for data in (b"\x01\x02\x03", [1, 2, 3], array.array("B", [1, 2, 3]), bytearray(b"\x01\x02\x03"),
@@ -266,6 +277,7 @@ def test_non_buffer_data_falls_back(monkeypatch: pytest.MonkeyPatch) -> None:
     image = Image(encoding="mono8")
     image._data = [1, 2, 3]  # bypassing the setter: not a buffer
     assert serialize(image) == reference(image)[0] and calls == [image]
+
 
 
 @pytest.mark.parametrize("msg", [String(data="hello ✓"), CameraInfo(), PointField(name="x", count=1)], ids=repr)
