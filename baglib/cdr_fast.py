@@ -10,10 +10,10 @@ module writes the small fields itself and returns the payload as a ``memoryview`
 buffers to the file one after the other, so the payload is copied only by the kernel; anything else
 that needs one buffer gets it from ``bytes(buffers)`` (one copy).
 
-``sensor_msgs/msg/Imu`` is small but comes at kilohertz rates, where ``serialize_message`` (a C struct
-built field by field, then the CDR, then the padding check of :func:`_wire_exact`) is most of the writer's
-cost per message; its fixed layout (a header, then 37 float64) is written here with ``struct`` and the
-covariance arrays' own bytes.
+``sensor_msgs/msg/Imu`` and ``CameraInfo`` are small but come at high rates (an IMU at kilohertz, a
+``camera_info`` with every frame), where ``serialize_message`` (a C struct built field by field, then the
+CDR, then the padding check of :func:`_wire_exact`) is most of the writer's cost per message; they are
+written here with ``struct`` and the float64 arrays' own bytes.
 
 The encoding is what rmw_fastrtps_cpp produces: XCDR1 little endian with the encapsulation header
 ``00 01 00 00``, primitives aligned to their size relative to the end of that header, strings as a
@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import struct
 import sys
+from array import array
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 from rclpy.serialization import serialize_message
-from sensor_msgs.msg import CompressedImage, Image, Imu, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
 from std_msgs.msg import Header
 
 from .cdr_size import serialized_layout
@@ -53,7 +54,7 @@ _PADDING = (b"", b"\x00\x00\x00", b"\x00\x00", b"\x00")
 _QUATERNION = struct.Struct("<4d")
 _VECTOR3 = struct.Struct("<3d")
 _FLOAT64 = np.dtype(np.float64)
-_FLOAT64X9 = struct.Struct("<9d")
+_U32_QUAD_BOOL = struct.Struct("<IIII?")
 
 Buffer = bytes | bytearray | memoryview
 
@@ -188,28 +189,54 @@ def _compressed_image(msg: CompressedImage) -> bytes | SerializedBuffers | None:
     return _finish(buffer, data, b"")
 
 
-def _float64x9(values: Any) -> bytes:
-    """A ``float64[9]`` field as CDR.
+def _float64s(values: Any, count: int) -> bytes:
+    """A ``float64[count]`` field as CDR.
 
-    rclpy's setter keeps every accepted value as a native float64 numpy array of 9 elements, whose
-    ``tobytes()`` is the little-endian CDR of the nine values on this little-endian platform. Anything else
-    was put into the slot behind the setter's back (rclpy's own serializer crashes the process on a list
-    there); it is packed value by value, and raises ``struct.error`` unless it is nine numbers.
+    rclpy's setter keeps every accepted value as a native float64 numpy array of ``count`` elements, whose
+    ``tobytes()`` is the little-endian CDR of the values on this little-endian platform. Anything else was put
+    into the slot behind the setter's back (rclpy's own serializer crashes the process on a list there); it is
+    packed value by value, and raises ``struct.error`` unless it is ``count`` numbers.
     """
-    if type(values) is np.ndarray and values.dtype == _FLOAT64 and values.size == 9:
+    if type(values) is np.ndarray and values.dtype == _FLOAT64 and values.size == count:
         return values.tobytes()
-    return _FLOAT64X9.pack(*values)
+    return struct.pack(f"<{count}d", *values)
+
+
+def _align8(buffer: bytearray) -> None:
+    """Pad with zeros to a multiple of 8 within the body (the 4-byte encapsulation header is not counted)."""
+    buffer += bytes(-(len(buffer) - len(CDR_LE_HEADER)) & 7)
 
 
 def _imu(msg: Imu) -> bytes:
     """Header; orientation and its covariance; angular_velocity and its; linear_acceleration and its."""
     buffer = bytearray(CDR_LE_HEADER)
     _header(buffer, msg.header)
-    buffer += bytes(-(len(buffer) - len(CDR_LE_HEADER)) & 7)  # the doubles align to 8 within the body
+    _align8(buffer)
     o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
-    return b"".join((buffer, _QUATERNION.pack(o.x, o.y, o.z, o.w), _float64x9(msg.orientation_covariance),
-                     _VECTOR3.pack(w.x, w.y, w.z), _float64x9(msg.angular_velocity_covariance),
-                     _VECTOR3.pack(a.x, a.y, a.z), _float64x9(msg.linear_acceleration_covariance)))
+    return b"".join((buffer, _QUATERNION.pack(o.x, o.y, o.z, o.w), _float64s(msg.orientation_covariance, 9),
+                     _VECTOR3.pack(w.x, w.y, w.z), _float64s(msg.angular_velocity_covariance, 9),
+                     _VECTOR3.pack(a.x, a.y, a.z), _float64s(msg.linear_acceleration_covariance, 9)))
+
+
+def _camera_info(msg: CameraInfo) -> bytes:
+    """Header, size, distortion model and ``d`` (rclpy's ``array('d')``), k, r, p, binning, roi.
+
+    The 8-alignment after ``d``'s length is the first double's: ``d[0]`` or, with an empty ``d``, ``k[0]``.
+    """
+    buffer = bytearray(CDR_LE_HEADER)
+    _header(buffer, msg.header)
+    _align4(buffer)
+    buffer += _U32_PAIR.pack(msg.height, msg.width)
+    _string(buffer, msg.distortion_model)
+    _align4(buffer)
+    d = msg.d
+    buffer += _U32.pack(len(d))
+    _align8(buffer)
+    buffer += d.tobytes() if type(d) is array and d.typecode == "d" else struct.pack(f"<{len(d)}d", *d)
+    roi = msg.roi
+    return b"".join((buffer, _float64s(msg.k, 9), _float64s(msg.r, 9), _float64s(msg.p, 12),
+                     _U32_PAIR.pack(msg.binning_x, msg.binning_y),
+                     _U32_QUAD_BOOL.pack(roi.x_offset, roi.y_offset, roi.height, roi.width, roi.do_rectify)))
 
 
 # Exact types only: a subclass may add fields these encoders would not write.
@@ -218,8 +245,8 @@ _ENCODERS: dict[type, Callable[[Any], bytes | SerializedBuffers | None]] = {
     PointCloud2: _point_cloud2,
     CompressedImage: _compressed_image,
 }
-if sys.byteorder == "little":  # x86_64, the platform this project supports; elsewhere rclpy serializes Imu
-    _ENCODERS[Imu] = _imu
+if sys.byteorder == "little":  # x86_64, the platform this project supports; elsewhere rclpy serializes them
+    _ENCODERS.update({Imu: _imu, CameraInfo: _camera_info})
 
 
 def _wire_exact(msg: Any) -> bytes | memoryview:
@@ -246,9 +273,9 @@ def _wire_exact(msg: Any) -> bytes | memoryview:
 def serialize(msg: Any) -> bytes | memoryview | SerializedBuffers:
     """The CDR serialization of ``msg``: exactly the sample a raw subscription would receive for it.
 
-    Imu messages are written here too (as ``bytes``). Image, PointCloud2 and CompressedImage messages with
-    a payload of at least :data:`MIN_BUFFERS_SIZE` bytes come back as :class:`SerializedBuffers` that
-    reference ``msg.data``; other messages of at least that size whose ``serialize_message`` output had to be cut
+    Imu and CameraInfo messages are written here too (as ``bytes``). Image, PointCloud2 and CompressedImage
+    messages with a payload of at least :data:`MIN_BUFFERS_SIZE` bytes come back as :class:`SerializedBuffers`
+    that reference ``msg.data``; other messages of at least that size whose ``serialize_message`` output had to be cut
     or cleaned as a read-only ``memoryview``; everything else as ``bytes``.
     """
     encoder = _ENCODERS.get(type(msg))
