@@ -190,14 +190,17 @@ def _compressed_image(msg: CompressedImage) -> bytes | SerializedBuffers | None:
 
 
 def _float64s(values: Any, count: int) -> bytes:
-    """A ``float64[count]`` field as CDR.
+    """``count`` float64 values as CDR: a fixed ``float64[count]`` or the elements of a ``sequence<double>``.
 
-    rclpy's setter keeps every accepted value as a native float64 numpy array of ``count`` elements, whose
-    ``tobytes()`` is the little-endian CDR of the values on this little-endian platform. Anything else was put
-    into the slot behind the setter's back (rclpy's own serializer crashes the process on a list there); it is
-    packed value by value, and raises ``struct.error`` unless it is ``count`` numbers.
+    rclpy's setters keep every accepted value as a native float64 numpy array (fixed arrays) or an
+    ``array('d')`` (sequences), whose ``tobytes()`` is the little-endian CDR of the values on this
+    little-endian platform. Anything else was put into the slot behind the setter's back (rclpy's own
+    serializer crashes the process on a list there); it is packed value by value, and raises
+    ``struct.error`` unless it is ``count`` numbers.
     """
     if type(values) is np.ndarray and values.dtype == _FLOAT64 and values.size == count:
+        return values.tobytes()
+    if type(values) is array and values.typecode == "d" and len(values) == count:
         return values.tobytes()
     return struct.pack(f"<{count}d", *values)
 
@@ -232,7 +235,7 @@ def _camera_info(msg: CameraInfo) -> bytes:
     d = msg.d
     buffer += _U32.pack(len(d))
     _align8(buffer)
-    buffer += d.tobytes() if type(d) is array and d.typecode == "d" else struct.pack(f"<{len(d)}d", *d)
+    buffer += _float64s(d, len(d))
     roi = msg.roi
     return b"".join((buffer, _float64s(msg.k, 9), _float64s(msg.r, 9), _float64s(msg.p, 12),
                      _U32_PAIR.pack(msg.binning_x, msg.binning_y),

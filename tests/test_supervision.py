@@ -76,6 +76,7 @@ def test_a_raising_callback_unloads_only_its_component(containers: Containers, p
     assert raising.success, raising
     assert wait_until(lambda: listing(client) == [(talker_id, "/talker")], 10.0), listing(client)
     assert still_publishing(received, probe), "the other component stopped with the failing one"
+
     def failure_reported() -> DiagnosticStatus | None:  # not the "running" status published before it raised
         status = diagnostics.find(": /raising_component")
         return status if status is not None and status.level == DiagnosticStatus.ERROR else None
