@@ -168,7 +168,7 @@ class CameraDriver(SensorDriver):
         return msg
 
     def publish_frame(self) -> None:
-        stamp_ns = self.get_clock().now().nanoseconds
+        stamp_ns = self.capture_ns()
         image = self.make_image(self.next_sequence(self.image_publisher), stamp_ns)
         info = self.make_camera_info(stamp_ns)
         self.image_publisher.publish(image)

@@ -32,8 +32,11 @@ import math
 from typing import Any
 
 import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Quaternion, Vector3
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Imu
+from std_msgs.msg import Header
 
 from components.sensor_driver import SensorDriver
 
@@ -44,6 +47,19 @@ YAW_RATE_AMPLITUDE = 0.2   # rad/s
 YAW_RATE_FREQUENCY = 0.25  # Hz
 NOISE_POOL = 4096          # samples; a prime stride walks the pool
 NOISE_STRIDE = 1031
+
+_new = object.__new__
+
+
+def _layout(msg: Any) -> list[tuple[str, type, Any]]:
+    """Every slot of ``msg`` and of the messages in it, with the type of its value (and the flag's value)."""
+    out = []
+    for slot in msg.__slots__:
+        value = getattr(msg, slot)
+        out.append((slot, type(value), value if slot == "_check_fields" else None))
+        if hasattr(value, "__slots__"):
+            out.extend((f"{slot}.{name}", kind, flag) for name, kind, flag in _layout(value))
+    return out
 
 
 class ImuDriver(SensorDriver):
@@ -64,34 +80,85 @@ class ImuDriver(SensorDriver):
         self._noise = tuple(tuple(row) for row in noise.tolist())  # plain floats: no numpy per message
         self._gyro_var = GYRO_NOISE_SIGMA ** 2
         self._accel_var = ACCEL_NOISE_SIGMA ** 2
+        # Templates that make_imu copies (numpy copies of 9 doubles: 0.4 us each); never written.
+        self._orientation_covariance = np.zeros(9)
+        self._orientation_covariance[0] = -1.0
+        self._gyro_covariance = np.diag([self._gyro_var] * 3).ravel()
+        self._accel_covariance = np.diag([self._accel_var] * 3).ravel()
+        self._check_fields = Imu()._check_fields  # what the constructors would set (ROS_PYTHON_CHECK_FIELDS)
         self.publisher = self.create_publisher(Imu, self.topic, self.qos_profile)
-        self.frame_bytes = len(serialize_message(self.make_imu(0, 0)))
+        self.frame_bytes = len(serialize_message(self.construct_imu(0, 0)))
+        if not self.assembly_matches():
+            self.get_logger().warn("sensor_msgs/Imu is not laid out as make_imu expects; building each message "
+                                   "with the constructors instead (about 12 us more per message)")
+            self.make_imu = self.construct_imu
 
     def make_imu(self, sequence: int, stamp_ns: int) -> Imu:
         """A fresh Imu message; sequence number in orientation_covariance[1].
 
-        At 10 kHz (ten drivers at 1 kHz) building the message is most of a driver's cost, so the fields
-        ``Imu()`` constructs (header, vectors, zeroed covariance arrays; the quaternion is already the
-        identity) are filled in place rather than replaced by new objects: 21 instead of 36 us here.
+        Ten drivers at 1 kHz make building the messages most of the drivers' cost: ``Imu()`` runs the
+        generated constructors and property setters of six messages and three arrays (15 of the 26 us one
+        publish takes). This assembles the same objects through the generated classes' slots instead, in
+        3 us. :meth:`assembly_matches` checks at load that the result is the message :meth:`construct_imu`
+        builds with the public constructors; where it is not, the driver uses that one.
         """
         gx, gy, gz, ax, ay, az = self._noise[(sequence * NOISE_STRIDE) % NOISE_POOL]
         yaw_rate = YAW_RATE_AMPLITUDE * math.sin(2.0 * math.pi * YAW_RATE_FREQUENCY * stamp_ns / 1e9)
-        msg = Imu()
-        header = msg.header
-        header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
-        header.frame_id = self.frame_id
-        orientation_covariance = msg.orientation_covariance
-        orientation_covariance[0] = -1.0
+        check = self._check_fields
+        stamp = _new(Time)
+        stamp._check_fields = check
+        stamp._sec, stamp._nanosec = divmod(stamp_ns, 1_000_000_000)
+        header = _new(Header)
+        header._check_fields, header._stamp, header._frame_id = check, stamp, self.frame_id
+        orientation = _new(Quaternion)
+        orientation._check_fields = check
+        orientation._x = orientation._y = orientation._z = 0.0
+        orientation._w = 1.0
+        angular_velocity = _new(Vector3)
+        angular_velocity._check_fields = check
+        angular_velocity._x, angular_velocity._y, angular_velocity._z = gx, gy, yaw_rate + gz
+        linear_acceleration = _new(Vector3)
+        linear_acceleration._check_fields = check
+        linear_acceleration._x, linear_acceleration._y, linear_acceleration._z = ax, ay, GRAVITY + az
+        orientation_covariance = self._orientation_covariance.copy()
         orientation_covariance[1] = sequence
-        angular_velocity, linear_acceleration = msg.angular_velocity, msg.linear_acceleration
-        angular_velocity.x, angular_velocity.y, angular_velocity.z = gx, gy, yaw_rate + gz
-        linear_acceleration.x, linear_acceleration.y, linear_acceleration.z = ax, ay, GRAVITY + az
-        gyro, accel = msg.angular_velocity_covariance, msg.linear_acceleration_covariance
-        for diagonal in (0, 4, 8):
-            gyro[diagonal] = self._gyro_var
-            accel[diagonal] = self._accel_var
+        msg = _new(Imu)
+        msg._check_fields, msg._header, msg._orientation = check, header, orientation
+        msg._orientation_covariance = orientation_covariance
+        msg._angular_velocity = angular_velocity
+        msg._angular_velocity_covariance = self._gyro_covariance.copy()
+        msg._linear_acceleration = linear_acceleration
+        msg._linear_acceleration_covariance = self._accel_covariance.copy()
         return msg
 
+    def construct_imu(self, sequence: int, stamp_ns: int) -> Imu:
+        """The message :meth:`make_imu` assembles, built with the public constructors and setters."""
+        gx, gy, gz, ax, ay, az = self._noise[(sequence * NOISE_STRIDE) % NOISE_POOL]
+        yaw_rate = YAW_RATE_AMPLITUDE * math.sin(2.0 * math.pi * YAW_RATE_FREQUENCY * stamp_ns / 1e9)
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        orientation_covariance = np.zeros(9)
+        orientation_covariance[:2] = -1.0, sequence
+        return Imu(header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=self.frame_id),
+                   orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+                   orientation_covariance=orientation_covariance,
+                   angular_velocity=Vector3(x=gx, y=gy, z=yaw_rate + gz),
+                   angular_velocity_covariance=np.diag([self._gyro_var] * 3).ravel(),
+                   linear_acceleration=Vector3(x=ax, y=ay, z=GRAVITY + az),
+                   linear_acceleration_covariance=np.diag([self._accel_var] * 3).ravel())
+
+    def assembly_matches(self) -> bool:
+        """Whether :meth:`make_imu` builds what :meth:`construct_imu` builds: equal messages, equal bytes from
+        rclpy's serializer, and every field of the same type and flags."""
+        stamp_ns, sequence = 1_700_000_000_123_456_789, 2 ** 40 + 7
+        try:
+            assembled = type(self).make_imu(self, sequence, stamp_ns)  # the assembly, even after a fallback
+            constructed = self.construct_imu(sequence, stamp_ns)
+            return (assembled == constructed
+                    and serialize_message(assembled) == serialize_message(constructed)
+                    and _layout(assembled) == _layout(constructed))
+        except (AttributeError, TypeError, ValueError):  # a slot that is not there any more
+            return False
+
     def publish_frame(self) -> None:
-        stamp_ns = self.get_clock().now().nanoseconds
+        stamp_ns = self.capture_ns()
         self.publisher.publish(self.make_imu(self.next_sequence(self.publisher), stamp_ns))

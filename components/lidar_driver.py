@@ -164,5 +164,5 @@ class LidarDriver(SensorDriver):
         return msg
 
     def publish_frame(self) -> None:
-        stamp_ns = self.get_clock().now().nanoseconds
+        stamp_ns = self.capture_ns()
         self.publisher.publish(self.make_cloud(self.next_sequence(self.publisher), stamp_ns))

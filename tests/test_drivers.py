@@ -7,7 +7,7 @@ what arrived.
 from __future__ import annotations
 
 import array
-
+import bisect
 import math
 import statistics
 import time
@@ -22,9 +22,11 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, Imu, PointCloud2, PointField
+from std_msgs.msg import Header
 
-from components import sensor_driver
+from components import imu_driver, sensor_driver
 from components.camera_driver import CameraDriver, camera_info_topic_for
 from components.imu_driver import ImuDriver
 from components.lidar_driver import POINT_DTYPE, LidarDriver
@@ -107,7 +109,7 @@ def topic_of(driver: Node, topic: str) -> str:
     return driver.resolve_topic_name(topic)
 
 
-def stamp_ns(msg: Any) -> int:
+def stamp_ns_of(msg: Any) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
@@ -119,7 +121,7 @@ def check_sequence_and_stamps(msgs: list[Any], seq_of: Callable[[Any], int]) -> 
     assert len(msgs) >= 5, f"only {len(msgs)} messages received"
     seqs = [seq_of(m) for m in msgs]
     assert seqs == list(range(len(seqs))), f"sequence not 0, 1, 2 ... without gaps: {seqs[:20]} ..."
-    stamps = [stamp_ns(m) for m in msgs]
+    stamps = [stamp_ns_of(m) for m in msgs]
     assert all(b > a for a, b in zip(stamps, stamps[1:])), "header.stamp not strictly increasing"
     # The rate itself is checked deterministically with a fake clock (test_rate_loop_catches_up_and_caps_bursts);
     # wall-clock rates of a shared CI machine are not asserted.
@@ -150,7 +152,7 @@ def test_camera_publishes_images_and_camera_info(ros):
 
     info_msgs = [m for _, m in infos]
     assert len(info_msgs) == len(msgs)
-    assert [stamp_ns(m) for m in info_msgs] == [stamp_ns(m) for m in msgs]
+    assert [stamp_ns_of(m) for m in info_msgs] == [stamp_ns_of(m) for m in msgs]
     info = info_msgs[0]
     assert (info.width, info.height, info.header.frame_id) == (320, 240, "cam_optical")
     assert info.distortion_model == "plumb_bob" and len(info.d) == 5
@@ -252,6 +254,51 @@ def test_imu_publishes_at_1khz(ros):
     assert msgs[0].linear_acceleration_covariance[0] > 0 and msgs[0].angular_velocity_covariance[0] > 0
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_imu_assembled_messages_equal_constructed_ones(ros, seed):
+    """make_imu's slot assembly builds exactly what the public constructors build (any stamp, sequence, frame)."""
+    rng = np.random.default_rng(seed)
+    print(f"seed {seed}")
+    imu = ros.driver(ImuDriver, "imu", frame_id="f" * int(rng.integers(1, 9)))
+    assert imu.assembly_matches() and imu.make_imu.__func__ is ImuDriver.make_imu, "fell back to the constructors"
+    for _ in range(200):
+        sequence = int(rng.integers(0, 2 ** 53))
+        stamp_ns = int(rng.integers(0, 2 ** 31 * 10 ** 9))  # Time.sec is an int32
+        assembled, constructed = imu.make_imu(sequence, stamp_ns), imu.construct_imu(sequence, stamp_ns)
+        assert assembled == constructed
+        assert serialize_message(assembled) == serialize_message(constructed)
+        assert imu_driver._layout(assembled) == imu_driver._layout(constructed)
+        assert assembled.orientation_covariance[1] == sequence and stamp_ns == stamp_ns_of(assembled)
+
+
+def test_imu_falls_back_to_the_constructors_when_the_assembly_differs(ros, monkeypatch):
+    """A message class laid out otherwise (a future rosidl) is noticed at load: the driver warns and builds with
+    the constructors."""
+    def assemble_without_orientation(self: ImuDriver, sequence: int, stamp_ns: int) -> Imu:
+        msg = object.__new__(Imu)
+        msg._header = Header(stamp=sensor_driver.stamp_from_ns(stamp_ns), frame_id=self.frame_id)
+        return msg
+    monkeypatch.setattr(ImuDriver, "make_imu", assemble_without_orientation)
+    warnings: list[str] = []
+    monkeypatch.setattr(ImuDriver, "get_logger", lambda self: types.SimpleNamespace(warn=warnings.append))
+    imu = ros.driver(ImuDriver, "imu", rate=100.0)
+    assert len(warnings) == 1 and "building each message with the constructors" in warnings[0]
+    assert imu.make_imu == imu.construct_imu
+    received = ros.listen(Imu, topic_of(imu, "~/imu"))
+    ros.spin(imu, seconds=0.5)
+    check_sequence_and_stamps([m for _, m in received], lambda m: int(m.orientation_covariance[1]))
+
+
+def test_capture_time_follows_sim_time(ros):
+    imu = ros.driver(ImuDriver, "imu")
+    assert abs(imu.capture_ns() - time.time_ns()) < 50_000_000  # the system clock without sim time
+    clock = imu.get_clock()
+    clock._set_ros_time_is_active(True)
+    clock.set_ros_time_override(rclpy.time.Time(seconds=42, clock_type=clock.clock_type))
+    assert imu.capture_ns() == 42_000_000_000
+    assert stamp_ns_of(imu.make_imu(0, imu.capture_ns())) == 42_000_000_000
+
+
 def test_imu_default_rate(ros):
     imu = ros.driver(ImuDriver, "imu")
     received = ros.listen(Imu, topic_of(imu, "~/imu"))
@@ -344,9 +391,43 @@ def test_reliable_qos_in_graph(ros):
 
 
 # ---------------------------------------------------------------------------------------------- rate loop
+def test_drivers_of_one_rate_tick_together(ros):
+    """Drivers created a third of a period apart publish at the same instants all the same: their ticks lie on
+    one grid (sensor_driver "Shared tick grid"), so one executor wake-up serves all of them."""
+    period = 0.06
+    imus = []
+    for index in range(3):
+        imus.append(ros.driver(ImuDriver, f"imu{index}", rate=1 / period))
+        time.sleep(period / 3)
+    received = [ros.listen(Imu, topic_of(imu, "~/imu")) for imu in imus]
+    ros.spin(*imus, seconds=1.5)
+
+    # Each driver's first frame comes from its first tick, before its timer is on the grid.
+    stamps = [[stamp_ns_of(m) for _, m in messages[1:]] for messages in received]
+    assert all(len(s) >= 10 for s in stamps), [len(s) for s in stamps]
+    reference = stamps[0]
+    for index, own in enumerate(stamps[1:], 1):
+        distances = []
+        for stamp in own:  # to the nearest frame of the first driver
+            at = bisect.bisect_left(reference, stamp)
+            distances.append(min(abs(stamp - reference[i]) for i in (at - 1, at) if 0 <= i < len(reference)))
+        # On their own phases they would be 20 ms apart; one tick of three drivers takes well under 1 ms.
+        median = statistics.median(distances)
+        assert median < 5e6, f"imu{index} publishes {median / 1e6:.1f} ms away from imu0"
+
+
 class FakeClock:
+    """The steady clock of the drivers' rate loop, advanced by hand (capture times stay real)."""
+
     def __init__(self) -> None:
         self.ns = 1_000_000_000_000
+
+    @classmethod
+    def install(cls, monkeypatch: pytest.MonkeyPatch) -> FakeClock:
+        clock = cls()
+        monkeypatch.setattr(sensor_driver, "time",
+                            types.SimpleNamespace(monotonic_ns=clock.monotonic_ns, time_ns=time.time_ns))
+        return clock
 
     def monotonic_ns(self) -> int:
         return self.ns
@@ -356,8 +437,7 @@ class FakeClock:
 
 
 def test_rate_loop_catches_up_and_caps_bursts(ros, monkeypatch):
-    clock = FakeClock()
-    monkeypatch.setattr(sensor_driver, "time", types.SimpleNamespace(monotonic_ns=clock.monotonic_ns))
+    clock = FakeClock.install(monkeypatch)
     imu = ros.driver(ImuDriver, "imu", rate=100.0)
     sequences: list[int] = []
     real_make = imu.make_imu
@@ -387,8 +467,7 @@ def test_rate_loop_catches_up_and_caps_bursts(ros, monkeypatch):
 
 
 def test_skipped_frames_are_warned_about_every_five_seconds_with_every_one_counted(ros, monkeypatch):
-    clock = FakeClock()
-    monkeypatch.setattr(sensor_driver, "time", types.SimpleNamespace(monotonic_ns=clock.monotonic_ns))
+    clock = FakeClock.install(monkeypatch)
     imu = ros.driver(ImuDriver, "imu", rate=100.0)
     warnings: list[str] = []
     monkeypatch.setattr(imu, "get_logger", lambda: types.SimpleNamespace(warn=warnings.append))
@@ -404,8 +483,7 @@ def test_skipped_frames_are_warned_about_every_five_seconds_with_every_one_count
 
 def test_rate_change_restarts_the_schedule_without_a_burst(ros, monkeypatch):
     """``rate`` set at run time: the next frame is due one new period after the change, never a catch-up burst."""
-    clock = FakeClock()
-    monkeypatch.setattr(sensor_driver, "time", types.SimpleNamespace(monotonic_ns=clock.monotonic_ns))
+    clock = FakeClock.install(monkeypatch)
     imu = ros.driver(ImuDriver, "imu", rate=1.0)
     imu._on_tick()  # frame 0 of the 1 Hz schedule
     clock.advance(0.9)  # almost a second later, 90 frames of a 100 Hz schedule would be overdue
