@@ -5,6 +5,8 @@ arrays), sized against rclpy's own serialization.
 """
 from __future__ import annotations
 
+import threading
+import time
 from typing import Any, Callable
 
 import pytest
@@ -54,3 +56,44 @@ def test_broken_message_is_sized_without_raising() -> None:
     scan = LaserScan()
     scan.angle_min = "not a float"  # field checks are off by default in Jazzy: this only fails at serialization
     assert payload_size(scan) > 0
+
+
+def _message(size: int = 100) -> CachedMessage:
+    return CachedMessage("/t", b"x" * size, size, 0, 0)
+
+
+def _push_later(cache: MessageCache, delays: list[float], size: int = 100) -> threading.Thread:
+    def run() -> None:
+        for delay in delays:
+            time.sleep(delay)
+            cache.push(_message(size))
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread
+
+
+def test_take_all_lets_a_batch_gather() -> None:
+    """The writer is woken once for messages that arrive within ``gather`` of its previous take, not per message."""
+    cache = MessageCache(max_bytes=1 << 20)
+    assert cache.take_all(timeout=0.0) == []  # the previous take
+    pusher = _push_later(cache, [0.01] * 5)
+    batch = cache.take_all(timeout=5.0, gather=1.0)
+    pusher.join()
+    assert len(batch) == 5
+
+
+def test_take_all_stops_gathering_at_a_quarter_of_the_cache_or_a_close() -> None:
+    """Gathering never risks a drop that taking at once would avoid, and never delays the final flush."""
+    cache = MessageCache(max_bytes=4000)
+    cache.take_all(timeout=0.0)
+    start = time.monotonic()
+    pusher = _push_later(cache, [0.01, 0.01], size=600)  # 1200 bytes: past a quarter of 4000
+    batch = cache.take_all(timeout=60.0, gather=60.0)
+    pusher.join()
+    assert len(batch) == 2 and time.monotonic() - start < 30.0
+    closer = threading.Thread(target=lambda: (time.sleep(0.05), cache.close()))
+    cache.push(_message())
+    closer.start()
+    batch = cache.take_all(timeout=60.0, gather=60.0)
+    closer.join()
+    assert len(batch) == 1 and cache.closed and time.monotonic() - start < 30.0

@@ -10,6 +10,7 @@ written until a snapshot is requested.
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -85,6 +86,8 @@ class MessageCache:
         self.refused: Counter[str] = Counter()  # refused because the cache was closed
         self.evicted: Counter[str] = Counter()
         self._condition = threading.Condition()
+        self._wake_bytes = 1  # push wakes the writer once this many bytes are queued
+        self._last_take = 0.0  # time.monotonic() of the latest take_all
 
     @property
     def bytes(self) -> int:
@@ -112,15 +115,30 @@ class MessageCache:
                 return False
             self._queue.append(message)
             self._bytes += message.size
-            if not self._ring:
+            if not self._ring and self._bytes >= self._wake_bytes:
                 self._condition.notify()
             return True
 
-    def take_all(self, timeout: float | None = None) -> list[CachedMessage]:
-        """Everything queued, waiting up to ``timeout`` for something to arrive (ring caches never wake)."""
+    def take_all(self, timeout: float | None = None, gather: float = 0.0) -> list[CachedMessage]:
+        """Everything queued, waiting up to ``timeout`` for something to arrive (ring caches never wake).
+
+        With ``gather`` (seconds), once something is queued the call waits until ``gather`` has passed since
+        the previous take, so that more messages join the batch; a quarter of ``max_bytes`` queued or a close
+        ends that wait at once.
+        """
         with self._condition:
             if not self._queue and not self._closed:
                 self._condition.wait(timeout)
+            if gather and self._queue:
+                until = self._last_take + gather
+                self._wake_bytes = max(1, self.max_bytes // 4)
+                while not self._closed and self._bytes < self._wake_bytes:
+                    remaining = until - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    self._condition.wait(remaining)
+                self._wake_bytes = 1
+            self._last_take = time.monotonic()
             return self._drain()
 
     def drain(self) -> list[CachedMessage]:

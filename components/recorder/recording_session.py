@@ -43,6 +43,8 @@ QueueDrops = Callable[[], dict[str, int]]
 LATENCY_SAMPLES = 20_000
 #: Longest the writer thread sleeps without new messages (it then checks the flush and sync deadlines).
 WAKE_PERIOD = 0.2
+#: Longest the writer lets messages gather into one batch (MessageCache.take_all), at most half a wake period.
+BATCH_GATHER = 0.005
 #: How often the writer thread checks the free disk space and the bag file (statvfs + stat: microseconds).
 DISK_CHECK_PERIOD = 0.05
 
@@ -223,7 +225,7 @@ class RecordingSession:
     def _next_batch(self) -> list[CachedMessage]:
         wake = self._wake_ns / 1e9
         if not self._snapshot_mode:
-            return self.cache.take_all(timeout=wake)
+            return self.cache.take_all(timeout=wake, gather=min(BATCH_GATHER, wake / 2))
         self._snapshot_requested.wait(wake)
         self._snapshot_requested.clear()
         return self._snapshot if self._snapshot is not None else []  # pending until written
