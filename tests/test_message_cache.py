@@ -13,7 +13,7 @@ import pytest
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from nav_msgs.msg import Path
 from rclpy.serialization import serialize_message
-from sensor_msgs.msg import Image, LaserScan
+from sensor_msgs.msg import Image, Imu, LaserScan
 from visualization_msgs.msg import Marker, MarkerArray
 
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
@@ -97,3 +97,10 @@ def test_take_all_stops_gathering_at_a_quarter_of_the_cache_or_a_close() -> None
     batch = cache.take_all(timeout=60.0, gather=60.0)
     closer.join()
     assert len(batch) == 1 and cache.closed and time.monotonic() - start < 30.0
+
+
+@pytest.mark.parametrize("frame_id", ["", "i", "imu", "imu_link", "imu_link_0", "é" * 5, "x" * 31])
+def test_imu_is_sized_exactly(frame_id: str) -> None:
+    imu = Imu()
+    imu.header.frame_id = frame_id
+    assert payload_size(imu) == len(serialize_message(imu))

@@ -45,6 +45,8 @@ LATENCY_SAMPLES = 20_000
 WAKE_PERIOD = 0.2
 #: Longest the writer lets messages gather into one batch (MessageCache.take_all), at most half a wake period.
 BATCH_GATHER = 0.005
+#: The writer frees the cache room of small messages it wrote this many bytes at a time (and after each batch).
+RELEASE_STEP = 1 << 20
 #: How often the writer thread checks the free disk space and the bag file (statvfs + stat: microseconds).
 DISK_CHECK_PERIOD = 0.05
 
@@ -91,6 +93,7 @@ class RecordingSession:
             self.writer.discard()
             raise
         self._next_disk_check = 0.0
+        self._written_unreleased = 0  # bytes of messages written but still counted in the cache
         self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
         # The live counts are the session's own, not the writer's: reading the writer's would wait on its lock,
         # which a write to a hung disk holds forever (and ~/get_stats, health and unload must still answer).
@@ -187,6 +190,7 @@ class RecordingSession:
                 for message in batch:
                     self._write(message)
                     written += 1
+                self._release_written()
                 self._bytes_written = self.writer.bytes_written
                 self._check_storage()
                 self._keep_loss_bounds()
@@ -196,6 +200,7 @@ class RecordingSession:
                     return
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
+            self._release_written()
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
 
@@ -251,14 +256,21 @@ class RecordingSession:
         self._unsynced = True
         self.handed[message.topic] += 1
         self._latencies.append(time.time_ns() - message.log_time_ns)
-        self.cache.release(message)
+        self._written_unreleased += message.size
+        if self._written_unreleased >= RELEASE_STEP:
+            self._release_written()
+
+    def _release_written(self) -> None:
+        """Free the room of the messages written so far (a lock shared with the intake: not per small one)."""
+        self.cache.release(self._written_unreleased)
+        self._written_unreleased = 0
 
     def _drop_unserializable(self, message: CachedMessage, exc: Exception) -> None:
         reason = f"{type(exc).__name__}: {exc}"
         with self._stats_lock:
             self._writer_drops[message.topic][SERIALIZE_FAILED] += 1
             first = self.serialize_errors.setdefault(message.topic, reason) is reason
-        self.cache.release(message)
+        self.cache.release(message.size)
         if first:  # once per topic: a publisher that keeps sending broken messages must not flood the log
             self._logger.error(f"Dropped a message on {message.topic} that cannot be serialized ({reason}); "
                                "recording goes on, further failures on this topic are counted in ~/get_stats")
@@ -268,8 +280,7 @@ class RecordingSession:
         with self._stats_lock:
             for message in messages:
                 self._writer_drops[message.topic][reason] += 1
-        for message in messages:
-            self.cache.release(message)
+        self.cache.release(sum(message.size for message in messages))
 
     def _fail(self, exc: BaseException | str) -> None:
         """End the session: keep and log the first error; the cache refuses everything from now on."""
@@ -306,8 +317,7 @@ class RecordingSession:
                 return
             self._finished = True
         if self._snapshot_mode:
-            for message in self.cache.drain():  # a ring that was never snapshotted is simply discarded
-                self.cache.release(message)
+            self.cache.drain()  # a ring that was never snapshotted is simply discarded (a ring frees on take)
         self.cache.close()
         self._thread.join(timeout)
         self._discard(self.cache.drain(), STORAGE_FAILED)  # left behind by a failed or stuck writer
