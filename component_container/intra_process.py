@@ -137,7 +137,9 @@ class IntraProcessSubscription:
         self._queued_bytes = 0
         self._closed = False
         self._inline_running = 0
-        self._lock = threading.Condition()
+        # The hot paths take the bare lock (a C-level context manager); close() waits on the condition over it.
+        self._mutex = threading.Lock()
+        self._lock = threading.Condition(self._mutex)
 
     def offer(self, message: Any, stamps: tuple[int, int]) -> None:
         """Queue a message (keep_last: dropping the oldest; keep_all: refusing it past the limits) and wake
@@ -145,7 +147,7 @@ class IntraProcessSubscription:
         if self.inline is not None:
             self._offer_inline(message, stamps)
             return
-        with self._lock:
+        with self._mutex:
             if self._closed:
                 return
             self.received += 1
@@ -161,7 +163,7 @@ class IntraProcessSubscription:
             self.wake()  # under the lock: close() cannot destroy the wake-up in between
 
     def _offer_inline(self, message: Any, stamps: tuple[int, int]) -> None:
-        with self._lock:
+        with self._mutex:
             if self._closed:
                 return
             self.received += 1
@@ -173,13 +175,14 @@ class IntraProcessSubscription:
                 raise
             self.on_error(exc)
         finally:
-            with self._lock:
+            with self._mutex:
                 self._inline_running -= 1
-                self._lock.notify_all()
+                if self._closed:  # close() may be waiting for this callback
+                    self._lock.notify_all()
 
     def take(self) -> tuple[Any, tuple[int, int]] | None:
         """The oldest queued message with its (publish, receive) nanosecond stamps, or None."""
-        with self._lock:
+        with self._mutex:
             if not self.queue:
                 return None
             item = self.queue.popleft()
@@ -203,12 +206,17 @@ def rough_size(message: Any) -> int:
 
 @dataclass(eq=False)
 class IntraProcessPublication:
-    """A local publisher's registration: its QoS, its DDS write log and, if transient_local, its history."""
+    """A local publisher's registration: its QoS, its DDS write log and, if transient_local, its history.
+
+    ``targets`` caches its QoS-compatible subscriptions as of registry ``generation`` (deliver runs per message).
+    """
 
     topic: str
     qos: QoSProfile
     log: LocalPublicationLog
     history: deque | None
+    targets: list[IntraProcessSubscription] = field(default_factory=list)
+    generation: int = -1
 
 
 class IntraProcessManager:
@@ -224,6 +232,7 @@ class IntraProcessManager:
         self._lock = threading.Lock()
         self._subscriptions: dict[str, list[IntraProcessSubscription]] = {}
         self._publications: dict[str, list[IntraProcessPublication]] = {}
+        self._generation = 0  # changes with every subscription added or removed
 
     def add_publication(self, topic: str, qos: QoSProfile) -> IntraProcessPublication:
         transient = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -237,6 +246,7 @@ class IntraProcessManager:
         """Register a subscription; transient_local publishers hand it their stored messages at once."""
         with self._lock:
             self._subscriptions.setdefault(subscription.topic, []).append(subscription)
+            self._generation += 1
             late = [(message, stamps) for p in self._publications.get(subscription.topic, [])
                     if p.history is not None and qos_compatible(p.qos, subscription.qos)
                     for message, stamps in p.history]
@@ -251,13 +261,22 @@ class IntraProcessManager:
         """Unregister and close a subscription: once this returns, no publisher calls into it any more."""
         with self._lock:
             _remove(self._subscriptions, subscription.topic, subscription)
+            self._generation += 1
         subscription.close()
 
     def subscriptions_for(self, publication: IntraProcessPublication) -> list[IntraProcessSubscription]:
         """The in-process subscriptions that may receive from this publication (QoS-compatible)."""
-        with self._lock:
-            candidates = list(self._subscriptions.get(publication.topic, ()))
-        return [s for s in candidates if qos_compatible(publication.qos, s.qos)]
+        return list(self._targets(publication))
+
+    def _targets(self, publication: IntraProcessPublication) -> list[IntraProcessSubscription]:
+        """``publication.targets``, recomputed once the registry changed. A subscription removed meanwhile
+        may still be offered a message: closed first, it ignores it."""
+        if publication.generation != self._generation:
+            with self._lock:
+                publication.targets = [s for s in self._subscriptions.get(publication.topic, ())
+                                       if qos_compatible(publication.qos, s.qos)]
+                publication.generation = self._generation
+        return publication.targets
 
     def deliver(self, publication: IntraProcessPublication, message: Any) -> int:
         """Hand ``message`` to every compatible in-process subscription; returns how many got it."""
@@ -265,7 +284,7 @@ class IntraProcessManager:
         stamps = (now, now)
         if publication.history is not None:
             publication.history.append((message, stamps))
-        targets = self.subscriptions_for(publication)
+        targets = self._targets(publication)
         for subscription in targets:
             subscription.offer(message, stamps)
         return len(targets)

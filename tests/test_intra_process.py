@@ -9,6 +9,7 @@ import subprocess
 import threading
 import sys
 import time
+import types
 from typing import Any, Callable, Iterator
 
 import pytest
@@ -19,6 +20,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from component_container import component_node
 from component_container.component_executors import EXECUTOR_KINDS, make_component_executor
 from component_container.component_node import REUSE_WATCH, ComponentNode, IntraProcessPublisher
 from component_container.intra_process import IntraProcessManager
@@ -299,6 +301,41 @@ def test_inline_subscription_runs_in_the_publishers_thread_without_executor(cont
     assert len(got) == 1 and got[0][0] == msg and got[0][2] == threading.get_ident()
     assert got[0][1]["received_timestamp"] >= got[0][1]["source_timestamp"] > 0
     assert subscription.received_count == 1 and subscription.dropped_count == 0
+
+
+def test_subscriptions_joining_and_leaving_between_publishes_are_served_exactly(contexts, ipm):
+    """The publisher's cached list of in-process targets follows every subscription created or destroyed."""
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    sub_node = ComponentNode("sink", context=inside, intra_process_manager=ipm)
+    publisher = pub_node.create_publisher(String, "joiners", 10)
+    first: list[str] = []
+    second: list[str] = []
+    a = sub_node.create_subscription(String, "joiners", lambda m: first.append(m.data), 10,
+                                     intra_process_inline=True)
+    publisher.publish(String(data="1"))
+    sub_node.create_subscription(String, "joiners", lambda m: second.append(m.data), 10, intra_process_inline=True)
+    publisher.publish(String(data="2"))
+    sub_node.destroy_subscription(a)
+    publisher.publish(String(data="3"))
+    assert first == ["1", "2"] and second == ["2", "3"]
+    assert publisher.local_subscription_count() == 1
+
+
+def test_the_dds_reader_count_is_read_at_most_every_few_milliseconds(contexts, ipm, monkeypatch):
+    """A publish reads the DDS reader count (6 us among the S3 drivers) only once DDS_COUNT_TTL_NS has passed."""
+    inside, _ = contexts
+    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    publisher = pub_node.create_publisher(String, "counted", 10)
+    now = [10 ** 12]
+    monkeypatch.setattr(component_node, "time", types.SimpleNamespace(monotonic_ns=lambda: now[0]))
+    reads: list[int] = []
+    real_count = publisher.publisher.get_subscription_count
+    monkeypatch.setattr(publisher.publisher, "get_subscription_count", lambda: reads.append(now[0]) or real_count())
+    for _ in range(20):
+        publisher.publish(String(data="x"))
+        now[0] += 1_000_000  # 1 ms
+    assert len(reads) == 4 and all(b - a == component_node.DDS_COUNT_TTL_NS for a, b in zip(reads, reads[1:]))
 
 
 # --- supervision: races, bounds, reuse ----------------------------------------------------------------------

@@ -3,9 +3,9 @@
 The intake side (the executor, or a publisher's thread for intra-process messages) must never wait on the
 disk: it only appends to this cache. The cache is bounded by ``max_cache_size`` bytes, counting both queued
 messages and those the writer holds until it has written them (so the bound is the recorder's whole buffer,
-not one half of a double buffer; the writer frees small messages' room a mebibyte at a time); a message that does not fit is dropped and counted for its topic (never
-silently lost). In snapshot mode the cache is a ring instead: the oldest messages make room, and nothing is
-written until a snapshot is requested.
+not one half of a double buffer; the writer frees small messages' room a mebibyte at a time); a message that
+does not fit is dropped and counted for its topic (never silently lost). In snapshot mode the cache is a ring
+instead: the oldest messages make room, and nothing is written until a snapshot is requested.
 """
 from __future__ import annotations
 
@@ -92,7 +92,9 @@ class MessageCache:
         self.dropped: Counter[str] = Counter()  # refused because the cache was full
         self.refused: Counter[str] = Counter()  # refused because the cache was closed
         self.evicted: Counter[str] = Counter()
-        self._condition = threading.Condition()
+        # The hot paths (push, release) take the bare lock, a C-level context manager; waits use the condition.
+        self._mutex = threading.Lock()
+        self._condition = threading.Condition(self._mutex)
         self._wake_bytes = 1  # push wakes the writer once this many bytes are queued
         self._last_take = 0.0  # time.monotonic() of the latest take_all
 
@@ -102,12 +104,12 @@ class MessageCache:
 
     def counts(self) -> tuple[Counter[str], Counter[str], Counter[str]]:
         """Copies of (received, dropped, refused), consistent with each other, for another thread to read."""
-        with self._condition:
+        with self._mutex:
             return Counter(self.received), Counter(self.dropped), Counter(self.refused)
 
     def push(self, message: CachedMessage) -> bool:
         """Queue a message; False (and counted) if it was dropped because the cache is full or closed."""
-        with self._condition:
+        with self._mutex:
             self.received[message.topic] += 1
             if self._closed:
                 self.refused[message.topic] += 1
@@ -162,7 +164,7 @@ class MessageCache:
 
     def release(self, size: int) -> None:
         """The writer is done with messages of ``size`` bytes: they stop counting against the bound."""
-        with self._condition:
+        with self._mutex:
             if not self._ring:  # a ring's bytes were handed over with the snapshot
                 self._bytes -= size
 
