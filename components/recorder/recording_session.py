@@ -44,7 +44,9 @@ LATENCY_SAMPLES = 20_000
 #: Longest the writer thread sleeps without new messages (it then checks the flush and sync deadlines).
 WAKE_PERIOD = 0.2
 #: Longest the writer lets messages gather into one batch (MessageCache.take_all), at most half a wake period.
-BATCH_GATHER = 0.005
+#: Every batch hands the GIL between the executor and the writer and back; in S3 (10 000 Imu a second)
+#: 20 ms instead of 5 took the process from 84 to 74 us of CPU per message, at 13 ms median write latency.
+BATCH_GATHER = 0.02
 #: The writer frees the cache room of small messages it wrote this many bytes at a time (and after each batch).
 RELEASE_STEP = 1 << 20
 #: How often the writer thread checks the free disk space and the bag file (statvfs + stat: microseconds).
