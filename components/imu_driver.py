@@ -98,8 +98,8 @@ class ImuDriver(SensorDriver):
 
         Ten drivers at 1 kHz make building the messages most of the drivers' cost: ``Imu()`` runs the
         generated constructors and property setters of six messages and three arrays (15 of the 26 us one
-        publish takes). This assembles the same objects through the generated classes' slots instead, in
-        3 us. :meth:`assembly_matches` checks at load that the result is the message :meth:`construct_imu`
+        publish took). This assembles the same objects through the generated classes' slots instead: 5.6 us
+        for the whole method instead of 14. :meth:`assembly_matches` checks at load that the result is the message :meth:`construct_imu`
         builds with the public constructors; where it is not, the driver uses that one.
         """
         gx, gy, gz, ax, ay, az = self._noise[(sequence * NOISE_STRIDE) % NOISE_POOL]

@@ -29,7 +29,7 @@ Ticks fall on multiples of the timer period on the steady clock: every driver of
 ticks at the same instants, so one executor wake-up serves them all. Each wake-up is expensive on the
 machines this runs on (virtual CPUs: a thread that sleeps and wakes finds its caches cold; publishing one
 Imu costs 26 us in a tight loop and 60 us or more right after a wake-up), and ten IMUs at 1 kHz on their own
-phases woke the executor 5000 times a second: on one grid their drivers used about a third less CPU.
+phases woke the executor 5000 times a second: on one grid their drivers used about a quarter less CPU.
 The first tick of a schedule publishes its first frame and moves the timer onto the grid (the next tick
 comes half a period to one and a half periods later); frames are then due half a period before each tick.
 All drivers share one steady :class:`~rclpy.clock.Clock`, because rclpy's EventsExecutor manages timers per

@@ -132,8 +132,9 @@ class MessageCache:
         """Everything queued, waiting up to ``timeout`` for something to arrive (ring caches never wake).
 
         With ``gather`` (seconds), once something is queued the call waits until ``gather`` has passed since
-        the previous take, so that more messages join the batch; a quarter of ``max_bytes`` queued or a close
-        ends that wait at once.
+        the previous take, so that more messages join the batch: the writer is then woken per batch, not per
+        message (see recording_session.BATCH_GATHER for what that saves). A quarter of ``max_bytes`` queued or
+        a close ends that wait at once, so gathering never risks a drop that taking at once would avoid.
         """
         with self._condition:
             if not self._queue and not self._closed:
