@@ -30,6 +30,11 @@ targets exist only with ``--repeat``: "ipc lossless in 5 of 5 consecutive runs" 
 one of the N runs must be lossless), "ipc total CPU per GB <= 0.33 of dds in every run" (evaluated when dds
 ran) and "split lossless, p99 <= 2x unsplit in every run" (when split ran).
 
+``--baseline REV`` (S3) records S3 ipc once more with the code of git revision REV, checked out into a
+temporary worktree that the container imports first (``PYTHONPATH``), with the single executor, right after the
+current code's runs: the target "drivers + recorder CPU per message <= 1/2 of the baseline" compares the two
+containers' whole CPU in the window per recorded message (issue 12's reference is 193a15f).
+
 Every run (recorder modes, drivers, each ceiling and direct-write run) starts ``--page-pause`` s after the
 benchmark last deleted a bag or file: on this kind of VM the kernel's cost of a buffered write depends
 several-fold on whether its page-cache pages were freed moments ago (cheap) or are fresh (1.5-2 CPU s/GB, what
@@ -373,7 +378,8 @@ class Container:
     """``python -m component_container`` as a subprocess, output to a log file, stopped by its pid."""
 
     def __init__(self, label: str, node_name: str, load_files: list[Path], log_path: Path, executor: str,
-                 threads: int, cwd: Path) -> None:
+                 threads: int, cwd: Path, code: Optional[Path] = None) -> None:
+        """``code``: a checkout whose packages the container imports instead of this one's (--baseline)."""
         self.label = label
         self.node_name = node_name
         self.log_path = log_path
@@ -384,8 +390,10 @@ class Container:
         if executor == "multi":
             command += ["-p", f"thread_num:={threads}"]
         self._log = open(log_path, "w")
-        self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(cwd),
-                                        env=dict(os.environ))
+        env = dict(os.environ)
+        if code is not None:
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(code), env.get("PYTHONPATH"))))
+        self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(cwd), env=env)
         self.pid = self.process.pid
 
     def alive(self) -> bool:
@@ -617,6 +625,9 @@ class Bench:
     log: Callable[[str], None] = print
     #: when the benchmark last deleted a big file (see wait_for_fresh_pages)
     last_free: float = 0.0
+    #: the checkout the recorder containers run (None: this one) and their executor (None: --executor)
+    code: Optional[Path] = None
+    executor: Optional[str] = None
 
     def next_tag(self, scenario: Scenario, mode: str) -> str:
         self.counter += 1
@@ -661,7 +672,7 @@ def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, 
         if in_process:
             files = [bench.write_yaml(f"{tag}_drivers", drivers), bench.write_yaml(f"{tag}_recorder", [recorder])]
             containers.append(Container(mode, f"bench_{tag}", files, bench.workdir / f"{tag}.log",
-                                        args.executor, args.threads, bench.workdir))
+                                        bench.executor or args.executor, args.threads, bench.workdir, bench.code))
             recorder_proc = containers[0]
         else:
             containers.append(Container("drivers", f"bench_{tag}_drivers",
@@ -812,6 +823,25 @@ def run_drivers_only(bench: Bench, scenario: Scenario) -> dict[str, Any]:
             "background_cpu_s": user_other, "kernel_cpu_s": kernel_other,
             "thread_cpu_s": {"drivers": thread_groups(threads0, threads1, set())},
             "source_skips_logged": source_skips(container.log_text())}
+
+
+def run_baseline(bench: Bench, scenario: Scenario) -> dict[str, Any]:
+    """S3 ipc once more, with the code of ``--baseline`` (checked out into a temporary worktree) and the single
+    executor: the reference the issue-12 target compares the current code's CPU per message with."""
+    repo = Path(__file__).resolve().parent.parent
+    checkout = bench.workdir / "baseline_code"
+    subprocess.run(["git", "worktree", "add", "--detach", "--force", str(checkout), bench.args.baseline],
+                   cwd=repo, check=True, capture_output=True, timeout=120)
+    bench.code, bench.executor = checkout, "single"
+    try:
+        result = run_recorder_mode(bench, scenario, "ipc")
+    finally:
+        bench.code, bench.executor = None, None
+        subprocess.run(["git", "worktree", "remove", "--force", str(checkout)], cwd=repo, capture_output=True,
+                       timeout=120)
+    result["mode"] = "baseline"
+    result["code"] = bench.args.baseline
+    return result
 
 
 def run_ceiling(bench: Bench, scenario: Scenario) -> dict[str, Any]:
@@ -979,7 +1009,7 @@ def topic_table(results: dict[str, Any]) -> str:
 
 def mode_table(results: dict[str, Any]) -> str:
     rows = []
-    for mode in (*RECORDER_MODES, "drivers", "ceiling"):
+    for mode in (*RECORDER_MODES, "drivers", "ceiling", "baseline"):
         e = results.get(mode)
         if not e:
             continue
@@ -1201,8 +1231,24 @@ def print_s3(s3: dict[str, Any], scenario: Scenario) -> None:
                   + (f" (ipc total - drivers only); writer thread alone {fmt(e.get('writer_thread_us_per_msg'), '.1f')} us"
                      if mode == "ipc" else f"; writer thread {fmt(e.get('writer_thread_us_per_msg'), '.1f')} us")
                   + f" ({e['recorded']} messages, lost {e['lost']})")
+    baseline, ipc = s3.get("baseline"), s3.get("ipc")
+    if good(baseline) and good(ipc):
+        print(f"  total CPU per recorded message: ipc {total_us_per_msg(ipc):.1f} us, the code at "
+              f"{baseline['code']} (single executor) {total_us_per_msg(baseline):.1f} us "
+              f"({baseline['recorded']} messages, drivers at >= {100 * baseline['min_pub_ratio']:.0f} % of "
+              f"nominal): {total_us_per_msg(baseline) / total_us_per_msg(ipc):.2f}x lower")
     for line in notes(s3):
         print("  * " + line)
+
+
+def good(entry: Optional[dict[str, Any]]) -> bool:
+    """A mode that ran and produced results."""
+    return entry is not None and "error" not in entry
+
+
+def total_us_per_msg(entry: dict[str, Any]) -> float:
+    """Drivers and recorder: the container's whole CPU in the window per recorded message."""
+    return 1e6 * entry["total_cpu_s"] / max(1, entry["recorded"])
 
 
 def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -1214,7 +1260,6 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
 
     s1 = report.get("S1") or {}
     ipc, dds = s1.get("ipc"), s1.get("dds")
-    good = lambda e: e is not None and "error" not in e  # noqa: E731
     default_cfg = args.storage == "mcap" and args.cache_mb * 1024 * 1024 == DEFAULT_CACHE
     if good(ipc):
         ok = ipc["lost"] == 0 and ipc["min_pub_ratio"] >= PUBLISH_RATE_OK
@@ -1266,6 +1311,15 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
             f"{per_msg:.1f} us/msg ({how})")
     else:
         add("S3 ipc zero loss and recorder CPU < 30 us/msg", None, "not measured")
+    baseline = s3.get("baseline")
+    name = "S3 ipc zero loss, drivers + recorder CPU per message <= 1/2 of --baseline"
+    if good(e3) and good(baseline):
+        ratio = total_us_per_msg(e3) / total_us_per_msg(baseline)
+        add(name, e3["lost"] == 0 and e3["min_pub_ratio"] >= PUBLISH_RATE_OK and ratio <= 0.5,
+            f"{total_us_per_msg(e3):.1f} vs {total_us_per_msg(baseline):.1f} us/msg at {baseline['code']} "
+            f"(ratio {ratio:.2f}); lost {e3['lost']} of {e3['published']}")
+    elif args.baseline:
+        add(name, None, "not measured")
     repeat = s1.get("repeat")
     if repeat:
         name = "S1 ipc lossless in 5 of 5 consecutive runs"
@@ -1385,6 +1439,10 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p.add_argument("--s3-seconds", type=float, default=10.0)
     p.add_argument("--s3-imus", type=int, default=10)
     p.add_argument("--s3-rate", type=float, default=1000.0)
+    p.add_argument("--baseline", metavar="REV",
+                   help="S3 also records ipc with the code of this git revision (a temporary worktree) and the "
+                        "single executor, for the target 'CPU per message at least 2x lower than it' (issue 12: "
+                        "193a15f)")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     p.add_argument("--cache-mb", type=float, default=DEFAULT_CACHE / 2**20, help="storage.max_cache_size in MiB")
     p.add_argument("--executor", choices=("single", "multi", "isolated", "events"), default="single")
@@ -1587,6 +1645,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                     s3[mode] = guarded(bench, f"S3 {mode}", lambda: run_recorder_mode(bench, scenario, mode))
             if "drivers" in args.mode_set or "ipc" in args.mode_set:
                 s3["drivers"] = guarded(bench, "S3 drivers only", lambda: run_drivers_only(bench, scenario))
+            if args.baseline:
+                s3["baseline"] = guarded(bench, f"S3 ipc, code at {args.baseline}, executor single",
+                                         lambda: run_baseline(bench, scenario))
             apply_recorder_cpu(s3)
             report["S3"] = s3
     finally:

@@ -111,6 +111,7 @@ class ContainerClient:
         executor.add_node(self.node)
         executor.spin_until_future_complete(future, timeout_sec=timeout)
         executor.remove_node(self.node)
+        executor.shutdown()  # else its finalizer runs after rclpy's shutdown and prints InvalidHandle at exit
         if not future.done():
             raise AssertionError(f"no reply from {client.srv_name} within {timeout} s")
         return future.result()
@@ -142,6 +143,7 @@ def call_until_answered(node: Node, client: Any, request: Any, timeout: float = 
         executor.add_node(node)
         executor.spin_until_future_complete(future, timeout_sec=1.0)
         executor.remove_node(node)
+        executor.shutdown()  # as in ContainerClient._call
         if future.done():
             return future.result()
         client.remove_pending_request(future)
