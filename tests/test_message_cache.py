@@ -99,7 +99,7 @@ def test_take_all_stops_gathering_at_a_quarter_of_the_cache_or_a_close() -> None
     assert len(batch) == 1 and cache.closed and time.monotonic() - start < 30.0
 
 
-@pytest.mark.parametrize("frame_id", ["", "i", "imu", "imu_link", "imu_link_0", "é" * 5, "x" * 31])
+@pytest.mark.parametrize("frame_id", ["", "i", "imu", "imu_link", "imu_link_0", "é" * 5, "éé", "x" * 31])
 def test_imu_is_sized_exactly(frame_id: str) -> None:
     imu = Imu()
     imu.header.frame_id = frame_id
