@@ -180,7 +180,7 @@ class IntraProcessPublisher:
 
     def local_subscription_count(self) -> int:
         """In-process subscriptions this publisher delivers to (QoS-compatible ones)."""
-        return len(self._manager.subscriptions_for(self._publication))
+        return self._manager.subscription_count(self._publication)
 
     def publish_recorded(self, serialized: bytes | memoryview, make_message: Callable[[], Any]) -> None:
         """Publish a message that exists as CDR bytes (a bag's): in-process subscribers get the object
@@ -189,7 +189,7 @@ class IntraProcessPublisher:
         The object is new and never held by the caller, so the reuse rule does not apply to it.
         """
         local = 0
-        if self._manager.subscriptions_for(self._publication):
+        if self._manager.subscription_count(self._publication):
             local = self._manager.deliver(self._publication, make_message())
         if self._always_dds or self._dds_readers() > local:
             data = serialized if isinstance(serialized, bytes) else bytes(serialized)  # rclpy publishes bytes only

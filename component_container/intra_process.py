@@ -264,9 +264,9 @@ class IntraProcessManager:
             self._generation += 1
         subscription.close()
 
-    def subscriptions_for(self, publication: IntraProcessPublication) -> list[IntraProcessSubscription]:
-        """The in-process subscriptions that may receive from this publication (QoS-compatible)."""
-        return list(self._targets(publication))
+    def subscription_count(self, publication: IntraProcessPublication) -> int:
+        """How many in-process subscriptions may receive from this publication (QoS-compatible)."""
+        return len(self._targets(publication))
 
     def _targets(self, publication: IntraProcessPublication) -> list[IntraProcessSubscription]:
         """``publication.targets``, recomputed once the registry changed. A subscription removed meanwhile
