@@ -15,10 +15,11 @@ Parameters (validated at construction; a bad value raises ValueError naming the 
 ``qos``         ``'reliable'``   ``'reliable'`` or ``'sensor_data'`` (best effort), for both topics
 ==============  ===============  =====================================================================
 
-Frame contents: random bytes. A pool of random bytes (frame size plus up to one more frame, at most 16 MiB
-extra) is generated once; frame ``n`` is the slice of the pool at a rolling offset, so consecutive frames
-differ, and producing a frame is one memcpy into a fresh ``array.array('B')``, which the message keeps as is
-(never a numpy array: assigning one to a ``uint8[]`` field is ~200x slower).
+Frame contents: random bytes. A pool of random bytes (the frame size plus a few KiB) is generated once;
+frame ``n`` is the slice of the pool at offset ``(n % FRAME_SLOTS) * OFFSET_STRIDE``, so consecutive frames
+differ. Its buffer is an ``array.array('B')``, which the message keeps as is (never a numpy array: assigning
+one to a ``uint8[]`` field is ~200x slower), taken from :class:`~components.frame_buffers.FrameBuffers`: the
+slot's buffer again once nobody holds it, so that a frame costs no memcpy of its pixels, else a fresh copy.
 
 Sequence number: the first 8 bytes of ``Image.data`` hold the image sequence number (0, 1, 2 ...) as a
 little-endian uint64. The matching CameraInfo has the same ``header.stamp`` as its image.
@@ -35,6 +36,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from components.bounds import Bounds
+from components.frame_buffers import FRAME_SLOTS, FrameBuffers
 from components.sensor_driver import FIXED_GEOMETRY, MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
 #: Named encodings: bytes per pixel, and the (width, height) divisors the image size must respect.
@@ -55,9 +57,7 @@ _GENERIC_DEPTH_BYTES = {"8U": 1, "8S": 1, "16U": 2, "16S": 2, "32S": 4, "32F": 4
 SIDE = Bounds(1, 16384, "pixels")
 #: Frame sizes accepted, in bytes: room for the sequence number, and one driver's share of memory.
 FRAME_BYTES = Bounds(8, MAX_FRAME_BYTES, "bytes")
-#: Extra pool bytes beyond one frame, at most (the rolling offset ranges over them).
-MAX_POOL_EXTRA = 16 << 20
-#: Rolling-offset stride in bytes per frame.
+#: Offset in the pool, in bytes, between the frames of two consecutive slots.
 OFFSET_STRIDE = 4099
 #: Horizontal field of view of the simulated pinhole camera, used for CameraInfo.
 HORIZONTAL_FOV_DEG = 60.0
@@ -120,11 +120,9 @@ class CameraDriver(SensorDriver):
         self.check_topic_name("topic", self.camera_info_topic)
         self.is_bigendian = 1 if sys.byteorder == "big" else 0
 
-        extra = min(self.frame_bytes, MAX_POOL_EXTRA)
-        self._pool = np.random.default_rng(0x5EED).bytes(self.frame_bytes + extra)  # immutable bytes
-        self._pool_view = memoryview(self._pool)
-        self._offsets = extra + 1
-        self._stride = OFFSET_STRIDE if OFFSET_STRIDE % self._offsets else 1
+        self._pool = np.random.default_rng(0x5EED).bytes(self.frame_bytes + (FRAME_SLOTS - 1) * OFFSET_STRIDE)
+        self._pool_view = memoryview(self._pool)  # immutable bytes: nothing ever writes into the pool
+        self._frames = FrameBuffers(FRAME_SLOTS, self._fill_frame)
 
         fx = self.width / (2.0 * np.tan(np.radians(HORIZONTAL_FOV_DEG) / 2.0))
         cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
@@ -136,11 +134,14 @@ class CameraDriver(SensorDriver):
         self.camera_info_publisher = self.create_publisher(CameraInfo, self.camera_info_topic, self.qos_profile)
 
     # ------------------------------------------------------------------ frames
-    def make_image(self, sequence: int, stamp_ns: int) -> Image:
-        """A fresh Image with its own data buffer; sequence number in data[0:8] (uint64 LE)."""
-        offset = (sequence * self._stride) % self._offsets
+    def _fill_frame(self, slot: int) -> array:
         data = array("B")
-        data.frombytes(self._pool_view[offset:offset + self.frame_bytes])
+        data.frombytes(self._pool_view[slot * OFFSET_STRIDE:slot * OFFSET_STRIDE + self.frame_bytes])
+        return data
+
+    def make_image(self, sequence: int, stamp_ns: int) -> Image:
+        """A fresh Image whose data buffer nobody else holds; sequence number in data[0:8] (uint64 LE)."""
+        data = self._frames.take(sequence)
         data[0:8] = array("B", (sequence & 0xFFFFFFFFFFFFFFFF).to_bytes(8, "little"))
         # check_fields=True: the uint8[] setter then keeps an array.array('B') as is; without it, it copies
         # the whole frame again (array.array('B', value)), ~3 ms per 1080p frame under the GIL.

@@ -29,9 +29,11 @@ The scene is a 40 m x 28 m walled room with a floor and a ceiling, seen from 1.8
 degree vertical field of view.
 
 Generation: the noise-free scan is packed once into an immutable ``bytes`` template, and a pool of Gaussian
-position noise (sigma 1 cm, two scans' worth) is drawn once. Each frame is one memcpy of the template into a
-fresh ``array.array('B')`` plus one strided numpy add of the noise slice at a rolling offset (so consecutive
-scans differ) into that buffer; numpy only ever views the fresh buffer and is never assigned to the field.
+position noise (sigma 1 cm, one scan's worth plus a few thousand points) is drawn once. Scan ``n`` is the
+template plus the noise slice at offset ``(n % FRAME_SLOTS) * OFFSET_STRIDE`` (so consecutive scans differ):
+one memcpy of the template into a fresh ``array.array('B')`` plus one strided numpy add into that buffer
+(numpy only views it and is never assigned to the field), done only when
+:class:`~components.frame_buffers.FrameBuffers` has no free buffer of that slot to hand out again.
 
 Sequence number: the first 8 bytes of ``data`` hold the scan sequence number (0, 1, 2 ...) as a little-endian
 uint64. **This overwrites x and y of point 0**: x of point 0 is the low 32 bits of the sequence number read as
@@ -49,6 +51,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from components.bounds import Bounds
+from components.frame_buffers import FRAME_SLOTS, FrameBuffers
 from components.sensor_driver import MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
 #: (name, offset, PointField datatype) of each field; see the module docstring.
@@ -70,7 +73,7 @@ POINT_DTYPE = np.dtype({
 })
 POINTS = Bounds(1, MAX_FRAME_BYTES // POINT_STEP, "points")
 RINGS = Bounds(1, 1024, "rings")
-#: Rolling-offset stride in points per scan.
+#: Offset in the noise pool, in points, between the scans of two consecutive slots.
 OFFSET_STRIDE = 7919
 NOISE_SIGMA = 0.01
 VERTICAL_FOV_DEG = 30.0
@@ -127,28 +130,31 @@ class LidarDriver(SensorDriver):
             raise ValueError(f"parameter 'rings' ({self.rings}) must not exceed points_per_scan "
                              f"({self.points_per_scan})")
         self.row_step = self.frame_bytes = self.points_per_scan * POINT_STEP
-        self.rate_changed()
-        extra = self.points_per_scan
         self._noise = np.random.default_rng(0x401D).normal(
-            0.0, NOISE_SIGMA, (self.points_per_scan + extra, 3)).astype(np.float32)
+            0.0, NOISE_SIGMA, (self.points_per_scan + (FRAME_SLOTS - 1) * OFFSET_STRIDE, 3)).astype(np.float32)
         self._noise.flags.writeable = False
-        self._offsets = extra + 1
-        self._stride = OFFSET_STRIDE if OFFSET_STRIDE % self._offsets else 1
+        self.rate_changed()
         self.publisher = self.create_publisher(PointCloud2, self.topic, self.qos_profile)
 
     def rate_changed(self) -> None:
-        """The point times span one scan period: rebuild the noise-free scan for the (new) rate."""
+        """The point times span one scan period: rebuild the noise-free scan for the (new) rate, and start a
+        new ring of buffers (the old buffers hold the old times)."""
         self._template = scan_template(self.points_per_scan, self.rings, self.rate).tobytes()  # immutable
+        self._scans = FrameBuffers(FRAME_SLOTS, self._fill_scan)
 
-    def make_cloud(self, sequence: int, stamp_ns: int) -> PointCloud2:
-        """A fresh PointCloud2 with its own data buffer; sequence number in data[0:8] (uint64 LE)."""
+    def _fill_scan(self, slot: int) -> array:
         n = self.points_per_scan
-        offset = (sequence * self._stride) % self._offsets
         data = array("B")
         data.frombytes(self._template)
         xyz = np.ndarray((n, 3), dtype="<f4", buffer=data, strides=(POINT_STEP, 4))
-        xyz += self._noise[offset:offset + n]
+        xyz += self._noise[slot * OFFSET_STRIDE:slot * OFFSET_STRIDE + n]
         del xyz  # release the buffer export before handing the array over
+        return data
+
+    def make_cloud(self, sequence: int, stamp_ns: int) -> PointCloud2:
+        """A fresh PointCloud2 whose data buffer nobody else holds; sequence number in data[0:8] (uint64 LE)."""
+        n = self.points_per_scan
+        data = self._scans.take(sequence)
         data[0:8] = array("B", (sequence & 0xFFFFFFFFFFFFFFFF).to_bytes(8, "little"))
         msg = PointCloud2(check_fields=True)  # keeps the array.array as is (see CameraDriver.make_image)
         msg.header = Header(stamp=stamp_from_ns(stamp_ns), frame_id=self.frame_id)

@@ -51,9 +51,10 @@ the frame is built, so frames published in one catch-up burst carry their real, 
 Ownership
 ---------
 Once ``publish()`` returned, the message and its buffers belong to the subscribers (the container may hand the
-very same object to intra-process subscriptions). Drivers therefore build a fresh message object, with fresh
-buffers, for every publish and never touch it afterwards; the precomputed pools they copy from are immutable
-(``bytes``) or never written.
+very same object to intra-process subscriptions). Drivers therefore build a fresh message object for every
+publish and never touch it afterwards; the precomputed pools they copy from are immutable (``bytes``) or never
+written. A frame's big data buffer is taken back only when no one holds it any more
+(:class:`~components.frame_buffers.FrameBuffers`).
 """
 from __future__ import annotations
 

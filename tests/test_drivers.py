@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import array
 import bisect
+import itertools
 import math
 import statistics
 import time
@@ -26,6 +27,8 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, Imu, PointCloud2, PointField
 from std_msgs.msg import Header
 
+from component_container.component_node import ComponentNode
+from component_container.intra_process import IntraProcessManager
 from components import imu_driver, sensor_driver
 from components.camera_driver import CameraDriver, camera_info_topic_for
 from components.imu_driver import ImuDriver
@@ -194,6 +197,61 @@ def test_camera_frames_are_fresh_objects(ros):
     assert bytes(second.data[8:]) != snapshot[8:]
     info_a, info_b = camera.make_camera_info(0), camera.make_camera_info(0)
     assert info_a.k is not info_b.k and info_a.header is not info_b.header
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_frames_depend_on_their_sequence_number_only(ros, seed):
+    """Frames built into reused buffers equal frames built into fresh ones, and no frame kept by someone changes
+    while later ones are built (what a subscriber or the recorder's cache keeps is never written again)."""
+    rng = np.random.default_rng(seed)
+    print(f"seed {seed}")
+    camera = ros.driver(CameraDriver, "cam", width=64, height=48)
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=1000)
+    reference_camera = ros.driver(CameraDriver, "cam_ref", width=64, height=48)
+    reference_lidar = ros.driver(LidarDriver, "lidar_ref", points_per_scan=1000)
+    kept: list[tuple[Any, bytes]] = []
+    references = []  # all kept, so the reference drivers fill a fresh buffer for every frame
+    for sequence in range(60):
+        for build, reference in ((camera.make_image, reference_camera.make_image),
+                                 (lidar.make_cloud, reference_lidar.make_cloud)):
+            msg = build(sequence, 0)
+            references.append(reference(sequence, 0))
+            assert bytes(msg.data) == bytes(references[-1].data), f"frame {sequence} differs"
+            assert seq_from_data(msg) == sequence
+            if rng.random() < 0.2:
+                kept.append((msg, bytes(msg.data)))
+    assert all(bytes(msg.data) == snapshot for msg, snapshot in kept), "a kept frame was written again"
+    assert camera._frames.reused > 30 and lidar._scans.reused > 30, "buffers were never handed out again"
+    assert reference_camera._frames.reused == reference_lidar._scans.reused == 0
+
+
+def test_frames_kept_by_an_intra_process_subscriber_stay_intact(ros):
+    """Through the container's intra-process path (the subscriber gets the very object published): frames a
+    subscriber keeps are never written again, while the driver reuses the buffers of the frames it dropped."""
+    manager = IntraProcessManager()
+    camera = ros.add(CameraDriver("cam", context=ros.context, intra_process_manager=manager,
+                                  parameter_overrides=[Parameter("fps", value=200.0),
+                                                       Parameter("width", value=64), Parameter("height", value=48)]))
+    consumer = ros.add(ComponentNode("consumer", context=ros.context, intra_process_manager=manager))
+    kept: list[tuple[Image, bytes]] = []
+    received = itertools.count(1)
+
+    def on_image(msg: Image) -> None:
+        if next(received) % 3 == 0:  # keep every third frame, drop the others
+            kept.append((msg, bytes(msg.data)))
+
+    consumer.create_subscription(Image, "/cam/image_raw", on_image, 100)
+    ros.executor.add_node(camera)
+    ros.executor.add_node(consumer)
+    deadline = time.monotonic() + 10.0
+    while camera._frames.reused < 100 and time.monotonic() < deadline:
+        ros.executor.spin_once(timeout_sec=0.05)
+    assert camera._frames.reused >= 100, "the driver never got a buffer back"
+    assert len(kept) > 30
+    reference = ros.driver(CameraDriver, "cam_ref", width=64, height=48)
+    for msg, snapshot in kept:
+        assert bytes(msg.data) == snapshot, f"frame {seq_from_data(msg)} changed after it was delivered"
+        assert snapshot == bytes(reference.make_image(seq_from_data(msg), 0).data)
 
 
 # ---------------------------------------------------------------------------------------------- lidar
