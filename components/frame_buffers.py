@@ -22,9 +22,13 @@ import sys
 from array import array
 from typing import Callable
 
-#: Slots of a driver's ring: a frame's buffer comes back after two more frames, by which time the recorder
-#: (which writes within tens of milliseconds) has normally released it.
-FRAME_SLOTS = 3
+from component_container.component_node import REUSE_WATCH
+
+#: Slots of a driver's ring. The container's intra-process publisher remembers a publisher's last
+#: ``REUSE_WATCH`` messages (see ``component_node``) and forgets one only at a later publish: with one slot
+#: more than that, the buffer a frame gets is never one the publisher still remembers; and by then, three
+#: frame periods later, the recorder (which writes within tens of milliseconds) has normally released it too.
+FRAME_SLOTS = REUSE_WATCH + 1
 #: References to a buffer that only its slot holds, as :meth:`FrameBuffers.take` counts them: the slot list,
 #: the local name, and ``sys.getrefcount``'s own argument.
 _REFS_WHEN_FREE = 3

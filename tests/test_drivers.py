@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import array
 import bisect
+import collections
 import itertools
 import math
 import statistics
@@ -30,6 +31,7 @@ from std_msgs.msg import Header
 from component_container.component_node import ComponentNode
 from component_container.intra_process import IntraProcessManager
 from components import imu_driver, sensor_driver
+from components.frame_buffers import FRAME_SLOTS
 from components.camera_driver import CameraDriver, camera_info_topic_for
 from components.imu_driver import ImuDriver
 from components.lidar_driver import POINT_DTYPE, LidarDriver
@@ -235,9 +237,11 @@ def test_frames_kept_by_an_intra_process_subscriber_stay_intact(ros):
     consumer = ros.add(ComponentNode("consumer", context=ros.context, intra_process_manager=manager))
     kept: list[tuple[Image, bytes]] = []
     received = itertools.count(1)
+    window: collections.deque[Image] = collections.deque(maxlen=2)  # held a while, like the recorder's cache
 
     def on_image(msg: Image) -> None:
-        if next(received) % 3 == 0:  # keep every third frame, drop the others
+        window.append(msg)
+        if next(received) % 3 == 0:  # and every third frame kept for good
             kept.append((msg, bytes(msg.data)))
 
     consumer.create_subscription(Image, "/cam/image_raw", on_image, 100)
@@ -248,6 +252,9 @@ def test_frames_kept_by_an_intra_process_subscriber_stay_intact(ros):
         ros.executor.spin_once(timeout_sec=0.05)
     assert camera._frames.reused >= 100, "the driver never got a buffer back"
     assert len(kept) > 30
+    # A buffer is filled again only for a slot whose last frame the subscriber kept (plus each slot's first):
+    # neither the window nor the publisher's memory of its last messages (REUSE_WATCH) holds one for long.
+    assert camera._frames.filled <= FRAME_SLOTS + len(kept) + 1, (camera._frames.filled, len(kept))
     reference = ros.driver(CameraDriver, "cam_ref", width=64, height=48)
     for msg, snapshot in kept:
         assert bytes(msg.data) == snapshot, f"frame {seq_from_data(msg)} changed after it was delivered"
