@@ -29,7 +29,7 @@ The scene is a 40 m x 28 m walled room with a floor and a ceiling, seen from 1.8
 degree vertical field of view.
 
 Generation: the noise-free scan is packed once into an immutable ``bytes`` template, and a pool of Gaussian
-position noise (sigma 1 cm, one scan's worth plus a few thousand points) is drawn once. Scan ``n`` is the
+position noise (sigma 1 cm, one scan's worth plus three strides of points) is drawn once. Scan ``n`` is the
 template plus the noise slice at offset ``(n % FRAME_SLOTS) * OFFSET_STRIDE`` (so consecutive scans differ):
 one memcpy of the template into a fresh ``array.array('B')`` plus one strided numpy add into that buffer
 (numpy only views it and is never assigned to the field), done only when
