@@ -87,6 +87,7 @@ class CameraDriver(SensorDriver):
 
     DEFAULT_TOPIC = "~/image_raw"
     DEFAULT_FRAME_ID = "camera"
+    _frames: FrameBuffers | None = None
     RATE_PARAMETER = "fps"
     DEFAULT_RATE = 30.0
 
@@ -132,6 +133,11 @@ class CameraDriver(SensorDriver):
 
         self.image_publisher = self.create_publisher(Image, self.topic, self.qos_profile)
         self.camera_info_publisher = self.create_publisher(CameraInfo, self.camera_info_topic, self.qos_profile)
+
+    def destroy_node(self) -> None:
+        if self._frames is not None:  # None: construction failed before configure() made the ring
+            self._frames.clear()
+        super().destroy_node()
 
     # ------------------------------------------------------------------ frames
     def _fill_frame(self, slot: int) -> array:

@@ -47,6 +47,11 @@ class FrameBuffers:
         self.reused = 0
         self.filled = 0
 
+    def clear(self) -> None:
+        """Drop the ring's buffers (a driver being destroyed): a node lives on until the garbage collector
+        finds its reference cycles, and its frames should not live on with it."""
+        self._buffers = [None] * len(self._buffers)
+
     def take(self, sequence: int) -> array:
         """The buffer for frame ``sequence``: ``fill(sequence % slots)``, apart from the bytes the caller writes
         on every take."""

@@ -117,6 +117,7 @@ class LidarDriver(SensorDriver):
 
     DEFAULT_TOPIC = "~/points"
     DEFAULT_FRAME_ID = "lidar"
+    _scans: FrameBuffers | None = None
     RATE_PARAMETER = "rate"
     DEFAULT_RATE = 10.0
 
@@ -135,6 +136,11 @@ class LidarDriver(SensorDriver):
         self._noise.flags.writeable = False
         self.rate_changed()
         self.publisher = self.create_publisher(PointCloud2, self.topic, self.qos_profile)
+
+    def destroy_node(self) -> None:
+        if self._scans is not None:  # None: construction failed before configure() made the ring
+            self._scans.clear()
+        super().destroy_node()
 
     def rate_changed(self) -> None:
         """The point times span one scan period: rebuild the noise-free scan for the (new) rate, and start a

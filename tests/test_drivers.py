@@ -261,6 +261,16 @@ def test_frames_kept_by_an_intra_process_subscriber_stay_intact(ros):
         assert snapshot == bytes(reference.make_image(seq_from_data(msg), 0).data)
 
 
+def test_destroyed_drivers_drop_their_frame_buffers(ros):
+    """An unloaded driver's node lives until the garbage collector finds it; its frames must not."""
+    camera = ros.driver(CameraDriver, "cam", width=64, height=48)
+    lidar = ros.driver(LidarDriver, "lidar", points_per_scan=100)
+    camera.make_image(0, 0), lidar.make_cloud(0, 0)
+    ros.nodes.remove(camera), ros.nodes.remove(lidar)
+    camera.destroy_node(), lidar.destroy_node()
+    assert camera._frames._buffers == [None] * FRAME_SLOTS and lidar._scans._buffers == [None] * FRAME_SLOTS
+
+
 # ---------------------------------------------------------------------------------------------- lidar
 def test_lidar_publishes_point_clouds(ros):
     lidar = ros.driver(LidarDriver, "lidar", points_per_scan=4096, rings=16, rate=20.0)

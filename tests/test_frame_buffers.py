@@ -51,6 +51,15 @@ def test_a_held_buffer_is_never_handed_out_again(hold: Callable[[array], Any]) -
     assert frames.reused == 0 and frames.filled == 2
 
 
+def test_clear_drops_the_buffers_but_not_held_frames() -> None:
+    frames = FrameBuffers(2, filler())
+    held = frames.take(0)
+    frames.take(1)
+    frames.clear()
+    assert frames._buffers == [None, None] and held.tobytes() == bytes(64)
+    assert frames.take(2) is not held and frames.filled == 3
+
+
 def test_at_least_two_slots() -> None:
     with pytest.raises(ValueError, match="at least 2 slots"):
         FrameBuffers(1, filler())
