@@ -43,7 +43,7 @@ class FrameBuffers:
         self._fill = fill
         self._buffers: list[array | None] = [None] * slots
         #: Buffers handed out again without filling, and buffers filled (a slot's first use, or its buffer was
-        #: still held by someone): the benchmark and the tests read them.
+        #: still held by someone): the tests read them.
         self.reused = 0
         self.filled = 0
 

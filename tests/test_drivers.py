@@ -265,9 +265,11 @@ def test_destroyed_drivers_drop_their_frame_buffers(ros):
     """An unloaded driver's node lives until the garbage collector finds it; its frames must not."""
     camera = ros.driver(CameraDriver, "cam", width=64, height=48)
     lidar = ros.driver(LidarDriver, "lidar", points_per_scan=100)
-    camera.make_image(0, 0), lidar.make_cloud(0, 0)
-    ros.nodes.remove(camera), ros.nodes.remove(lidar)
-    camera.destroy_node(), lidar.destroy_node()
+    camera.make_image(0, 0)
+    lidar.make_cloud(0, 0)
+    for driver in (camera, lidar):
+        ros.nodes.remove(driver)  # destroyed here, not by the harness
+        driver.destroy_node()
     assert camera._frames._buffers == [None] * FRAME_SLOTS and lidar._scans._buffers == [None] * FRAME_SLOTS
 
 
