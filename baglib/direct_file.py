@@ -6,6 +6,13 @@ read straight from our memory (measured here: 0.03 CPU s/GB). It needs block-ali
 sizes, so writes are staged in a page-aligned buffer (one memcpy, ~0.1 s/GB) and written a whole number of
 blocks at a time. On close the last partial block is written padded and the file truncated to its length.
 
+A large buffer skips the staging copy when its memory and its place in the file fall on the same offset within
+a block (:meth:`DirectFile.gap_before` tells a writer how many bytes to put before it to get there): its
+unaligned head is staged, the staged blocks written, and then its whole blocks go to the disk straight from
+the caller's memory; only the unaligned tail is staged. For a 1080p frame that removes a 6.2 MB memcpy and
+five of the six system calls (measured here with 6.2 MB frames: 1.7-2.1 GB/s and 0.07-0.08 CPU s/GB written
+in place, against 1.2-1.8 GB/s and 0.16-0.28 s/GB staged).
+
 Filesystems without ``O_DIRECT`` (tmpfs on older kernels, some network filesystems) get a plain buffered file.
 """
 from __future__ import annotations
@@ -20,6 +27,15 @@ from typing import BinaryIO
 
 BLOCK = 4096  # a multiple of every logical block size O_DIRECT may require
 STAGING = 1024 * 1024  # bytes staged before a direct write (like the 1 MiB buffer of unchunked files)
+#: A buffer at least this big is written from the caller's memory when it is aligned (see the module docstring).
+IN_PLACE_MIN = 256 * 1024
+
+
+def address(view: memoryview) -> int:
+    """Where the first byte of ``view`` (C-contiguous, read-only or not) lies in memory."""
+    import numpy  # imported here: only a writer needs it, and the bag CLI starts faster without it
+
+    return numpy.frombuffer(view, dtype=numpy.uint8).ctypes.data if view.nbytes else 0
 
 
 class DirectFile:
@@ -35,29 +51,54 @@ class DirectFile:
         self._flushed = 0
         self._direct = True
         self.closed = False
+        #: Bytes written from the callers' memory without staging (the tests read it).
+        self.in_place = 0
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
         source = memoryview(data).cast("B")
         total = len(source)
+        if total >= IN_PLACE_MIN and self._direct:
+            head = -address(source) % BLOCK
+            if (self.tell() + head) % BLOCK == 0:
+                self._stage(source[:head])  # ends the staged bytes on a block boundary
+                if self._staged:
+                    self._write_staged(self._staged)
+                whole = (total - head) // BLOCK * BLOCK
+                self._write_out(source[head:head + whole])
+                self._flushed += whole
+                self.in_place += whole
+                source = source[head + whole:]
+        self._stage(source)
+        return total
+
+    def gap_before(self, data: bytes | bytearray | memoryview, ahead: int) -> int | None:
+        """How many bytes (0 to ``BLOCK - 1``) to write before the next ``ahead`` bytes so that ``data``,
+        written right after those, goes to the disk from where it is; None when it would be staged anyway
+        (too small, or the file is no longer direct)."""
+        view = memoryview(data).cast("B")
+        if len(view) < IN_PLACE_MIN or not self._direct:
+            return None
+        return -(self.tell() + ahead - address(view)) % BLOCK
+
+    def tell(self) -> int:
+        return self._flushed + self._staged
+
+    def _stage(self, source: memoryview) -> None:
+        """Copy ``source`` into the staging buffer, writing it out each time it is full."""
         while source:
-            room = STAGING - self._staged
-            take = min(room, len(source))
+            take = min(STAGING - self._staged, len(source))
             self._view[self._staged:self._staged + take] = source[:take]
             self._staged += take
             source = source[take:]
             if self._staged == STAGING:
                 self._write_staged(STAGING)
-        return total
 
-    def tell(self) -> int:
-        return self._flushed + self._staged
-
-    def _write_staged(self, length: int) -> None:
-        """Write the first ``length`` staged bytes (a whole number of blocks; past the staged end at close)."""
+    def _write_out(self, view: memoryview) -> None:
+        """Write all of ``view`` at the file offset, which is block-aligned while the file is direct."""
         done = 0
-        while done < length:
+        while done < len(view):
             try:
-                written = os.write(self._fd, self._view[done:length])
+                written = os.write(self._fd, view[done:])
             except OSError as error:
                 if error.errno != errno.EINVAL or not self._direct:
                     raise
@@ -69,8 +110,13 @@ class DirectFile:
             if written <= 0:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             done += written
-            if done < length and (self._flushed + done) % BLOCK:
+            if done < len(view) and (self._flushed + done) % BLOCK:
                 self._buffered()  # a short write left the offset unaligned for O_DIRECT
+
+    def _write_staged(self, length: int) -> None:
+        """Write the first ``length`` staged bytes (a whole number of blocks; past the staged end at close)."""
+        with self._view[:length] as staged:  # released even when the write fails: close() must unmap
+            self._write_out(staged)
         kept = max(0, self._staged - length)
         if kept:  # a partial block stays staged, moved to the start of the (aligned) buffer
             self._view[:kept] = self._view[length:self._staged]

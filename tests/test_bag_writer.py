@@ -24,6 +24,8 @@ import pytest
 import yaml
 import zstandard
 from mcap.reader import make_reader
+from mcap.records import Message
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.duration import Infinite
 from rclpy.qos import (
@@ -41,10 +43,13 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from sensor_msgs.msg import Image, Imu, PointCloud2, PointField
 from std_msgs.msg import String
 
-from baglib import message_definitions
+from baglib import cdr_fast, mcap_storage, message_definitions
 from baglib.writer import BagExistsError, BagWriteError, BagWriter
 from baglib.cdr_fast import SerializedBuffers
-from baglib.mcap_storage import DEFAULT_CHUNK_SIZE, McapStorage
+from baglib.direct_file import DirectFile
+from baglib.mcap_records import scan
+from baglib.mcap_storage import DEFAULT_CHUNK_SIZE, PADDING_OPCODE, McapStorage
+from baglib.reader import BagReader
 from baglib.message_definitions import (
     MessageDefinitionNotFoundError,
     message_definition,
@@ -536,6 +541,62 @@ def test_chunks_indexes_and_buffers(tmp_path: Path, preset: str) -> None:
         return
     chunks, messages = mcap_layout(path)
     assert messages == len(sizes) and (2 if preset == "zstd_small" else 5) <= chunks < len(sizes)
+
+
+@pytest.mark.parametrize("preset", ["", "fastwrite", "zstd_fast"])
+def test_big_payloads_go_to_the_disk_in_place_behind_padding_records(
+    tmp_path: Path, preset: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Images (as the recorder hands them over: views of the message's pixels, or rclpy's bytes) are written
+    from their own memory behind padding records, and every reader, indexed or linear, skips the padding."""
+    files: list[Any] = []
+    real_open = mcap_storage.open_exclusive
+
+    def remember(path: Path, buffering: int) -> Any:
+        files.append(real_open(path, buffering))
+        return files[-1]
+
+    monkeypatch.setattr(mcap_storage, "open_exclusive", remember)
+    bag = tmp_path / "bag"
+    topics = ("/camera/image_raw", "/imu", "/chatter")
+    written = []
+    with BagWriter(bag, storage_preset_profile=preset) as writer:
+        for topic in topics:
+            writer.add_topic(topic_info(topic))
+        for n in range(24):
+            topic = topics[n % 3]
+            type_name, make = TOPICS[topic]
+            msg = make(n)
+            writer.write(topic, cdr_fast.serialize(msg) if n % 2 else serialize_message(msg), T0 + n, T0 + n)
+            written.append((topic, T0 + n, message_fields(type_name, msg)))
+    [file] = files
+    assert isinstance(file, DirectFile)  # the test filesystem supports O_DIRECT; else this tests nothing
+    path = bag / "bag_0.mcap"
+    raw = path.read_bytes()
+    padding, position = [], 8
+    while raw[position] != 0x0F:  # every record up to the data end
+        opcode, length = struct.unpack_from("<BQ", raw, position)
+        if opcode == PADDING_OPCODE:
+            padding.append(raw[position + 9:position + 9 + length])
+        position += 9 + length
+    frames = 8 * len(serialize_message(make_image(0)))
+    if preset == "zstd_fast":  # compressed chunks are new bytes, not the caller's memory: nothing to align
+        assert not padding
+    else:
+        assert 0 < len(padding) <= 8 and all(not any(body) for body in padding)
+        assert file.in_place > 0.98 * frames
+    assert sorted(read_rosbags(bag)) == sorted(written)
+    assert sorted((t, log, f) for t, log, _, _, f in read_mcap(path)) == sorted(written)
+    with open(path, "rb") as stream:  # linear, record by record, as a reader without the summary goes
+        linear = [record.log_time for record in StreamReader(stream).records if isinstance(record, Message)]
+    assert linear == [log for _, log, _ in written]
+    with BagReader(bag) as reader:
+        assert [m.log_time_ns for m in reader.messages()] == [log for _, log, _ in written]
+    with open(path, "rb") as stream:
+        found = scan(stream, len(raw), check_chunks=True)  # what bag recover sees: all of it intact
+    assert found.damage is None and sum(sum(unit.counts.values()) for unit in found.units) == len(written)
+    if preset == "":
+        assert mcap_layout(path)[1] == len(written)
 
 
 # --- splitting --------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""The O_DIRECT writer: same bytes as a plain file, whatever the write sizes, and a buffered fallback."""
+"""The O_DIRECT writer: same bytes as a plain file, whatever the write sizes; big buffers written from where they
+are when aligned; and a buffered fallback."""
 from __future__ import annotations
 
 import errno
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from baglib import direct_file
-from baglib.direct_file import BLOCK, STAGING, DirectFile, open_exclusive
+from baglib.direct_file import BLOCK, IN_PLACE_MIN, STAGING, DirectFile, address, open_exclusive
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -32,6 +33,48 @@ def test_content_and_length_equal_what_was_written(tmp_path: Path, seed: int) ->
     file.close()
     file.close()  # idempotent
     assert path.read_bytes() == bytes(expected)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_big_buffers_placed_by_gap_before_are_written_in_place(tmp_path: Path, seed: int) -> None:
+    """A big buffer preceded by the gap the file asks for goes out from its own memory, all but its unaligned
+    head and tail; one preceded by any other gap is staged; the file holds exactly what was written."""
+    rng = random.Random(seed)
+    print(f"seed {seed}")
+    path = tmp_path / "out.bin"
+    file = open_exclusive(path, 4096)
+    assert isinstance(file, DirectFile)
+    backing = bytearray(rng.randbytes(2 * IN_PLACE_MIN + 2 * BLOCK))
+    expected = bytearray()
+    in_place = 0
+    for _ in range(30):
+        before = rng.randbytes(rng.choice([0, 1, 9, BLOCK + 5, IN_PLACE_MIN - 1]))
+        start, size = rng.randrange(2 * BLOCK), rng.randrange(IN_PLACE_MIN, 2 * IN_PLACE_MIN)
+        big = rng.choice([memoryview, bytes])(memoryview(backing)[start:start + size])  # writable or read-only
+        gap = file.gap_before(big, len(before))
+        assert gap is not None and 0 <= gap < BLOCK
+        aligned = rng.random() < 0.7
+        for piece in (rng.randbytes(gap if aligned else gap + rng.randrange(1, BLOCK)), before, big):
+            assert file.write(piece) == len(piece)
+            expected += piece
+        if aligned:
+            in_place += (size - (-address(memoryview(big)) % BLOCK)) // BLOCK * BLOCK
+        assert file.in_place == in_place and file.tell() == len(expected)
+        if rng.random() < 0.3:
+            rng.choice([file.flush, file.write_through])()
+    assert in_place > 10 * IN_PLACE_MIN  # most of the big buffers went out in place
+    file.close()
+    assert path.read_bytes() == bytes(expected)
+
+
+def test_small_buffers_and_buffered_files_never_ask_for_a_gap(tmp_path: Path) -> None:
+    file = open_exclusive(tmp_path / "out.bin", 4096)
+    assert isinstance(file, DirectFile)
+    assert file.gap_before(bytes(IN_PLACE_MIN - 1), 0) is None
+    assert file.gap_before(bytes(IN_PLACE_MIN), 0) is not None
+    file._buffered()  # what a write does after the kernel refused an unaligned direct write
+    assert file.gap_before(bytes(IN_PLACE_MIN), 0) is None
+    file.close()
 
 
 def test_existing_file_is_never_overwritten(tmp_path: Path) -> None:

@@ -45,12 +45,15 @@ TOPICS = [TopicInfo("/a", "std_msgs/msg/String", offered_qos_profiles=[QOS]),
           TopicInfo("/b", "std_msgs/msg/String", offered_qos_profiles=[{**QOS, "depth": 1}])]
 # bag kind -> (storage id, preset); the small chunks put the cuts into many different chunks
 KINDS = {"chunked": ("mcap", ""), "fastwrite": ("mcap", "fastwrite"), "zstd": ("mcap", "zstd_fast"),
-         "sqlite3": ("sqlite3", "")}
+         "sqlite3": ("sqlite3", ""), "chunked_frames": ("mcap", ""), "fastwrite_frames": ("mcap", "fastwrite")}
+# Kinds with a big message every 100: the writer puts padding records before them (direct I/O in place).
+FRAMES = {"chunked_frames", "fastwrite_frames"}
+FRAME_BYTES = 300_000
 
 
-def payload(n: int) -> bytes:
+def payload(n: int, kind: str = "chunked") -> bytes:
     """CDR std_msgs/String whose text carries the sequence number (and varies in length)."""
-    text = f"seq={n:06d} " + "x" * (n * 7919 % 150)
+    text = f"seq={n:06d} " + "x" * (FRAME_BYTES if kind in FRAMES and n % 100 == 7 else n * 7919 % 150)
     data = text.encode() + b"\0"
     return b"\x00\x01\x00\x00" + struct.pack("<I", len(data)) + data
 
@@ -61,7 +64,7 @@ def announce_seed() -> None:
 
 
 def write_bag(path: Path, storage_id: str, preset: str, monkeypatch: pytest.MonkeyPatch,
-              max_size: int = 0, custom_data: dict[str, str] | None = None) -> Path:
+              max_size: int = 0, custom_data: dict[str, str] | None = None, kind: str = "chunked") -> Path:
     from baglib.writer import BagWriter
     for name, options in mcap_storage.MCAP_PRESETS.items():
         monkeypatch.setitem(mcap_storage.MCAP_PRESETS, name, replace(options, chunk_size=8192))
@@ -70,7 +73,7 @@ def write_bag(path: Path, storage_id: str, preset: str, monkeypatch: pytest.Monk
         for topic in TOPICS:
             writer.add_topic(topic)
         for n in range(MESSAGES):
-            writer.write(TOPICS[n % 3 == 0].name, payload(n), T0 + n * 1000, T0 + n * 1000)
+            writer.write(TOPICS[n % 3 == 0].name, payload(n, kind), T0 + n * 1000, T0 + n * 1000)
     return path
 
 
@@ -92,7 +95,7 @@ def work(tmp_path: Path) -> Iterator[Path]:
 def sources(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("sources")
     with pytest.MonkeyPatch.context() as monkeypatch:
-        return {kind: write_bag(root / kind, *KINDS[kind], monkeypatch) for kind in KINDS}
+        return {kind: write_bag(root / kind, *KINDS[kind], monkeypatch, kind=kind) for kind in KINDS}
 
 
 # --- reading back ----------------------------------------------------------------------------------
@@ -123,8 +126,8 @@ def check_readable(bag: Path) -> list[tuple[str, int, bytes]]:
     return sorted(messages, key=lambda message: message[1])
 
 
-def original(n: int) -> tuple[str, int, bytes]:
-    return (TOPICS[n % 3 == 0].name, T0 + n * 1000, payload(n))
+def original(n: int, kind: str = "chunked") -> tuple[str, int, bytes]:
+    return (TOPICS[n % 3 == 0].name, T0 + n * 1000, payload(n, kind))
 
 
 # --- what must survive a cut -----------------------------------------------------------------------
@@ -238,8 +241,19 @@ def test_truncated_anywhere(kind: str, sources: dict[str, Path], work: Path) -> 
         kept = check_readable(bag)
         numbers = {(timestamp - T0) // 1000 for _, timestamp, _ in kept}
         assert expect.must_keep <= numbers <= expect.may_keep, context
-        assert kept == [original(n) for n in sorted(numbers)], context  # intact, none twice
+        assert kept == [original(n, kind) for n in sorted(numbers)], context  # intact, none twice
         assert report.files[0].messages == len(kept), context
+
+
+def test_frame_bags_hold_padding_records(sources: dict[str, Path]) -> None:
+    """The cuts above fall into padding records too: the big messages of these kinds went out in place."""
+    for kind in FRAMES:
+        raw = storage_file(sources[kind]).read_bytes()
+        opcodes, position = [], 8
+        while raw[position] != 0x0F:  # up to the data end
+            opcodes.append(raw[position])
+            position += 9 + struct.unpack_from("<Q", raw, position + 1)[0]
+        assert 0 < opcodes.count(mcap_storage.PADDING_OPCODE) <= MESSAGES // 100, kind
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
@@ -254,7 +268,7 @@ def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], 
 
     bag, report = recover_copy(source, work, append)
     assert report.readable, report.text()
-    assert check_readable(bag) == [original(n) for n in range(MESSAGES)], report.text()
+    assert check_readable(bag) == [original(n, kind) for n in range(MESSAGES)], report.text()
     for _ in range(8):
         start = generator.randrange(size // 4, size - 4096)
 
@@ -272,7 +286,7 @@ def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], 
         # that record (chunk, page) may come back zeroed, and the records after it are kept.
         units = (sqlite_leaf_rows if kind == "sqlite3" else mcap_units)(storage_file(source))
         hit = {n for begin, end, numbers in units if begin < start + 4096 and end > start for n in numbers}
-        originals = {original(n): n for n in range(MESSAGES)}
+        originals = {original(n, kind): n for n in range(MESSAGES)}
         intact = {originals[message] for message in kept if message in originals}
         assert expected(kind, storage_file(source), start).must_keep <= intact, context
         assert len(kept) - len(intact) <= len(hit), context
@@ -283,7 +297,7 @@ def test_missing_metadata_on_intact_bag(kind: str, sources: dict[str, Path], wor
     bag, report = recover_copy(sources[kind], work, lambda path: None)
     assert report.readable and report.files[0].action == "intact", report.text()
     assert storage_file(bag).read_bytes() == storage_file(sources[kind]).read_bytes()  # untouched
-    assert check_readable(bag) == [original(n) for n in range(MESSAGES)]
+    assert check_readable(bag) == [original(n, kind) for n in range(MESSAGES)]
     regenerated = yaml.safe_load((bag / "metadata.yaml").read_text())
     assert regenerated == yaml.safe_load((sources[kind] / "metadata.yaml").read_text())
 
