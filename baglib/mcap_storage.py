@@ -10,10 +10,10 @@ message three times before the kernel does (into the chunk's ``BytesIO``, out of
 record's ``BytesIO``), which made the recorder drop camera frames. Here a chunk is a list of buffers:
 small records are copied once into a ``bytearray``, and a big message whose arrival completes the
 chunk is written straight from the caller's buffers (a ``memoryview`` of the image's pixels from
-:mod:`.cdr_fast`), so its payload is not copied before the kernel gets it (and with direct I/O not even by
-the kernel, see below). The layout, indexes and summary are the same as the Python writer's. Chunk CRCs stay zero, as ``enable_crcs=False`` wrote them (and
-rosbag2's ``fastwrite``/``zstd_fast`` presets): zlib's crc32 of one 1080p frame takes 2-3 ms here,
-longer than writing the frame.
+:mod:`.cdr_fast`), so its payload is not copied before the kernel gets it (and with direct I/O not
+even by the kernel, see below). The layout, indexes and summary are the same as the Python writer's.
+Chunk CRCs stay zero, as ``enable_crcs=False`` wrote them (and rosbag2's ``fastwrite``/``zstd_fast``
+presets): zlib's crc32 of one 1080p frame takes 2-3 ms here, longer than writing the frame.
 
 An MCAP file without its summary cannot be opened by ``rosbags`` (ros2/rosbag2#1079, #2003), and
 the disk filling up is exactly when the summary fails to be written. So when a write fails, this
