@@ -24,7 +24,7 @@ complete records is :mod:`.mcap_records`, shared with ``bag recover``.
 
 On a direct-I/O file a big message's payload is written from the caller's memory only when memory and file
 agree on its offset within a disk block (:mod:`.direct_file`). To get there, the chunk (or, unchunked, the
-message record) is preceded by a padding record of up to 4 KiB (:data:`PADDING_OPCODE`, a private opcode of
+message record) is preceded by a padding record of up to 4.1 KiB (:data:`PADDING_OPCODE`, a private opcode of
 the 0x80-0xFF range the MCAP specification reserves for extensions): every MCAP reader skips records it does
 not know, and indexed readers never see it (chunk indexes point past it). At most 0.07 % of a 1080p frame.
 """
