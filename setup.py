@@ -10,7 +10,7 @@ from __future__ import annotations
 import pathlib
 import sys
 
-from setuptools import setup
+from setuptools import find_packages, setup
 from setuptools.command.build_py import build_py
 
 ROOT = pathlib.Path(__file__).resolve().parent
@@ -19,6 +19,11 @@ from build_interfaces import build_all, interface_packages  # noqa: E402
 
 BUILD_DIR = pathlib.Path("build") / "interfaces"
 INTERFACES = interface_packages()
+# Every package of the source tree, found rather than listed (a hand list drifts: it once left out the player).
+# tests/test_packaging.py checks this against the folders on disk and installs the built wheel.
+NOT_SHIPPED = ["tests", "tests.*", "benchmarks", "benchmarks.*", "examples", "examples.*", "srv", "srv.*",
+               "build", "build.*", "docs", "docs.*"]
+SOURCE_PACKAGES = find_packages(where=str(ROOT), exclude=NOT_SHIPPED)
 
 
 def _data_files() -> list[tuple[str, list[str]]]:
@@ -45,7 +50,7 @@ for _name in INTERFACE_PACKAGES:  # setuptools checks package folders exist befo
     (ROOT / BUILD_DIR / "python" / _name.replace(".", "/")).mkdir(parents=True, exist_ok=True)
 
 setup(
-    packages=["component_container", "components", "components.recorder", "baglib", *INTERFACE_PACKAGES],
+    packages=[*SOURCE_PACKAGES, *INTERFACE_PACKAGES],
     package_dir={name: str(BUILD_DIR / "python" / name.replace(".", "/")) for name in INTERFACE_PACKAGES},
     package_data={**{name: ["*.so"] for name in INTERFACES}, "component_container": ["*.xml"]},
     cmdclass={"build_py": BuildPyWithInterfaces},

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""What deserializing a big sensor message costs: rclpy's ``deserialize_message`` vs ``baglib.cdr_read``.
+"""What deserializing a big sensor message costs: rclpy's ``deserialize_message`` vs ``baglib.format.cdr_read``.
 
 Messages: a 1920x1080 rgb8 Image (6.2 MB), a 131072-point PointCloud2 with 16-byte points (2.1 MB) and a
 300 kB CompressedImage, each serialized once. ``floor`` is the one copy no deserializer can avoid:
@@ -44,7 +44,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from baglib.cdr_read import deserialize  # noqa: E402
+from baglib.format.cdr_read import deserialize  # noqa: E402
 
 Method = Callable[[bytes, type], Any]
 

@@ -16,7 +16,7 @@ Usage: ``python benchmarks/record_bench.py [--quick] [--scenarios s1,s2,s3] [--r
   of ``--ceiling-repeats`` runs; every run is listed, and a "warm" run reusing just-freed pages too.
 
 Once per benchmark run, before the scenarios (unless ``--direct-mb 0``), the **direct-write limit** of the
-filesystem the bags go to: ``--direct-mb`` MiB written with ``O_DIRECT`` (``baglib.direct_file``) in 8 MiB
+filesystem the bags go to: ``--direct-mb`` MiB written with ``O_DIRECT`` (``baglib.write.direct_file``) in 8 MiB
 page-aligned blocks of random bytes to a file in the bag directory, then fsync, then the file is deleted; the
 median of ``--ceiling-repeats`` runs, each after the page pause. It bypasses the page cache, so it is the disk's
 own sequential-write bandwidth (what ``dd oflag=direct`` reports), the physical limit a recorder can approach;
@@ -472,7 +472,7 @@ class RosClient:
         """An idempotent call (``~/get_stats``), sent again until a reply arrives: Fast DDS drops the reply to
         a client whose reply reader the server has not matched yet. Sent once, two of five dds runs of one
         ``--repeat 5`` (2026-11-23) got no reply within 60 s and lost their results."""
-        from component_container.repeated_call import RepeatedCall
+        from ipc_component.repeated_call import RepeatedCall
         call = RepeatedCall(client, client.srv_type.Request)
         deadline = time.monotonic() + timeout
         try:
@@ -906,7 +906,7 @@ def run_ceiling(bench: Bench, scenario: Scenario) -> dict[str, Any]:
 
 def direct_write_once(path: Path, total: int) -> dict[str, Any]:
     """Write ``total`` bytes (whole 8 MiB blocks) to a new file with O_DIRECT, fsync; seconds and CPU."""
-    from baglib.direct_file import DirectFile, open_exclusive
+    from baglib.write.direct_file import DirectFile, open_exclusive
     out = open_exclusive(path, buffering=0)
     if not isinstance(out, DirectFile):  # open_exclusive falls back to a buffered file without O_DIRECT
         out.close()

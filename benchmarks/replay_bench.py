@@ -5,9 +5,9 @@ Usage: ``python benchmarks/replay_bench.py [--quick] [--seconds S] [--rates 1,2,
 the record: ``python benchmarks/replay_bench.py | tee benchmarks/results/replay_s1.txt``.
 
 The bag: the S1 rig of benchmarks/record_bench.py (2x camera 1920x1080 rgb8 @ 30 Hz with CameraInfo, LiDAR
-131072 points @ 10 Hz, IMU @ 200 Hz), ``--seconds`` long, written with ``baglib.writer.BagWriter`` (MCAP) from
+131072 points @ 10 Hz, IMU @ 200 Hz), ``--seconds`` long, written with ``baglib.write.writer.BagWriter`` (MCAP) from
 the drivers' own message factories (``make_image``, ``make_camera_info``, ``make_cloud``, ``make_imu``, on driver
-instances in a private context that is never spun), serialized with ``baglib.cdr_fast``, log times exactly at
+instances in a private context that is never spun), serialized with ``baglib.format.cdr_fast``, log times exactly at
 the nominal rates. It is fsync'ed and then read once, so playback reads it from the page cache.
 
 Modes (each a fresh set of processes, cwd the repository):
@@ -69,9 +69,9 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rosbag2_interfaces.srv import Resume  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from baglib.cdr_fast import serialize  # noqa: E402
-from baglib.metadata import TopicInfo, qos_profile_dict  # noqa: E402
-from baglib.writer import BagWriter  # noqa: E402
+from baglib.format.cdr_fast import serialize  # noqa: E402
+from baglib.format.metadata import TopicInfo, qos_profile_dict  # noqa: E402
+from baglib.write.writer import BagWriter  # noqa: E402
 from components.camera_driver import CameraDriver  # noqa: E402
 from components.imu_driver import ImuDriver  # noqa: E402
 from components.lidar_driver import LidarDriver  # noqa: E402

@@ -24,7 +24,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from baglib.metadata import TopicInfo  # noqa: E402
+from baglib.format.metadata import TopicInfo  # noqa: E402
 from components.recorder.recorder_options import RecordOptions  # noqa: E402
 from components.recorder.recording_session import RecordingSession  # noqa: E402
 

@@ -19,9 +19,9 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
-from baglib.message_definitions import message_class
-from baglib.writer import BagWriter
-from baglib.cdr_fast import CdrData, serialize
+from baglib.format.message_definitions import message_class
+from baglib.write.writer import BagWriter
+from baglib.format.cdr_fast import CdrData, serialize
 from components.recorder.recorder import Recorder
 
 
@@ -246,7 +246,7 @@ class GatedRecorder(Recorder):
 class PlaybackProbe(ComponentNode):
     """An in-process consumer for player tests: subscribes to ``topics`` (with ``types``, reliable keep_all
     unless ``best_effort``) and answers ``~/report`` (std_srvs/Trigger) with JSON per topic: receive times
-    (monotonic ns), the SHA-1 of each message's exact CDR (baglib.cdr_fast: what a recorder writes) and the
+    (monotonic ns), the SHA-1 of each message's exact CDR (baglib.format.cdr_fast: what a recorder writes) and the
     Python types of ``data`` fields."""
 
     def __init__(self, **kwargs: Any) -> None:

@@ -3,7 +3,7 @@
 One round trip at a time would spend most of the run waiting for DDS; here up to ``max_in_flight`` futures
 are pending and the executor is spun until each completes or times out. A request that gets no reply in
 time is abandoned and counted (a recorder's services keep only 10 requests queued, and a fresh client may
-lose its first replies while the server has not matched it yet, see component_container.repeated_call).
+lose its first replies while the server has not matched it yet, see ipc_component.repeated_call).
 """
 from __future__ import annotations
 

@@ -23,9 +23,9 @@ from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import Image, Imu
 from std_msgs.msg import String
 
-from baglib.cdr_fast import serialize
-from baglib.metadata import TopicInfo
-from baglib.writer import BagWriter
+from baglib.format.cdr_fast import serialize
+from baglib.format.metadata import TopicInfo
+from baglib.write.writer import BagWriter
 
 from container_process import ContainerClient, ContainerProcess, listing, proc_status, wait_until
 from fuzz_pipeline import Pipeline, PipelineCounts

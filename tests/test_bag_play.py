@@ -18,9 +18,9 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from baglib.cdr_fast import serialize
-from baglib.metadata import TopicInfo, qos_profile_dict
-from baglib.writer import BagWriter
+from baglib.format.cdr_fast import serialize
+from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.write.writer import BagWriter
 from container_process import wait_until
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))

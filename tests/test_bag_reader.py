@@ -23,11 +23,11 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlu
 from rosbags.typesys import Stores, get_typestore
 from std_msgs.msg import String
 
-from baglib.message_definitions import message_definition
-from baglib.metadata import TopicInfo, qos_profile_dict
-from baglib.reader import BagMessage, BagReadError, BagReader
-from baglib.repair import recover_bag
-from baglib.writer import BagWriter
+from baglib.format.message_definitions import message_definition
+from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.read.reader import BagMessage, BagReadError, BagReader
+from baglib.tools.repair import recover_bag
+from baglib.write.writer import BagWriter
 
 T0 = 1_718_000_000_000_000_000
 SENSOR_QOS = qos_profile_dict(QoSProfile(
@@ -303,7 +303,7 @@ def test_truncated_mcap_reads_what_is_complete(preset: str, tmp_path: Path,
         cut = tmp_path / f"cut_{fraction}"
         shutil.copytree(bag, cut)
         os.truncate(cut / path.name, int(size * fraction))
-        with caplog.at_level(logging.WARNING, logger="baglib.mcap_reader"):
+        with caplog.at_level(logging.WARNING, logger="baglib.read.mcap_reader"):
             caplog.clear()
             messages = read(cut)
         assert "has no summary" in caplog.text

@@ -16,8 +16,8 @@ import yaml
 from mcap.writer import CompressionType
 from rosbags.rosbag2 import Reader
 
-from baglib.metadata import parse_qos_profiles
-from baglib.reader import BagReader
+from baglib.format.metadata import parse_qos_profiles
+from baglib.read.reader import BagReader
 from legacy_bags import (
     LegacyMessage,
     LegacyTopic,

@@ -43,19 +43,20 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from sensor_msgs.msg import Image, Imu, PointCloud2, PointField
 from std_msgs.msg import String
 
-from baglib import cdr_fast, mcap_storage, message_definitions
-from baglib.writer import BagExistsError, BagWriteError, BagWriter
-from baglib.cdr_fast import SerializedBuffers
-from baglib.direct_file import DirectFile
-from baglib.mcap_records import scan
-from baglib.mcap_storage import DEFAULT_CHUNK_SIZE, PADDING_OPCODE, McapStorage
-from baglib.reader import BagReader
-from baglib.message_definitions import (
+from baglib.format import cdr_fast, message_definitions
+from baglib.write import mcap_storage
+from baglib.write.writer import BagExistsError, BagWriteError, BagWriter
+from baglib.format.cdr_fast import SerializedBuffers
+from baglib.write.direct_file import DirectFile
+from baglib.format.mcap_records import scan
+from baglib.write.mcap_storage import DEFAULT_CHUNK_SIZE, PADDING_OPCODE, McapStorage
+from baglib.read.reader import BagReader
+from baglib.format.message_definitions import (
     MessageDefinitionNotFoundError,
     message_definition,
     type_hash,
 )
-from baglib.metadata import QOS_KEYS, TopicInfo, qos_profile_dict
+from baglib.format.metadata import QOS_KEYS, TopicInfo, qos_profile_dict
 
 T0 = 1_718_000_000_000_000_000
 REPO = Path(__file__).resolve().parent.parent
@@ -862,7 +863,7 @@ DISK_FULL_CHILD = textwrap.dedent("""
     sys.path.insert(0, {repo!r})
     from rclpy.serialization import serialize_message
     from tests.test_bag_writer import TOPICS, T0, topic_info
-    from baglib.writer import BagWriter, BagWriteError
+    from baglib.write.writer import BagWriter, BagWriteError
 
     storage_id, preset, topic, limit, count, bag = {args!r}
     make = TOPICS[topic][1]
@@ -939,7 +940,7 @@ LIMIT_SWEEP_CHILD = textwrap.dedent("""
     sys.path.insert(0, {repo!r})
     from rclpy.serialization import serialize_message
     from tests.test_bag_writer import TOPICS, T0, topic_info
-    from baglib.writer import BagWriter, BagWriteError
+    from baglib.write.writer import BagWriter, BagWriteError
 
     plan, limits, root = {args!r}
     payloads = [serialize_message(TOPICS[topic][1](n)) for n, topic in enumerate(plan)]

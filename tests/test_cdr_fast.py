@@ -28,12 +28,12 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2, PointField, Temperature
 from std_msgs.msg import String
 
-from baglib import cdr_fast
-from baglib.writer import BagWriter
-from baglib.cdr_fast import MIN_BUFFERS_SIZE, SerializedBuffers, serialize
-from baglib.cdr_size import serialized_size
-from baglib.message_definitions import type_hash
-from baglib.metadata import TopicInfo
+from baglib.format import cdr_fast
+from baglib.write.writer import BagWriter
+from baglib.format.cdr_fast import MIN_BUFFERS_SIZE, SerializedBuffers, serialize
+from baglib.format.cdr_size import serialized_size
+from baglib.format.message_definitions import type_hash
+from baglib.format.metadata import TopicInfo
 from cdr_reference import reference
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)

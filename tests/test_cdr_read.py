@@ -25,9 +25,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, Imu, PointCloud2, PointField
 from std_msgs.msg import Header, String
 
-from baglib import cdr_read
-from baglib.cdr_fast import serialize
-from baglib.cdr_read import deserialize
+from baglib.format import cdr_read
+from baglib.format.cdr_fast import serialize
+from baglib.format.cdr_read import deserialize
 from cdr_reference import ENCAPSULATION, reference
 
 SEED = int(os.environ.get("CDR_READ_SEED") or random.SystemRandom().randrange(2**32))

@@ -415,8 +415,8 @@ def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: pathlib.Path) -> No
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from baglib.writer import BagWriter
-    from baglib.metadata import TopicInfo
+    from baglib.write.writer import BagWriter
+    from baglib.format.metadata import TopicInfo
 
     writer = BagWriter(tmp_path / "info_bag")
     writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String"))

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from baglib import direct_file
-from baglib.direct_file import BLOCK, IN_PLACE_MIN, STAGING, DirectFile, address, open_exclusive
+from baglib.write import direct_file
+from baglib.write.direct_file import BLOCK, IN_PLACE_MIN, STAGING, DirectFile, address, open_exclusive
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -1,42 +1,119 @@
-"""The layout rules: imports point down (container <- components; baglib below both), and what the README
-tells users to import is importable as written."""
+"""The layout rules, read from every module's imports (ast): every arrow points down.
+
+    ipc_component (CLI)          may use everything below
+    components                   may use component_container and baglib
+    component_container          may use baglib only where a runtime needs it (today: nowhere)
+    baglib.tools                 may use baglib.read, baglib.write, baglib.format
+    baglib.read | baglib.write   may use baglib.format, never each other nor the tools
+    baglib.format                the bottom: no other layer of the project
+
+The test harness (``ipc_testing``) sits beside the CLI: tests and benchmarks use it, no product code does.
+"""
 from __future__ import annotations
 
 import ast
 import pathlib
 
+import pytest
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
+#: For each layer, the project layers it must not import. Layers are module prefixes; the longest one wins.
+FORBIDDEN: dict[str, set[str]] = {
+    "baglib.format": {"baglib.read", "baglib.write", "baglib.tools", "components", "component_container",
+                      "ipc_component", "ipc_testing"},
+    "baglib.read": {"baglib.write", "baglib.tools", "components", "component_container", "ipc_component",
+                    "ipc_testing"},
+    "baglib.write": {"baglib.read", "baglib.tools", "components", "component_container", "ipc_component",
+                     "ipc_testing"},
+    "baglib.tools": {"components", "component_container", "ipc_component", "ipc_testing"},
+    "component_container": {"components", "ipc_component", "ipc_testing"},
+    "components": {"ipc_component", "ipc_testing"},
+    "ipc_component": {"ipc_testing"},
+}
+SOURCE_PACKAGES = ("baglib", "component_container", "components", "ipc_component", "ipc_testing")
 
-def imported_modules(package: str) -> dict[str, set[str]]:
-    """Per source file of ``package``, the absolute module names it imports."""
-    found: dict[str, set[str]] = {}
-    for path in sorted((REPO / package).rglob("*.py")):
-        names: set[str] = set()
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import):
-                names.update(alias.name for alias in node.names)
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names.add(node.module)
-        found[str(path.relative_to(REPO))] = names
+
+def module_name(path: pathlib.Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports_of(path: pathlib.Path) -> set[str]:
+    """The absolute module names ``path`` imports (relative imports resolved against its package)."""
+    package = module_name(path) if path.name == "__init__.py" else module_name(path).rpartition(".")[0]
+    return imports_in(path.read_text(), package)
+
+
+def imports_in(source: str, package: str) -> set[str]:
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                base = ".".join([*anchor, *([base] if base else [])])
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+    return names
+
+
+def layer_of(module: str) -> str | None:
+    matches = [layer for layer in FORBIDDEN if module == layer or module.startswith(layer + ".")]
+    return max(matches, key=len) if matches else None
+
+
+def within(module: str, layer: str) -> bool:
+    return module == layer or module.startswith(layer + ".")
+
+
+def all_modules() -> dict[str, set[str]]:
+    return {module_name(path): imports_of(path)
+            for package in SOURCE_PACKAGES for path in sorted((REPO / package).rglob("*.py"))}
+
+
+def upward_imports(modules: dict[str, set[str]]) -> dict[str, list[str]]:
+    found = {}
+    for module, imported in modules.items():
+        layer = layer_of(module)
+        bad = sorted(name for name in imported for other in FORBIDDEN.get(layer, ()) if within(name, other))
+        if bad:
+            found[module] = bad
     return found
 
 
-def test_container_never_imports_components() -> None:
-    offending = {f: sorted(n for n in names if n.split(".")[0] == "components")
-                 for f, names in imported_modules("component_container").items()}
-    assert not {f: n for f, n in offending.items() if n}
+def test_every_import_points_down() -> None:
+    modules = all_modules()
+    assert {"baglib.read.reader", "baglib.write.writer", "baglib.tools.repair", "ipc_component.cli",
+            "component_container.component_manager"} <= set(modules)
+    assert upward_imports(modules) == {}
 
 
-def test_baglib_imports_neither_components_nor_the_container() -> None:
-    modules = imported_modules("baglib")
-    assert "baglib/writer.py" in modules and "baglib/info.py" in modules
-    offending = {f: sorted(n for n in names if n.split(".")[0] in ("components", "component_container"))
-                 for f, names in modules.items()}
-    assert not {f: n for f, n in offending.items() if n}
+@pytest.mark.parametrize(("module", "imported"), [
+    ("baglib.read.reader", "baglib.tools.repair"),       # the read path once imported the repair tool
+    ("baglib.read.sqlite_reader", "baglib.write.writer"),
+    ("baglib.write.writer", "baglib.read.reader"),
+    ("baglib.format.metadata", "baglib.read.metadata_read"),
+    ("component_container.component_manager", "components.recorder.recorder"),
+    ("components.player.player", "ipc_component.cli"),
+])
+def test_the_rule_catches_an_upward_import(module: str, imported: str) -> None:
+    assert upward_imports({module: {imported}}) == {module: [imported]}
 
 
-def test_component_node_is_importable_as_the_readme_says() -> None:
+def test_relative_imports_are_resolved() -> None:
+    source = "from ..tools import repair\nfrom .mcap_reader import McapReader\n"
+    assert {"baglib.tools", "baglib.tools.repair", "baglib.read.mcap_reader"} <= imports_in(source, "baglib.read")
+
+
+def test_the_cli_lives_outside_the_container_runtime() -> None:
+    assert not list((REPO / "component_container").glob("cli*.py"))
+    assert (REPO / "ipc_component" / "cli.py").is_file()
+
+
+def test_component_node_is_importable_as_the_docs_say() -> None:
     from component_container import ComponentNode
     from component_container.component_node import ComponentNode as Defined
 

@@ -41,9 +41,9 @@ from std_msgs.msg import String
 from service_msgs.msg import ServiceEventInfo
 from std_srvs.srv import SetBool, Trigger
 
-from baglib.cdr_fast import serialize
-from baglib.metadata import TopicInfo, qos_profile_dict
-from baglib.writer import BagWriter
+from baglib.format.cdr_fast import serialize
+from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.write.writer import BagWriter
 from container_process import ContainerClient, call_until_answered, wait_until
 
 IPC = {"use_intra_process_comms": True}

@@ -26,11 +26,11 @@ import yaml
 from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 
-from baglib import mcap_storage
-from baglib.info import BagInfoError, format_bag_info
-from baglib.metadata import TopicInfo
-from baglib.repair import RecoveryReport, recover_bag
-from component_container.cli import main as cli_main
+from baglib.write import mcap_storage
+from baglib.tools.info import BagInfoError, format_bag_info
+from baglib.format.metadata import TopicInfo
+from baglib.tools.repair import RecoveryReport, recover_bag
+from ipc_component.cli import main as cli_main
 
 T0 = 1_718_000_000_000_000_000
 MESSAGES = 1200
@@ -65,7 +65,7 @@ def announce_seed() -> None:
 
 def write_bag(path: Path, storage_id: str, preset: str, monkeypatch: pytest.MonkeyPatch,
               max_size: int = 0, custom_data: dict[str, str] | None = None, kind: str = "chunked") -> Path:
-    from baglib.writer import BagWriter
+    from baglib.write.writer import BagWriter
     for name, options in mcap_storage.MCAP_PRESETS.items():
         monkeypatch.setitem(mcap_storage.MCAP_PRESETS, name, replace(options, chunk_size=8192))
     with BagWriter(path, storage_id, max_bagfile_size=max_size, storage_preset_profile=preset,
@@ -394,7 +394,7 @@ def test_sqlite_killed_mid_transaction(mode: str, sources: dict[str, Path], tmp_
 def test_interrupted_recover_is_finished_by_the_next(sources: dict[str, Path], tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """Killed between moving the journal aside and replacing the database: the rerun finishes."""
-    from baglib import repair
+    from baglib.tools import repair
     bag = tmp_path / "bag"
     shutil.copytree(sources["sqlite3"], bag)
     path = storage_file(bag)

@@ -31,10 +31,10 @@ from service_msgs.msg import ServiceEventInfo
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
-from baglib.info import format_bag_info
-from baglib.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
-from baglib.metadata import TopicInfo
-from baglib.service_events import (
+from baglib.tools.info import format_bag_info
+from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
+from baglib.format.metadata import TopicInfo
+from baglib.format.service_events import (
     event_class,
     event_topic,
     event_type,
@@ -42,7 +42,7 @@ from baglib.service_events import (
     service_name,
     service_type,
 )
-from baglib.writer import BagWriter
+from baglib.write.writer import BagWriter
 from components.recorder.recorder_options import RecordOptions
 from components.recorder.topic_selection import TopicFilter
 

@@ -45,9 +45,9 @@ from rosidl_parser import definition
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
-from baglib import cdr_fast
-from baglib.cdr_fast import MIN_BUFFERS_SIZE, serialize
-from baglib.cdr_size import serialized_layout, serialized_size
+from baglib.format import cdr_fast
+from baglib.format.cdr_fast import MIN_BUFFERS_SIZE, serialize
+from baglib.format.cdr_size import serialized_layout, serialized_size
 
 SEED = int(os.environ.get("WIRE_EXACT_SEED") or random.randrange(2**32))
 RANDOM_MESSAGES = 4

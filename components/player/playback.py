@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from baglib.reader import BagMessage
+from baglib.read.reader import BagMessage
 from components.player.playback_clock import PlaybackClock
 from components.player.read_ahead import Queued, ReadAhead
 

@@ -38,9 +38,9 @@ from rosbag2_interfaces.srv import (
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
-from baglib.reader import BagMessage, BagReader, BagReadError
-from baglib.message_definitions import message_class
-from baglib.service_events import is_service_event_topic
+from baglib.read.reader import BagMessage, BagReader, BagReadError
+from baglib.format.message_definitions import message_class
+from baglib.format.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
 from components.player.allocator import reuse_large_buffers

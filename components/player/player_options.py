@@ -15,7 +15,7 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from baglib.service_events import event_topic
+from baglib.format.service_events import event_topic
 from components.bounds import Bounds
 from components.node_parameters import clean, declare_defaults, given_values, warn_unknown
 

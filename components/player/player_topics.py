@@ -8,7 +8,7 @@ otherwise rosbag2's default offer (reliable, volatile, keep_last 10).
 
 A message goes out as what each kind of subscriber can use without waste: in-process subscribers of a
 container get one message object (deserialized once, only if such a subscriber exists, big payloads without a
-second copy: baglib.cdr_read), DDS readers get the recorded CDR bytes as they are.
+second copy: baglib.format.cdr_read), DDS readers get the recorded CDR bytes as they are.
 """
 from __future__ import annotations
 
@@ -19,9 +19,9 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from baglib.cdr_read import deserialize
-from baglib.reader import Connection
-from baglib.service_events import is_service_event_topic
+from baglib.format.cdr_read import deserialize
+from baglib.read.reader import Connection
+from baglib.format.service_events import is_service_event_topic
 from components.player.player_options import PlayOptions
 from components.qos_profiles import profile_from_dict
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Collection
 from itertools import islice
 from typing import Any
 
-from baglib.reader import BagMessage, BagReader
+from baglib.read.reader import BagMessage, BagReader
 
 
 class Queued:

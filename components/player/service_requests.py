@@ -14,9 +14,9 @@ from typing import Any
 from rclpy.node import Node
 from service_msgs.msg import ServiceEventInfo
 
-from baglib.cdr_read import deserialize
-from baglib.reader import Connection
-from baglib.service_events import event_class, service_name, service_type
+from baglib.format.cdr_read import deserialize
+from baglib.read.reader import Connection
+from baglib.format.service_events import event_class, service_name, service_type
 
 #: play.service_requests_source -> the event type it sends
 REQUEST_EVENTS = {"SERVICE_INTROSPECTION": ServiceEventInfo.REQUEST_RECEIVED,

@@ -13,7 +13,7 @@ import os
 import time
 from pathlib import Path
 
-from baglib.writer import BagWriteError
+from baglib.write.writer import BagWriteError
 
 #: Rate samples older than this are forgotten: the estimate follows the current write rate.
 RATE_WINDOW = 5.0

@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 from sensor_msgs.msg import CompressedImage, Image, Imu, PointCloud2
 
-from baglib.cdr_size import serialized_size
+from baglib.format.cdr_size import serialized_size
 
 
 @dataclass(slots=True)

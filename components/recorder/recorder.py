@@ -34,10 +34,10 @@ from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
 from component_container.health import Health
-from baglib.writer import BagWriter
-from baglib.message_definitions import message_definition
-from baglib.metadata import TopicInfo, qos_profile_dict
-from baglib.message_definitions import message_class
+from baglib.write.writer import BagWriter
+from baglib.format.message_definitions import message_definition
+from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.format.message_definitions import message_class
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents

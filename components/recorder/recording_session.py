@@ -29,12 +29,12 @@ from collections import Counter, defaultdict, deque
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from baglib import cdr_fast
-from baglib.cdr_fast import CdrData
-from baglib.writer import BagWriteError, BagWriter
+from baglib.format import cdr_fast
+from baglib.format.cdr_fast import CdrData
+from baglib.write.writer import BagWriteError, BagWriter
 from components.recorder.disk_guard import DiskGuard
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
-from baglib.metadata import TopicInfo
+from baglib.format.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
 Serializer = Callable[[Any], CdrData]

@@ -6,7 +6,7 @@ with ``_``) only with ``include_hidden_topics``; topics without publishers only 
 ``include_unpublished_topics``. The recorder's own event topic is never recorded.
 
 Service event topics (``<service>/_service_event`` of type ``pkg/srv/Name_Event``, see
-:mod:`baglib.service_events`) are selected apart, as in rosbag2 Jazzy's TopicFilter: ``all_services``, or
+:mod:`baglib.format.service_events`) are selected apart, as in rosbag2 Jazzy's TopicFilter: ``all_services``, or
 the service named in ``services``, or ``regex`` matching the *service* name; minus ``exclude_services`` and
 ``exclude_regex`` (again on the service name). The topic options (``all_topics``, ``topics``,
 ``topic_types``, ``exclude_topics``, ``exclude_topic_types``, ``include_hidden_topics``) never apply to them,
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from baglib.service_events import event_topic, is_service_event_topic, service_name
+from baglib.format.service_events import event_topic, is_service_event_topic, service_name
 from components import qos_profiles
 from components.recorder.recorder_options import RecordOptions
 

@@ -22,11 +22,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, Protocol
 
-from .mcap_storage import McapStorage
-from .cdr_fast import CdrData
-from .message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
-from .metadata import BagMetadata, FileInfo, TopicInfo
-from .sqlite_storage import SqliteStorage
+from baglib.write.mcap_storage import McapStorage
+from baglib.format.cdr_fast import CdrData
+from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
+from baglib.format.metadata import BagMetadata, FileInfo, TopicInfo
+from baglib.write.sqlite_storage import SqliteStorage
 
 __all__ = ["BagExistsError", "BagWriteError", "BagWriter", "SplitCallback"]
 

@@ -45,10 +45,10 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Header, McapRecord, Metadata, MetadataIndex, Schema
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 
-from .direct_file import BLOCK, DirectFile, open_exclusive
+from baglib.write.direct_file import BLOCK, DirectFile, open_exclusive
 
-from .mcap_records import MAGIC, Totals, scan, summary_tail
-from .metadata import ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
+from baglib.format.mcap_records import MAGIC, Totals, scan, summary_tail
+from baglib.format.metadata import ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
 __all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "METADATA_KEY", "METADATA_NAME", "PADDING_OPCODE",
            "McapStorage", "MessageBuffers"]

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import shutil
 import sqlite3
 import struct
@@ -35,17 +34,16 @@ from typing import Any
 import yaml
 from mcap.opcode import Opcode
 
-from .mcap_records import MAGIC, Scan, Totals, scan, summary_tail
-from .mcap_storage import METADATA_KEY, METADATA_NAME
-from .metadata import METADATA_FILENAME, SAFE_LOADER, BagMetadata, FileInfo, TopicInfo
-from .sqlite_storage import create_tables
+from baglib.format.bag_files import RECOVER_COMMAND, STORAGE_EXTENSIONS, storage_files
+from baglib.format.mcap_records import MAGIC, Scan, Totals, scan, summary_tail
+from baglib.write.mcap_storage import METADATA_KEY, METADATA_NAME
+from baglib.format.metadata import METADATA_FILENAME, SAFE_LOADER, BagMetadata, FileInfo, TopicInfo
+from baglib.write.sqlite_storage import create_tables
 
 
 __all__ = ["RECOVER_COMMAND", "FileReport", "RecoveryReport", "recover_bag", "storage_files"]
 
-RECOVER_COMMAND = "ipc-component bag recover"
 _SQLITE_MAGIC = b"SQLite format 3\0"
-_EXTENSIONS = {".mcap": "mcap", ".db3": "sqlite3"}
 _TEMP = ".recover-tmp"        # suffix of a file or directory being written by a recover
 _ASIDE = ".recover-aside"     # suffix of a SQLite journal moved aside while its database is replaced
 _SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
@@ -112,16 +110,6 @@ class _Recovered:
     #: Writes the repaired file at the temporary path, given the bag's metadata to close it with;
     #: ``None`` when the file is intact and kept as it is.
     write: Callable[[Path, str], None] | None
-
-
-def storage_files(bag: Path) -> list[Path]:
-    """The directory's storage files in recording order (``<name>_<N>`` by N, then by name)."""
-    def order(path: Path) -> tuple[int, str]:
-        number = re.search(r"_(\d+)$", path.stem)
-        return (int(number.group(1)) if number else 2**63, path.name)
-
-    return sorted((path for path in bag.iterdir() if path.suffix in _EXTENSIONS and not path.name.startswith(".")
-                   and path.is_file()), key=order)
 
 
 def recover_bag(bag: str | os.PathLike[str], output: str | os.PathLike[str] | None = None) -> RecoveryReport:
@@ -234,7 +222,7 @@ def _storage_of(path: Path) -> str:
         return "mcap"
     if start == _SQLITE_MAGIC:
         return "sqlite3"
-    return _EXTENSIONS[path.suffix]
+    return STORAGE_EXTENSIONS[path.suffix]
 
 
 def _topic(report: FileReport, name: str, type_name: str, serialization_format: str, qos: Any,

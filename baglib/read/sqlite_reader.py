@@ -18,9 +18,9 @@ import urllib.parse
 from collections.abc import Collection, Iterator
 from pathlib import Path
 
-from .metadata import parse_qos_profiles
-from .repair import RECOVER_COMMAND
-from .storage_reader import BagReadError, FileTopic, RawMessage
+from baglib.format.metadata import parse_qos_profiles
+from baglib.format.bag_files import RECOVER_COMMAND
+from baglib.read.storage_reader import BagReadError, FileTopic, RawMessage
 
 __all__ = ["SqliteReader"]
 

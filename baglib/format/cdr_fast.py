@@ -37,7 +37,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
 from std_msgs.msg import Header
 
-from .cdr_size import serialized_layout
+from baglib.format.cdr_size import serialized_layout
 
 __all__ = ["CDR_LE_HEADER", "MIN_BUFFERS_SIZE", "CdrData", "SerializedBuffers", "serialize"]
 

@@ -2,7 +2,7 @@
 
 It reads what rosbag2 has written since Foxy (``metadata.yaml`` versions 4 to 9, MCAP and SQLite3 in
 all their schema versions, split bags, compression modes ``file`` and ``message``), what ``rosbags``
-writes, and what this project's :class:`~baglib.writer.BagWriter` writes, including MCAP files a crash
+writes, and what this project's :class:`~baglib.write.writer.BagWriter` writes, including MCAP files a crash
 left without summary (read up to their first damage). Each storage file is read by its storage
 reader (:mod:`.mcap_reader`, :mod:`.sqlite_reader`, the interface in :mod:`.storage_reader`); this
 module ties the files of a bag together: which topics there are (``metadata.yaml`` first, then what
@@ -24,11 +24,11 @@ from typing import Any, NamedTuple
 
 import zstandard
 
-from .mcap_reader import McapReader
-from .metadata import METADATA_FILENAME, normalize_type
-from .metadata_read import StoredMetadata, load_metadata, parse_metadata
-from .sqlite_reader import SqliteReader
-from .storage_reader import BagReadError, StorageReader
+from baglib.read.mcap_reader import McapReader
+from baglib.format.metadata import METADATA_FILENAME, normalize_type
+from baglib.read.metadata_read import StoredMetadata, load_metadata, parse_metadata
+from baglib.read.sqlite_reader import SqliteReader
+from baglib.read.storage_reader import BagReadError, StorageReader
 
 __all__ = ["BagMessage", "BagReadError", "BagReader", "Connection"]
 

@@ -16,7 +16,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any, Callable
 
-from .service_events import EVENT_TYPE_SUFFIX, event_class, service_type
+from baglib.format.service_events import EVENT_TYPE_SUFFIX, event_class, service_type
 
 __all__ = [
     "message_class",

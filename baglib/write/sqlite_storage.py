@@ -14,9 +14,9 @@ import errno
 import sqlite3
 from pathlib import Path
 
-from .cdr_fast import CdrData
-from .message_definitions import MessageDefinitionNotFoundError, type_hash
-from .metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
+from baglib.format.cdr_fast import CdrData
+from baglib.format.message_definitions import MessageDefinitionNotFoundError, type_hash
+from baglib.format.metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
 __all__ = ["SQLITE_PRESETS", "SqliteStorage", "create_tables"]
 

@@ -11,12 +11,12 @@ from __future__ import annotations
 import datetime
 from pathlib import Path
 
-from baglib.mcap_records import MAGIC
-from baglib.metadata import METADATA_FILENAME
-from baglib.metadata_read import StoredMetadata, load_metadata
-from baglib.repair import RECOVER_COMMAND, storage_files
-from baglib.service_events import is_service_event_topic, service_name, service_type
-from baglib.storage_reader import BagReadError
+from baglib.format.mcap_records import MAGIC
+from baglib.format.metadata import METADATA_FILENAME
+from baglib.read.metadata_read import StoredMetadata, load_metadata
+from baglib.format.bag_files import RECOVER_COMMAND, storage_files
+from baglib.format.service_events import is_service_event_topic, service_name, service_type
+from baglib.read.storage_reader import BagReadError
 
 _LABEL_WIDTH = 19  # "Topic information: " and the padding of every other label
 _SERVICE_LABEL_WIDTH = 21  # "Service information: ", which rosbag2 pads its service lines to

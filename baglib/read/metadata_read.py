@@ -14,9 +14,9 @@ from typing import Any
 
 import yaml
 
-from .metadata import METADATA_FILENAME, SAFE_LOADER, FileInfo, parse_qos_profiles
-from .repair import RECOVER_COMMAND, storage_files
-from .storage_reader import BagReadError
+from baglib.format.metadata import METADATA_FILENAME, SAFE_LOADER, FileInfo, parse_qos_profiles
+from baglib.format.bag_files import RECOVER_COMMAND, storage_files
+from baglib.read.storage_reader import BagReadError
 
 __all__ = ["SUPPORTED_VERSIONS", "StoredMetadata", "StoredTopic", "load_metadata", "parse_metadata"]
 

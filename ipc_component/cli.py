@@ -22,7 +22,7 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
-from component_container import bag_play
+from ipc_component import bag_play
 
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
 # s: how long ``list`` without a container watches the graph. This project's containers re-announce every
@@ -80,7 +80,7 @@ class RosSession:
 
     def find_container(self, container: str, deadline: float) -> None:
         """Wait (until ``deadline``) for ``container`` to show up as a container; CliError if it does not."""
-        from component_container.container_discovery import list_containers
+        from ipc_component.container_discovery import list_containers
 
         found = list_containers(self.node, self.executor, deadline=deadline, discovery_until=deadline,
                                 container=container, list_components=False)
@@ -98,7 +98,7 @@ class RosSession:
         """
         from composition_interfaces.srv import ListNodes
 
-        from component_container.repeated_call import RepeatedCall
+        from ipc_component.repeated_call import RepeatedCall
 
         client = self.node.create_client(srv_type, f"{container}/_container/{service}")
         harmless = RepeatedCall(self.node.create_client(ListNodes, f"{container}/_container/list_nodes"),
@@ -120,7 +120,7 @@ class RosSession:
 
         A service is "ready" once this side has matched it; the container may not have discovered this
         process's reply readers yet, and Fast DDS then drops the reply. A harmless ListNodes call, repeated
-        until one is answered (``harmless``, a component_container.repeated_call.RepeatedCall), waits out
+        until one is answered (``harmless``, a ipc_component.repeated_call.RepeatedCall), waits out
         that discovery (at most until ``deadline``; then the real call goes ahead and its own timeout applies).
         """
         while harmless.reply is None and time.monotonic() < deadline:
@@ -161,7 +161,7 @@ def _capitalized(text: str) -> str:
 
 # --- list -----------------------------------------------------------------------------------------------
 def run_list(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
-    from component_container.container_discovery import list_containers
+    from ipc_component.container_discovery import list_containers
 
     if args.spin_time < 0:
         raise CliError(f"Invalid --spin-time {args.spin_time:g}: must not be negative")
@@ -318,7 +318,7 @@ def run_types(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
 # --- bag info -------------------------------------------------------------------------------------------
 def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     # Reads files only, like `ros2 bag info`: no rclpy session.
-    from baglib.info import BagInfoError, format_bag_info
+    from baglib.tools.info import BagInfoError, format_bag_info
 
     try:
         print(format_bag_info(args.bag_path), flush=True)
@@ -329,7 +329,7 @@ def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
 
 def run_bag_recover(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     """Recover a bag a crash left unfinished; exit 1 unless the result is readable."""
-    from baglib.repair import recover_bag
+    from baglib.tools.repair import recover_bag
 
     report = recover_bag(args.bag_path, args.output)
     print(report.text(), flush=True)

@@ -25,7 +25,7 @@ from composition_interfaces.srv import ListNodes
 from rclpy.executors import Executor
 from rclpy.node import Node
 
-from component_container.repeated_call import RepeatedCall
+from ipc_component.repeated_call import RepeatedCall
 
 HIDDEN_NODE_PREFIX = "_"
 CONTAINER_SERVICES = {

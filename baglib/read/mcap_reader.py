@@ -31,9 +31,9 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, ChunkIndex, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from .mcap_records import MAGIC, InvalidRecord, Totals, decompress, scan
-from .metadata import parse_qos_profiles
-from .storage_reader import BagReadError, FileTopic, RawMessage
+from baglib.format.mcap_records import MAGIC, InvalidRecord, Totals, decompress, scan
+from baglib.format.metadata import parse_qos_profiles
+from baglib.read.storage_reader import BagReadError, FileTopic, RawMessage
 
 __all__ = ["McapReader"]
 
