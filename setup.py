@@ -10,7 +10,7 @@ from __future__ import annotations
 import pathlib
 import sys
 
-from setuptools import find_packages, setup
+from setuptools import Distribution, find_packages, setup
 from setuptools.command.build_py import build_py
 
 ROOT = pathlib.Path(__file__).resolve().parent
@@ -35,6 +35,13 @@ def _data_files() -> list[tuple[str, list[str]]]:
     return sorted(groups.items())
 
 
+class BinaryDistribution(Distribution):
+    """The wheel carries compiled typesupport libraries: tag it for this Python and platform, not ``any``."""
+
+    def has_ext_modules(self) -> bool:
+        return True
+
+
 class BuildPyWithInterfaces(build_py):
     """build_py that first generates and compiles the srv/ interface packages."""
 
@@ -54,4 +61,5 @@ setup(
     package_dir={name: str(BUILD_DIR / "python" / name.replace(".", "/")) for name in INTERFACE_PACKAGES},
     package_data={**{name: ["*.so"] for name in INTERFACES}, "component_container": ["*.xml"]},
     cmdclass={"build_py": BuildPyWithInterfaces},
+    distclass=BinaryDistribution,
 )

@@ -1,0 +1,141 @@
+"""What a user installs: the wheel built from a clean copy of the tree, installed non-editable.
+
+An editable install finds every module in the source tree, so it cannot show a package that the wheel lacks (a
+hand-written package list once left the player out). These tests look at the wheel itself and run the
+installed commands from an environment that holds only the wheel (tests/installed.py).
+"""
+from __future__ import annotations
+
+import signal
+import subprocess
+import tomllib
+import zipfile
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+from std_msgs.msg import String
+
+from container_process import wait_until
+from installed import REPO, InstalledEnv
+
+#: Folders of the tree that are not shipped: tests, benchmarks, examples (their own packages), the interface
+#: sources (shipped as the generated packages) and docs.
+NOT_SHIPPED = {"tests", "benchmarks", "examples", "srv", "docs", "build", "dist"}
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def source_package_folders() -> set[str]:
+    """Every folder of the source tree that holds Python modules, as a dotted package name."""
+    found = set()
+    for path in REPO.rglob("*.py"):
+        parts = path.relative_to(REPO).parts[:-1]
+        if parts and parts[0] not in NOT_SHIPPED and not any(p.startswith(".") or p == "__pycache__"
+                                                             for p in parts):
+            found.add(".".join(parts))
+    return found
+
+
+def wheel_packages(wheel: Path) -> set[str]:
+    with zipfile.ZipFile(wheel) as archive:
+        return {".".join(Path(name).parts[:-1]) for name in archive.namelist()
+                if name.endswith(".py") and ".dist-info" not in name and ".data/" not in name}
+
+
+def registered_plugins() -> dict[str, str]:
+    """The ``rclpy_components`` entry points, read from pyproject.toml (not from the code under test)."""
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    return project["entry-points"]["rclpy_components"]
+
+
+def the_wheel(env: InstalledEnv) -> Path:
+    return next((env.root.parent / "wheels").glob("*.whl"))
+
+
+def test_every_package_folder_of_the_tree_is_in_the_wheel(installed_env: InstalledEnv) -> None:
+    in_wheel = wheel_packages(the_wheel(installed_env))
+    expected = source_package_folders()
+    assert {"components.player", "components.recorder", "baglib.read", "ipc_component"} <= expected
+    assert expected - in_wheel == set()
+    assert {"composition_interfaces.srv", "rosbag2_interfaces.srv"} <= in_wheel  # generated at build time
+
+
+def test_the_rule_sees_a_missing_folder(tmp_path: Path) -> None:
+    """The comparison above fails for a wheel that lacks a folder of the tree."""
+    wheel = tmp_path / "partial-0-py3-none-any.whl"
+    with zipfile.ZipFile(wheel, "w") as archive:
+        for package in source_package_folders() - {"components.player"}:
+            archive.writestr(package.replace(".", "/") + "/__init__.py", "")
+    assert source_package_folders() - wheel_packages(wheel) == {"components.player"}
+
+
+def test_installed_commands_and_modules_come_from_the_wheel(installed_env: InstalledEnv) -> None:
+    site = installed_env.run(installed_env.python, "-c",
+                             "import components.player.player as p, ipc_component.cli as c; "
+                             "print(p.__file__); print(c.__file__)")
+    assert site.returncode == 0, site.stderr
+    assert all(line.startswith(str(installed_env.root)) for line in site.stdout.split()), site.stdout
+    help_text = installed_env.run(installed_env.script("ipc-component"), "bag", "play", "--help")
+    assert help_text.returncode == 0, help_text.stderr
+    assert "usage: ipc-component bag play" in help_text.stdout
+
+
+def test_installed_container_loads_every_registered_plugin(installed_env: InstalledEnv) -> None:
+    container = subprocess.Popen([str(installed_env.python), "-m", "component_container", "--bag-root",
+                                  str(installed_env.root), "--ros-args", "-r", "__node:=installed"],
+                                 cwd=installed_env.root, env=installed_env.env(), stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, text=True)
+    cli = installed_env.script("ipc-component")
+    try:
+        types = installed_env.run(cli, "types")
+        assert types.returncode == 0, types.stderr
+        listed = {line.strip() for line in types.stdout.splitlines()}
+        assert set(registered_plugins()) <= listed
+        for n, (plugin, target) in enumerate(sorted(registered_plugins().items()), start=1):
+            package = target.split(".")[0]  # rclcpp_components' package: where the class is defined
+            loaded = installed_env.run(cli, "load", "/installed", package, plugin,
+                                       "-n", f"plugin_{n}", *(("-p", "storage.uri:=bag") if "Recorder" in plugin
+                                                              else ("-p", "storage.uri:=missing_bag")
+                                                              if "Player" in plugin else ()))
+            assert loaded.returncode == 0 or "Player" in plugin, (plugin, loaded.stdout, loaded.stderr)
+            if "Player" in plugin:  # it loads its module and class, then refuses the missing bag by name
+                assert "missing_bag" in loaded.stderr, loaded.stderr
+                continue
+            assert loaded.stdout.startswith("Loaded component"), loaded.stdout
+            unloaded = installed_env.run(cli, "unload", "/installed", loaded.stdout.split()[2])
+            assert unloaded.returncode == 0, unloaded.stderr
+    finally:
+        container.send_signal(signal.SIGINT)
+        try:
+            output = container.communicate(timeout=30)[0]
+        except subprocess.TimeoutExpired:
+            container.kill()
+            output = container.communicate()[0]
+    assert container.returncode == 0, output
+
+
+def test_installed_bag_play_plays_a_bag_written_by_rosbags(installed_env: InstalledEnv, probe: Node,
+                                                          tmp_path: Path) -> None:
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    bag = tmp_path / "from_rosbags"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection("/installed_chatter", "std_msgs/msg/String", typestore=typestore)
+        for n in range(10):
+            data = typestore.serialize_cdr(typestore.types["std_msgs/msg/String"](data=f"m{n}"),
+                                           "std_msgs/msg/String")
+            writer.write(connection, 1_700_000_000_000_000_000 + n * 10_000_000, data)
+    got: list[str] = []
+    subscription = probe.create_subscription(String, "/installed_chatter", lambda m: got.append(m.data), RELIABLE)
+    try:
+        process = subprocess.Popen([str(installed_env.script("ipc-component")), "bag", "play", str(bag),
+                                    "--delay", "2"], cwd=installed_env.root, env=installed_env.env(),
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        wait_until(lambda: process.poll() is not None, 60.0, probe)
+        stdout, stderr = process.communicate(timeout=10)
+        assert process.returncode == 0, stderr
+        wait_until(lambda: len(got) == 10, 5.0, probe)
+        assert got == [f"m{n}" for n in range(10)]
+    finally:
+        probe.destroy_subscription(subscription)
