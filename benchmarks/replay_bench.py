@@ -75,8 +75,11 @@ from baglib.write.writer import BagWriter  # noqa: E402
 from components.camera_driver import CameraDriver  # noqa: E402
 from components.imu_driver import ImuDriver  # noqa: E402
 from components.lidar_driver import LidarDriver  # noqa: E402
-from components.player.playback_clock import PlaybackClock, ShortSwitchInterval  # noqa: E402
-from container_process import REPO, ContainerClient, ContainerProcess, call_until_answered  # noqa: E402
+from component_container.process_tuning import apply_low_latency  # noqa: E402
+from components.player.playback_clock import PlaybackClock  # noqa: E402
+from ipc_testing import ContainerClient, ContainerProcess, call  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
 from record_bench import Scenario, cpu_seconds, fmt, git_state, machine_snapshot, other_cpu, table  # noqa: E402
 
 IPC = {"use_intra_process_comms": True}
@@ -160,16 +163,13 @@ def clock_floor(bag: Bag) -> dict[str, float]:
     """This machine's floor for the publish-time error: the player's own clock (PlaybackClock, with the
     player's switch interval) sleeping to every log time of the bag at rate 1 in this otherwise idle process,
     publishing nothing. What the player measures above this is its own; what is in it, it cannot beat."""
-    ShortSwitchInterval.acquire()
-    try:
-        clock = PlaybackClock(bag.log_times[0])
-        steal0, errors = steal_seconds(), []
-        for log_time in bag.log_times:
-            clock.sleep_until(log_time)
-            errors.append(time.monotonic_ns() - clock.steady_for(log_time))
-        steal = steal_seconds() - steal0
-    finally:
-        ShortSwitchInterval.release()
+    apply_low_latency()  # as the containers under test (--low-latency)
+    clock = PlaybackClock(bag.log_times[0])
+    steal0, errors = steal_seconds(), []
+    for log_time in bag.log_times:
+        clock.sleep_until(log_time)
+        errors.append(time.monotonic_ns() - clock.steady_for(log_time))
+    steal = steal_seconds() - steal0
     errors.sort()
     return {"p50": errors[len(errors) // 2] / 1e6, "p99": errors[int(len(errors) * 0.99)] / 1e6,
             "max": errors[-1] / 1e6, "steal_s": steal}
@@ -207,7 +207,7 @@ class Caller:
             client = self._clients[(srv_type, service)] = self.node.create_client(srv_type, service)
         if not client.wait_for_service(timeout_sec=timeout):
             raise TimeoutError(f"{service} did not appear within {timeout:g} s")
-        return call_until_answered(self.node, client, request or srv_type.Request(), timeout)
+        return call(self.node, client, request or srv_type.Request(), timeout, again=True)
 
     def json(self, service: str) -> dict[str, Any]:
         return json.loads(self.call(Trigger, service).message)
@@ -236,7 +236,8 @@ def stop_process(process: subprocess.Popen, timeout: float = 20.0) -> None:
 
 @contextlib.contextmanager
 def in_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path) -> Iterator[Setup]:
-    with ContainerProcess("--use-intra-process-comms", "--allow-module-plugins", "--executor", args.executor,
+    with ContainerProcess("--use-intra-process-comms", "--low-latency", "--allow-module-plugins", "--executor",
+                          args.executor,
                           cwd=str(REPO)) as container:
         try:
             client = ContainerClient(caller.node)
@@ -253,7 +254,7 @@ def in_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path
 @contextlib.contextmanager
 def out_of_process(caller: Caller, bag: Bag, args: argparse.Namespace, workdir: Path) -> Iterator[Setup]:
     pairs = [f"{topic}={type_name}" for topic, type_name in bag.types.items()]
-    with ContainerProcess("--use-intra-process-comms", "--executor", args.executor, cwd=str(REPO)) as container, \
+    with ContainerProcess("--use-intra-process-comms", "--low-latency", "--executor", args.executor, cwd=str(REPO)) as container, \
             open(workdir / "consumer.log", "w") as log:
         consumer = subprocess.Popen([sys.executable, "-m", "benchmarks.replay_consumer", *pairs], cwd=str(REPO),
                                     stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))

@@ -44,7 +44,7 @@ from std_srvs.srv import SetBool, Trigger
 from baglib.format.cdr_fast import serialize
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.write.writer import BagWriter
-from container_process import ContainerClient, call_until_answered, wait_until
+from container_process import ContainerClient, call, wait_until
 
 IPC = {"use_intra_process_comms": True}
 PLAYER = "components::Player"
@@ -145,7 +145,7 @@ class PlayerHandle:
         client = self.node.create_client(srv_type, service)
         try:
             assert client.wait_for_service(timeout_sec=timeout), f"{service} not available"
-            return call_until_answered(self.node, client, request or srv_type.Request(), timeout)
+            return call(self.node, client, request or srv_type.Request(), timeout, again=True)
         finally:
             self.node.destroy_client(client)
 
@@ -185,7 +185,7 @@ def container(ros: None, tmp_path_factory: pytest.TempPathFactory) -> Any:
     node = Node("player_test")
     started = Containers(node)
     try:
-        process, client = started.start("--use-intra-process-comms", "--allow-module-plugins")
+        process, client = started.start("--use-intra-process-comms", "--allow-module-plugins", "--low-latency")
         yield node, client, process
     finally:
         started.close()

@@ -22,13 +22,11 @@ import json
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import pytest
 import rclpy
@@ -37,7 +35,6 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rcl_interfaces.srv import GetParameters
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -54,6 +51,7 @@ from components.imu_driver import ImuDriver
 from components.lidar_driver import LidarDriver
 
 from container_process import ContainerClient, small_filesystem
+from ipc_testing import ContainerProcess, call, spin_for, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 IPC = {"use_intra_process_comms": True}
@@ -76,100 +74,12 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
 # --- containers -------------------------------------------------------------------------------------------
-class Container:
-    """``python -m component_container`` with its log in a file (readable while it runs); stopped by pid.
-
-    ``fsize_limit`` starts it through a wrapper that sets RLIMIT_FSIZE (and ignores SIGXFSZ), so that writes
-    beyond that size fail with EFBIG: a full disk for this process only. ``env`` adds environment variables.
-    """
-
-    def __init__(self, name: str, log_dir: Path, *args: str, fsize_limit: int | None = None,
-                 env: dict[str, str] | None = None) -> None:
-        self.name = f"/{name}"
-        self.log_path = log_dir / f"{name}.log"
-        argv = ["component_container", *args, "--ros-args", "-r", f"__node:={name}"]
-        if fsize_limit is None:
-            command = [sys.executable, "-m", *argv]
-        else:
-            command = [sys.executable, "-c",
-                       "import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
-                       f"resource.setrlimit(resource.RLIMIT_FSIZE, ({fsize_limit}, {fsize_limit})); "
-                       f"sys.argv = {argv!r}; runpy.run_module('component_container', run_name='__main__')"]
-        self._log = open(self.log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed in stop()
-        self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(REPO),
-                                        env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})))
-
-    @property
-    def pid(self) -> int:
-        return self.process.pid
-
-    def alive(self) -> bool:
-        return self.process.poll() is None
-
-    def log(self) -> str:
-        return self.log_path.read_text(encoding="utf-8", errors="replace")
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
-        """Signal the container by pid and wait; kill it if it does not exit in time. Returns the exit code."""
-        try:
-            if self.alive():
-                self.process.send_signal(sig)
-                try:
-                    self.process.wait(timeout=timeout)
-                except subprocess.TimeoutExpired:
-                    self.process.kill()
-                    self.process.wait()
-                    raise AssertionError(f"container {self.name} ({self.pid}) ignored signal {sig} for "
-                                         f"{timeout} s:\n{self.log()[-3000:]}") from None
-            return self.process.returncode
-        finally:
-            self._log.close()
-
-    def kill(self) -> None:
-        if self.alive():
-            self.process.kill()
-            self.process.wait()
-        self._log.close()
-
-
-def call(node: Node, client: Any, request: Any = None, timeout: float = 10.0) -> Any:
-    """Call a service through ``node``'s ``client``; returns the response (AssertionError if none comes)."""
-    assert client.wait_for_service(timeout_sec=timeout), f"service {client.srv_name} did not appear"
-    future = client.call_async(request if request is not None else client.srv_type.Request())
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    try:
-        executor.spin_until_future_complete(future, timeout_sec=timeout)
-    finally:
-        executor.remove_node(node)
-        executor.shutdown()
-    assert future.done(), f"no reply from {client.srv_name} within {timeout} s"
-    return future.result()
-
-
-def spin_for(node: Node, seconds: float, until: Callable[[], bool] | None = None) -> bool:
-    """Spin ``node`` for ``seconds`` or until ``until()`` holds; returns whether it does (True without one)."""
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    deadline = time.monotonic() + seconds
-    try:
-        while time.monotonic() < deadline:
-            if until is not None and until():
-                return True
-            executor.spin_once(timeout_sec=0.02)
-    finally:
-        executor.remove_node(node)
-        executor.shutdown()
-    return until() if until is not None else True
-
-
-def wait_until(predicate: Callable[[], Any], timeout: float, interval: float = 0.05) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        result = predicate()
-        if result or time.monotonic() > deadline:
-            return result
-        time.sleep(interval)
+def Container(name: str, log_dir: Path, *args: str, fsize_limit: int | None = None,  # noqa: N802
+              env: dict[str, str] | None = None) -> ContainerProcess:
+    """A container named ``name`` with its log in ``log_dir`` (readable while it runs), started from the
+    repository root; see :class:`ipc_testing.ContainerProcess` for ``fsize_limit`` (a full disk for it only)."""
+    return ContainerProcess(*args, name=name, cwd=REPO, log_path=log_dir / f"{name}.log", fsize_limit=fsize_limit,
+                            env=env)
 
 
 SERVICES = {"pause": Pause, "resume": Resume, "toggle_paused": TogglePaused, "is_paused": IsPaused,
@@ -467,8 +377,8 @@ def assert_contiguous(seqs: list[int], what: str) -> None:
 def closing_stats(container: Container, uri: Path) -> dict[str, dict[str, int]]:
     """The per-topic counts of the recorder's closing log line for the bag at ``uri``."""
     pattern = re.compile(rf"Bag {re.escape(str(uri))} closed: [^\n]*\n((?:  /[^\n]*\n)*)")
-    found = wait_until(lambda: pattern.findall(container.log()), 5.0)
-    assert found, f"no closing summary for {uri} in the container log:\n{container.log()[-3000:]}"
+    found = wait_until(lambda: pattern.findall(container.output), 5.0)
+    assert found, f"no closing summary for {uri} in the container log:\n{container.output[-3000:]}"
     stats = {}
     for line in found[-1].splitlines():
         topic, received, written, dropped = re.fullmatch(
@@ -589,7 +499,7 @@ def rig_module(log_dir: Path, probe: Node) -> Iterator[Rig]:
         yield rig
     finally:
         rig.cleanup()
-        assert rig.container.stop() == 0, rig.container.log()[-3000:]
+        assert rig.container.stop() == 0, rig.container.output[-3000:]
 
 
 @pytest.fixture()
@@ -597,7 +507,7 @@ def rig(rig_module: Rig) -> Iterator[Rig]:
     """The shared rig; after each test it must still be alive with its drivers, and no recorder left."""
     yield rig_module
     rig_module.cleanup()
-    assert rig_module.container.alive(), rig_module.container.log()[-3000:]
+    assert rig_module.container.alive(), rig_module.container.output[-3000:]
     assert {"/camera", "/imu", "/lidar"} <= rig_module.listed()
 
 
@@ -934,7 +844,7 @@ def test_container_signal_finalizes_the_bag(probe: Node, log_dir: Path, tmp_path
         code = container.stop(sig)
     finally:
         container.kill()
-    log = container.log()
+    log = container.output
     assert code == 0, log[-3000:]
     assert re.search(r"Shutting down \(SIG(INT|TERM)\): unloading all components", log), log
     bag = verify_bag(uri)
@@ -989,9 +899,9 @@ def test_disk_full_stops_recording_cleanly(probe: Node, rig: Rig, log_dir: Path,
         error = wait_until(lambda: recorder.stats()["current"]["error"], 15.0, interval=0.2)
         assert error, "the recorder never noticed the full disk"
         assert re.search(r"No space left on device|File too large", error), error
-        log = wait_until(lambda: "stopped:" in target.container.log() and target.container.log(), 5.0)
+        log = wait_until(lambda: "stopped:" in target.container.output and target.container.output, 5.0)
         assert log and re.search(rf"\[recorder_full\]: Recording to {re.escape(str(uri))} stopped: .*"
-                                 r"(No space left on device|File too large)", log), target.container.log()[-3000:]
+                                 r"(No space left on device|File too large)", log), target.container.output[-3000:]
         # The container and the drivers carry on; the recorder keeps counting what it can no longer write.
         received = recorder.stats()["current"]["topics"][imu]["received"]
         time.sleep(0.5)
@@ -1007,7 +917,7 @@ def test_disk_full_stops_recording_cleanly(probe: Node, rig: Rig, log_dir: Path,
         written = sum((uri / name).stat().st_size for name in bag.meta["relative_file_paths"])
         assert written <= size
         assert re.search(rf"Bag {re.escape(str(uri))} closed: \d+ messages, \d+ bytes, error: ",
-                         target.container.log())
+                         target.container.output)
         stats = closing_stats(target.container, uri)
         for topic in topics:
             # Written up to the failure: a whole prefix; everything else is counted as dropped.
@@ -1084,5 +994,5 @@ def test_not_set_means_default_and_unknown_names_are_reported(rig: Rig, tmp_path
     time.sleep(0.5)
     recorder.unload()
     assert set(verify_bag(uri).counts()) == {"/imu/imu"}
-    warnings = re.findall(r"\[recorder_hygiene\]: Unknown parameters, ignored: (.*)", rig.container.log())
+    warnings = re.findall(r"\[recorder_hygiene\]: Unknown parameters, ignored: (.*)", rig.container.output)
     assert warnings == ["record.topic (did you mean record.topics?), max_bag_sise (did you mean max_bag_size?)"]

@@ -73,7 +73,7 @@ def supervised_module(log_dir: Path, probe: Node, tmp_path_factory: pytest.TempP
         yield rig
     finally:
         rig.cleanup()
-        assert container.stop() == 0, container.log()[-3000:]
+        assert container.stop() == 0, container.output[-3000:]
 
 
 @pytest.fixture()
@@ -81,7 +81,7 @@ def supervised(supervised_module: Rig) -> Iterator[Rig]:
     """After each test the container must still be alive with its IMU driver, and no recorder left."""
     yield supervised_module
     supervised_module.cleanup()
-    assert supervised_module.container.alive(), supervised_module.container.log()[-3000:]
+    assert supervised_module.container.alive(), supervised_module.container.output[-3000:]
     assert "/sup_imu" in supervised_module.listed()
 
 
@@ -109,7 +109,7 @@ def test_unserializable_message_is_dropped_and_recording_goes_on(supervised: Rig
         bag = verify_bag(uri)
         assert bag.seqs(topic) == [n for n in range(30) if n != 10]
         assert len(bag.seqs(IMU_TOPIC)) == final["topics"][IMU_TOPIC]["written"] > 0
-        log = supervised.container.log()
+        log = supervised.container.output
         dropped_logs = re.findall(rf"\[recorder_broken\]: Dropped a message on {topic} that cannot be serialized", log)
         assert len(dropped_logs) == 1
         assert re.search(rf"  dropped by reason: {topic} serialize_failed 1", log)
@@ -153,7 +153,7 @@ def test_writer_bug_is_a_storage_failure_with_a_finalized_bag(
             return recorder.stats()["current"]["topics"].get(probe_topic, {}).get("written", 0)
 
         def publish_until(predicate: Callable[[], Any], topic: str) -> Any:
-            return wait_until(lambda: publishers[topic].publish(String(data="x")) or predicate(), 10.0, 0.05)
+            return wait_until(lambda: publishers[topic].publish(String(data="x")) or predicate(), 10.0, interval=0.05)
 
         assert publish_until(lambda: written() >= 5, probe_topic)
         assert recorder.health().level == OK
@@ -217,8 +217,8 @@ def test_unusable_type_is_ignored_and_discovery_goes_on(supervised: Rig, tmp_pat
                                                                "record.exclude_regex": NOT_INFRASTRUCTURE})
         pattern = (rf"\[recorder_types\]: Not recording {shadowed}: type stereo_msgs/msg/DisparityImage cannot be "
                    r"recorded here \(AttributeError: .*_TYPE_SUPPORT")
-        assert wait_until(lambda: re.search(pattern, supervised.container.log()), 10.0), \
-            supervised.container.log()[-3000:]
+        assert wait_until(lambda: re.search(pattern, supervised.container.output), 10.0), \
+            supervised.container.output[-3000:]
         assert wait_until(lambda: recorder.stats()["current"]["topics"].get(IMU_TOPIC, {}).get("written"), 5.0)
         assert shadowed not in recorder.stats()["current"]["topics"]
         assert recorder.trigger("stop_recording").success
@@ -254,7 +254,7 @@ def test_hung_disk_unload_is_bounded(supervised: Rig, tmp_path: Path) -> None:
     started = time.monotonic()
     recorder.unload()
     assert time.monotonic() - started < SHUTDOWN_TIMEOUT + 5.0
-    assert re.search(not_finalized("recorder_hung", uri), supervised.container.log())
+    assert re.search(not_finalized("recorder_hung", uri), supervised.container.output)
     assert not (uri / "metadata.yaml").exists()
     assert "/recorder_hung" not in supervised.listed()
 
@@ -272,7 +272,7 @@ def test_hung_disk_sigterm_is_bounded(probe: Node, log_dir: Path, tmp_path: Path
         uri = tmp_path / "hung"
         wait_until_hung(rig.record("recorder_hung", uri, plugin=("tests", f"{PLUGINS}:HangingDiskRecorder"),
                                    **{"record.topics": [IMU_TOPIC]}))
-        assert container.stop(signal.SIGTERM, timeout=SHUTDOWN_TIMEOUT + 10.0) == 0, container.log()[-3000:]
+        assert container.stop(signal.SIGTERM, timeout=SHUTDOWN_TIMEOUT + 10.0) == 0, container.output[-3000:]
     finally:
         container.kill()
-    assert re.search(not_finalized("recorder_hung", uri), container.log())
+    assert re.search(not_finalized("recorder_hung", uri), container.output)

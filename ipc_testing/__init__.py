@@ -1,0 +1,17 @@
+"""One harness for starting containers and calling them, shared by the tests and the benchmarks (the role of
+rosbag2's ``rosbag2_test_common``).
+
+* :class:`~ipc_testing.process.ContainerProcess`: ``python -m component_container`` as a subprocess, its output
+  in a file, always stopped by its pid;
+* :class:`~ipc_testing.client.ContainerClient`: a plain rclpy client of a container's LoadNode / UnloadNode /
+  ListNodes services;
+* :mod:`~ipc_testing.calls`: one service call (optionally sent again until answered), and waiting on a condition
+  while spinning.
+
+Nothing in the product imports it (``tests/test_layout.py``).
+"""
+from ipc_testing.calls import call, spin_for, wait_until
+from ipc_testing.client import ContainerClient
+from ipc_testing.process import ContainerProcess, stop_process
+
+__all__ = ["ContainerClient", "ContainerProcess", "call", "spin_for", "stop_process", "wait_until"]

@@ -1,0 +1,103 @@
+"""A container process started the way a user starts one, and stopped by its pid whatever happens."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import IO, Any
+
+
+def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> bool:
+    """Signal ``process`` and wait; SIGKILL it if it does not exit within ``timeout``. Returns whether it
+    exited by itself (False: it had to be killed)."""
+    if process.poll() is not None:
+        return True
+    process.send_signal(sig)
+    try:
+        process.wait(timeout=timeout)
+        return True
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        return False
+
+
+class ContainerProcess:
+    """``python -m component_container ARGS`` as a subprocess; a context manager that kills it on exit.
+
+    * ``name``: the container node's name (``-r __node:=``); default ``ComponentManager``, as rclcpp's;
+    * ``log_path``: where its output goes (default: a temporary file). A file, not a pipe: a pipe nobody reads
+      fills up (64 KiB of log lines) and then blocks the container inside its logging calls;
+    * ``fsize_limit``: start it under RLIMIT_FSIZE (SIGXFSZ ignored), so that writes beyond that size fail with
+      EFBIG: a full disk for this process only;
+    * ``code``: a source checkout whose packages it imports instead of the installed ones (PYTHONPATH);
+    * ``env``: variables added to this process's environment.
+    """
+
+    def __init__(self, *args: str, name: str = "ComponentManager", cwd: str | Path | None = None,
+                 log_path: Path | None = None, fsize_limit: int | None = None, code: Path | None = None,
+                 env: Mapping[str, str] | None = None) -> None:
+        self.name = name if name.startswith("/") else f"/{name}"
+        argv = ["component_container", *args]
+        if self.name != "/ComponentManager":
+            argv += ["--ros-args", "-r", f"__node:={self.name.rsplit('/', 1)[1]}"]  # rcl takes several sections
+        self.log_path = log_path
+        self._log: IO[str] = (open(log_path, "w+", encoding="utf-8") if log_path is not None  # noqa: SIM115
+                              else tempfile.TemporaryFile(mode="w+", prefix="container_", suffix=".log"))
+        environment = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        if code is not None:
+            environment["PYTHONPATH"] = os.pathsep.join(filter(None, (str(code), environment.get("PYTHONPATH"))))
+        self.process = subprocess.Popen(_command(argv, fsize_limit), stdout=self._log, stderr=subprocess.STDOUT,
+                                        text=True, cwd=None if cwd is None else str(cwd), env=environment)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    @property
+    def returncode(self) -> int | None:
+        return self.process.returncode
+
+    @property
+    def output(self) -> str:
+        """Everything the container printed so far."""
+        if self._log.closed:
+            return self.log_path.read_text(errors="replace") if self.log_path is not None else ""
+        self._log.flush()
+        self._log.seek(0)
+        return self._log.read()
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0, check: bool = True) -> int:
+        """Signal the container by pid and wait; kill it if it does not exit in time (an AssertionError with its
+        output when ``check``). Returns the exit code."""
+        if not stop_process(self.process, sig, timeout) and check:
+            raise AssertionError(f"container {self.name} ({self.pid}) ignored signal {sig} for {timeout} s:\n"
+                                 f"{self.output[-3000:]}")
+        return self.process.returncode
+
+    def kill(self) -> None:
+        if self.alive():
+            self.process.kill()
+            self.process.wait()
+
+    def __enter__(self) -> "ContainerProcess":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.kill()
+
+
+def _command(argv: list[str], fsize_limit: int | None) -> list[str]:
+    if fsize_limit is None:
+        return [sys.executable, "-m", *argv]
+    return [sys.executable, "-c",
+            "import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+            f"resource.setrlimit(resource.RLIMIT_FSIZE, ({fsize_limit}, {fsize_limit})); "
+            f"sys.argv = {argv!r}; runpy.run_module('component_container', run_name='__main__')"]
