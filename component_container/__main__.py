@@ -29,6 +29,7 @@ from component_container.callback_supervision import SpinThread
 from component_container.component_executors import EXECUTOR_KINDS, SupervisedSingleThreadedExecutor
 from component_container.component_manager import ComponentManager
 from component_container.discovery_profile import use_container_profile
+from component_container.process_tuning import apply_low_latency
 from component_container.startup_file import StartupFileError, load_requests
 from component_container.supervisor import ERROR_POLICIES, ExitRequest
 
@@ -71,6 +72,9 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
                              "every bag and exit with status 1 so that launch can respawn the container")
     parser.add_argument("--shutdown-timeout", type=positive_seconds, default=10.0, metavar="SECONDS",
                         help="bound on an unload and on the whole shutdown (default: 10)")
+    parser.add_argument("--low-latency", action="store_true",
+                        help="tune the whole process for replay timing: a 0.2 ms interpreter switch interval and "
+                             "malloc thresholds that reuse large buffers (component_container.process_tuning)")
     parser.add_argument("--load", action="append", default=[], metavar="FILE.yaml",
                         help="components to load at start-up (repeatable)")
     return parser.parse_args(remove_ros_args(argv)[1:])
@@ -100,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if args.low_latency:
+        apply_low_latency()
     use_container_profile()
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:

@@ -7,7 +7,6 @@ and wakes the sleeper, which then sleeps again against the new schedule: no step
 """
 from __future__ import annotations
 
-import sys
 import threading
 import time
 
@@ -121,33 +120,3 @@ class PlaybackClock:
             if self._generation != generation:
                 return False
         return True
-
-
-#: While a player lives, CPython's switch interval is at most this. A thread that wakes up needs the GIL, and a
-#: busy thread (a deserializing read-ahead, an executor) hands it over only when the interval runs out: with
-#: the default 5 ms a due message would wait up to 5 ms, which no schedule under 2 ms p99 survives.
-SWITCH_INTERVAL = 0.0002
-
-
-class ShortSwitchInterval:
-    """Counts the players that need a short switch interval; the interpreter's own value comes back when the
-    last one is gone."""
-
-    _lock = threading.Lock()
-    _holders = 0
-    _previous = 0.0
-
-    @classmethod
-    def acquire(cls) -> None:
-        with cls._lock:
-            if cls._holders == 0:
-                cls._previous = sys.getswitchinterval()
-                sys.setswitchinterval(min(cls._previous, SWITCH_INTERVAL))
-            cls._holders += 1
-
-    @classmethod
-    def release(cls) -> None:
-        with cls._lock:
-            cls._holders -= 1
-            if cls._holders == 0:
-                sys.setswitchinterval(cls._previous)

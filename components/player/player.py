@@ -10,6 +10,10 @@ percentiles, schedule shifts). Events: ``events/read_split`` when playback moves
 In a container with intra-process comms, in-process subscribers get message objects (deserialized once, on
 the read-ahead thread, only while such a subscriber exists); DDS readers get the recorded CDR bytes.
 Topics whose type is not installed are skipped with a warning naming the type; the rest plays.
+
+Timing: start the container with ``--low-latency`` (component_container.process_tuning; ``ipc-component bag
+play`` does). Without it CPython hands the GIL over only every 5 ms and large frames are page-faulted in, so a
+due message may be published several ms late; the player says so at load, and changes nothing itself.
 """
 from __future__ import annotations
 
@@ -43,9 +47,9 @@ from baglib.format.message_definitions import message_class
 from baglib.format.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
-from components.player.allocator import reuse_large_buffers
+from component_container.process_tuning import low_latency
 from components.player.playback import Playback, RunLimits
-from components.player.playback_clock import PlaybackClock, ShortSwitchInterval
+from components.player.playback_clock import PlaybackClock
 from components.player.player_options import PlayOptions, declare_play_options
 from components.player.player_topics import TopicPublisher, allow_topic, publisher_qos
 from components.player.read_ahead import Queued, ReadAhead
@@ -78,7 +82,6 @@ class Player(ComponentNode):
         self._reader: BagReader | None = None
         self._read_ahead: ReadAhead | None = None
         self._read_error: str | None = None
-        self._holds_switch_interval = False
         try:
             self._options = declare_play_options(self, overrides)
             self._reader = self._open_bag(self._options)
@@ -91,12 +94,13 @@ class Player(ComponentNode):
             self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
                                          self._options.read_ahead_max_bytes, self._on_read_error)
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
+            if low_latency() is None:
+                self.get_logger().warning(
+                    "The container runs without --low-latency: messages may be published up to ~5 ms late "
+                    "(CPython's switch interval); start it with --low-latency for sub-millisecond replay timing")
             self._playback = Playback(clock, self._read_ahead, self._reader.starting_time_ns, self._prepare,
                                       self._publish, self.get_logger(), self._options.loop,
                                       self._options.delay_ns, self._wait_for_acks, self._finish_files)
-            ShortSwitchInterval.acquire()
-            self._holds_switch_interval = True
-            reuse_large_buffers()
         except Exception:
             with contextlib.suppress(Exception):  # the caller needs the original error, not a cleanup's
                 self._close_bag()
@@ -362,9 +366,6 @@ class Player(ComponentNode):
         try:
             if hasattr(self, "_playback"):
                 self._playback.stop(self.shutdown_timeout / 2)
-            if self._holds_switch_interval:
-                self._holds_switch_interval = False
-                ShortSwitchInterval.release()
             self._close_bag()
         finally:
             super().destroy_node()
