@@ -439,4 +439,4 @@ def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: pathlib.Path) -> No
                       "Serialization Format: cdr")
     missing = cli("bag", "info", str(tmp_path / "nothing"))
     assert missing.returncode == 1
-    assert "is not a bag: no metadata.yaml" in missing.stderr
+    assert f"'{tmp_path / 'nothing'}' does not exist" in missing.stderr

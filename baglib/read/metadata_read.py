@@ -76,9 +76,15 @@ def load_metadata(bag_dir: str | Path) -> StoredMetadata:
                 f"{', '.join(file.name for file in files)} (was the recording interrupted?). "
                 f"Run `{RECOVER_COMMAND} {bag_dir}` to make it readable."
             ) from error
+        if not bag_dir.exists():
+            raise BagReadError(f"'{bag_dir}' does not exist") from error
         raise BagReadError(f"'{bag_dir}' is not a bag: no {METADATA_FILENAME}") from error
-    except (OSError, UnicodeDecodeError) as error:
-        raise BagReadError(f"cannot read {path}: {error}") from error
+    except NotADirectoryError as error:
+        raise BagReadError(f"'{bag_dir}' is a file, not a bag directory") from error
+    except OSError as error:
+        raise BagReadError(f"cannot read {path}: {error.strerror or error}") from error
+    except UnicodeDecodeError as error:
+        raise BagReadError(f"cannot read {path}: not UTF-8 text ({error.reason})") from error
     document = _load_yaml(text, str(path))
     if not isinstance(document, dict) or "rosbag2_bagfile_information" not in document:
         raise BagReadError(f"{path} has no rosbag2_bagfile_information")

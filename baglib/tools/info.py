@@ -1,7 +1,8 @@
 """``ipc-component bag info``: what ``ros2 bag info`` prints, for users of the PyPI wheels (no ``ros2 bag``).
 
-It reads ``metadata.yaml`` (versions 4 to 9, :mod:`.metadata_read`) and the sizes of the files it lists,
-and formats them the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed
+Like ``ros2 bag info`` it takes a bag directory or a single ``.mcap`` / ``.db3`` file. For a directory it reads
+``metadata.yaml`` (versions 4 to 9, :mod:`baglib.read.metadata_read`) and the sizes of the files it lists; for a
+file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed
 as services, not as topics, and their messages are not counted in ``Messages:``. A bag a crash left
 unfinished (no ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such,
 with the command that repairs it.
@@ -9,11 +10,13 @@ with the command that repairs it.
 from __future__ import annotations
 
 import datetime
+from dataclasses import dataclass
 from pathlib import Path
 
 from baglib.format.mcap_records import MAGIC
 from baglib.format.metadata import METADATA_FILENAME
-from baglib.read.metadata_read import StoredMetadata, load_metadata
+from baglib.read.metadata_read import StoredTopic, load_metadata
+from baglib.read.reader import BagReader
 from baglib.format.bag_files import RECOVER_COMMAND, storage_files
 from baglib.format.service_events import is_service_event_topic, service_name, service_type
 from baglib.read.storage_reader import BagReadError
@@ -26,11 +29,49 @@ class BagInfoError(BagReadError):
     """The directory is not a readable rosbag2 bag."""
 
 
-def _metadata(bag_dir: str | Path) -> StoredMetadata:
+@dataclass
+class _Summary:
+    """What ``bag info`` prints, from ``metadata.yaml`` or from a storage file itself."""
+
+    files: list[str]
+    size: int
+    storage_id: str
+    ros_distro: str
+    starting_time_ns: int
+    duration_ns: int
+    message_count: int
+    topics: list[StoredTopic]
+
+
+def _directory_summary(bag_dir: Path) -> _Summary:
     try:
-        return load_metadata(bag_dir)
+        meta = load_metadata(bag_dir)
     except BagReadError as error:
         raise BagInfoError(str(error)) from error
+    files = [info.path for info in meta.files] or meta.relative_file_paths
+    size = sum((bag_dir / f).stat().st_size for f in files if (bag_dir / f).exists())
+    return _Summary(files, size, meta.storage_identifier, meta.ros_distro, meta.starting_time_ns, meta.duration_ns,
+                    meta.message_count, meta.topics)
+
+
+def _file_summary(path: Path) -> _Summary:
+    try:
+        with BagReader(path) as reader:
+            topics = [StoredTopic(c.topic, c.msgtype, c.serialization_format, c.offered_qos_profiles,
+                                  c.type_description_hash, c.message_count)
+                      for c in reader.connections]
+            return _Summary([path.name], path.stat().st_size, reader.storage_id, reader.ros_distro,
+                            reader.starting_time_ns, reader.duration_ns, reader.message_count, topics)
+    except BagReadError as error:
+        raise BagInfoError(str(error)) from error
+
+
+def _summary(path: Path) -> _Summary:
+    if path.is_file():
+        return _file_summary(path)
+    if not path.exists():
+        raise BagInfoError(f"'{path}' does not exist")
+    return _directory_summary(path)
 
 
 def _file_size(size: int) -> str:
@@ -70,16 +111,16 @@ def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
     return [f"Warning: {note}" for note in notes]
 
 
-def format_bag_info(bag_dir: str | Path) -> str:
-    """The ``ros2 bag info`` text for ``bag_dir`` (``metadata.yaml`` of any version from 4 to 9)."""
-    meta = _metadata(bag_dir)
-    files = [info.path for info in meta.files] or meta.relative_file_paths
-    size = sum((Path(bag_dir) / f).stat().st_size for f in files if (Path(bag_dir) / f).exists())
-    start, duration = meta.starting_time_ns, meta.duration_ns
+def format_bag_info(bag: str | Path) -> str:
+    """The ``ros2 bag info`` text for ``bag``: a bag directory (``metadata.yaml`` of any version from 4 to 9) or
+    one storage file."""
+    bag = Path(bag)
+    summary = _summary(bag)
+    start, duration = summary.starting_time_ns, summary.duration_ns
     topics: list[str] = []
     services: list[str] = []
     service_messages = 0
-    for topic in meta.topics:
+    for topic in summary.topics:
         if is_service_event_topic(topic.name, topic.type):
             service_messages += topic.message_count
             services.append(f"Service: {service_name(topic.name)} | Type: {service_type(topic.type)} | "
@@ -89,17 +130,17 @@ def format_bag_info(bag_dir: str | Path) -> str:
             topics.append(f"Topic: {topic.name} | Type: {topic.type} | Count: {topic.message_count} | "
                           f"Serialization Format: {topic.serialization_format}")
     lines = [
-        *_block("Files:", files),
-        *_block("Bag size:", [_file_size(size)]),
-        *_block("Storage id:", [meta.storage_identifier]),
-        *_block("ROS Distro:", [meta.ros_distro or "unknown"]),
+        *_block("Files:", summary.files),
+        *_block("Bag size:", [_file_size(summary.size)]),
+        *_block("Storage id:", [summary.storage_id]),
+        *_block("ROS Distro:", [summary.ros_distro or "unknown"]),
         *_block("Duration:", [f"{duration // 1_000_000_000}.{duration % 1_000_000_000:09d}s"]),
         *_block("Start:", [_time(start)]),
         *_block("End:", [_time(start + duration)]),
-        *_block("Messages:", [str(meta.message_count - service_messages)]),
+        *_block("Messages:", [str(summary.message_count - service_messages)]),
         *_block("Topic information:", topics),
         *_block("Service:", [str(len(services))]),
         *_block("Service information:", services, _SERVICE_LABEL_WIDTH),
-        *_unfinished(Path(bag_dir), files),
+        *(_unfinished(bag, summary.files) if bag.is_dir() else []),
     ]
     return "\n".join(line.rstrip() for line in lines)
