@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test sweep bench clean
 
 $(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -20,8 +20,14 @@ setup: $(STAMP)
 demo: $(STAMP)
 	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python examples/record_demo.py
 
+# Workers of pytest-xdist: more than the 2 cores, since most tests wait on ROS discovery and other processes.
+TEST_WORKERS ?= 4
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 tests
+
+sweep: $(STAMP)
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
 
 bench: $(STAMP)
 	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python benchmarks/record_bench.py

@@ -12,7 +12,12 @@ from typing import Iterator
 
 import pytest
 
-os.environ["ROS_DOMAIN_ID"] = os.environ.get("IPC_TEST_DOMAIN_ID") or str(random.randint(1, 100))
+#: One random base per test run, chosen by the process pytest-xdist's workers inherit it from; each worker (gw0,
+#: gw1, ...) adds its index, so that parallel workers never see each other's containers. IPC_TEST_DOMAIN_ID
+#: fixes the base (to replay a run).
+os.environ.setdefault("IPC_TEST_DOMAIN_BASE", os.environ.get("IPC_TEST_DOMAIN_ID") or str(random.randint(1, 160)))
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+os.environ["ROS_DOMAIN_ID"] = str(int(os.environ["IPC_TEST_DOMAIN_BASE"]) + _WORKER)
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_STATIC_PEERS", None)
 
