@@ -86,7 +86,7 @@ def record_rig(bag: Path, seconds: float, storage: str) -> None:
 def replay_into_consumer(bag: Path, seconds: float) -> None:
     """Play ``bag`` into a container where a Python consumer takes the frames in-process."""
     print("Starting a container with an in-process consumer, then a player of the bag next to it")
-    container = subprocess.Popen([sys.executable, "-m", "component_container", "--use-intra-process-comms",
+    container = subprocess.Popen([sys.executable, "-m", "component_container", "--use-intra-process-comms", "--low-latency",
                                   "--allow-module-plugins"], cwd=EXAMPLES)
     try:
         wait_for_container(components=0)
