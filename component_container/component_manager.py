@@ -69,7 +69,7 @@ class ComponentManager(Node):
 
     Limits on what a request may do (the load service answers anyone on the ROS domain): ``allow_plugins``
     (fnmatch patterns over plugin names; empty: every registered plugin) and ``bag_root`` (a resolved
-    directory every path parameter of a component must stay in; None: no limit), see README "Security model".
+    directory every path parameter of a component must stay in; None: no limit), see docs/security.md.
     """
 
     def __init__(self, executor_kind: str = "single", *, use_intra_process_comms: bool = False,
@@ -316,9 +316,8 @@ def _without_type_description_service(node_kwargs: dict[str, Any]) -> list[Param
     """The request's parameter overrides, with ``start_type_description_service`` false unless it says so.
 
     rclpy 7.1.6 leaks about 105 kB of native memory per node whose ``~/get_type_description`` service is
-    created and destroyed (measured: 107 kB per node created and destroyed with it, 0 kB without), so a
-    container that loads and unloads components for days would grow without bound. A load request that wants
-    the service sets the parameter to true.
+    created and destroyed (nothing without the service), so a container that loads and unloads components for
+    days would grow without bound. A load request that wants the service sets the parameter to true.
     """
     overrides = list(node_kwargs.get("parameter_overrides") or [])
     if not any(p.name == TYPE_DESCRIPTION_SERVICE_PARAMETER for p in overrides):

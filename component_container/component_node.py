@@ -167,8 +167,8 @@ class IntraProcessPublisher:
     def _dds_readers(self) -> int:
         """The DDS readers matched to this publisher (its in-process subscriptions' own among them).
 
-        Read at most every DDS_COUNT_TTL_NS: the read costs 2.4 us in a tight loop and 6 us among the S3 drivers'
-        ten thousand publishes a second. A reader matched since then gets this publisher's samples up to 5 ms
+        Read at most every DDS_COUNT_TTL_NS: the read costs microseconds, which a publisher at kilohertz rates
+        would pay on every publish. A reader matched since then gets this publisher's samples up to 5 ms
         later; matching itself takes DDS discovery far longer, and no volatile reader can count on the first
         samples after it (transient_local publishers always write to DDS).
         """

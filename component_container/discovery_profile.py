@@ -2,10 +2,10 @@
 
 Why: a new participant (``ipc-component``, ``ros2 component``, launch_ros) announces itself and the container
 answers at once with its own announcement, but Fast DDS 2.14 often drops that answer because it arrives
-before the new participant has started listening (seen with strace: the answer is received ~2 ms after the
-first announcement and ignored). The newcomer then finds the container only at its next periodic
-announcement, up to 3 s later; in our measurements that happened in 6 of 10 command runs and made
-``ipc-component load`` take 1.5-3 s. Re-announcing every 0.25 s bounds that delay at 0.25 s, for every
+before the new participant has started listening (the answer is received ~2 ms after the first
+announcement and ignored). The newcomer then finds the container only at its next periodic
+announcement, up to 3 s later; that happened in most command runs and made ``ipc-component load`` take
+seconds. Re-announcing every 0.25 s bounds that delay at 0.25 s, for every
 client, at the cost of one ~500-byte UDP datagram per known participant and initial peer per period.
 
 The profile is used only if nobody configured Fast DDS otherwise: no profiles file in the environment, no

@@ -36,10 +36,10 @@ also reproduced against the installed wheel) needs these changes to run componen
   cannot be retried like the wait-set race of :class:`SpinThread`. A NodeView *pins* every entity it reports
   until the update is over: the entity's ``destroy()`` (which ``Node.destroy_*`` call) is postponed to then
   (:class:`DestroyPins`); and it shows a node that is being removed as empty.
-* **spin() without a timeout** runs nothing and keeps a core busy (seen with 7.1.6); :class:`EventsSpinThread`
+* **spin() without a timeout** runs nothing and keeps a core busy (rclpy 7.1.6); :class:`EventsSpinThread`
   spins in slices of ``SPIN_SLICE`` seconds.
 
-What stays unsafe, hence opt-in (README "Executors"): errors outside user callbacks are not attributable here.
+What stays unsafe, hence opt-in (docs/container.md): errors outside user callbacks are not attributable here.
 A message the C++ fails to take or deserialize, or an rcl error in its timer or entity bookkeeping, ends the
 executor thread and so the container (status 1, like any dead container thread), where the wait-set models
 blame the component. Tasks (a component's ``create_task`` coroutines, futures' done callbacks such as a client's

@@ -97,9 +97,9 @@ class ImuDriver(SensorDriver):
         """A fresh Imu message; sequence number in orientation_covariance[1].
 
         Ten drivers at 1 kHz make building the messages most of the drivers' cost: ``Imu()`` runs the
-        generated constructors and property setters of six messages and three arrays (15 of the 26 us one
-        publish took). This assembles the same objects through the generated classes' slots instead: 5.6 us
-        for the whole method instead of 14. :meth:`assembly_matches` checks at load that the result is the
+        generated constructors and property setters of six messages and three arrays (more than half of what
+        one publish costs). This assembles the same objects through the generated classes' slots instead, in
+        less than half the time. :meth:`assembly_matches` checks at load that the result is the
         message :meth:`construct_imu` builds with the public constructors; where it is not, the driver uses
         that one.
         """

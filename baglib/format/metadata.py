@@ -84,8 +84,8 @@ def qos_profile_dict(qos: QoSProfile) -> dict[str, Any]:
 
 
 #: libyaml's emitter when PyYAML has it: a split writes this document three times (the closing file's record,
-#: the next file's opening record, metadata.yaml), which took 14 ms each with the pure-Python emitter and
-#: stalled the bag writer on every split; libyaml takes 1.5 ms. Its block lists are not indented under their key
+#: the next file's opening record, metadata.yaml), slowly enough with the pure-Python emitter to stall the bag
+#: writer on every split; libyaml is about ten times faster. Its block lists are not indented under their key
 #: (yaml-cpp's are): the same document to any YAML reader, rosbag2's included.
 _BaseDumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 

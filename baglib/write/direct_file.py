@@ -1,8 +1,8 @@
 """A write-only file that bypasses the page cache (``O_DIRECT``), for the recorder's big sequential writes.
 
-Why: with buffered writes the kernel spends about 1.8–2.8 CPU seconds per GB copying into and managing the
-page cache on this kind of machine — more than everything else the recorder does. ``O_DIRECT`` lets the disk
-read straight from our memory (measured here: 0.03 CPU s/GB). It needs block-aligned buffers, offsets and
+Why: with buffered writes the kernel spends about 2 CPU seconds per GB copying into and managing the page
+cache — more than everything else the recorder does. ``O_DIRECT`` lets the disk read straight from our
+memory (a few hundredths of a CPU second per GB). It needs block-aligned buffers, offsets and
 sizes, so writes are staged in a page-aligned buffer (one memcpy, ~0.1 s/GB) and written a whole number of
 blocks at a time. On close the last partial block is written padded and the file truncated to its length.
 
@@ -10,8 +10,7 @@ A large buffer skips the staging copy when its memory and its place in the file 
 a block (:meth:`DirectFile.gap_before` tells a writer how many bytes to put before it to get there): its
 unaligned head is staged, the staged blocks written, and then its whole blocks go to the disk straight from
 the caller's memory; only the unaligned tail is staged. For a 1080p frame that removes a 6.2 MB memcpy, and
-one write replaces six 1 MiB ones (measured here with 6.2 MB frames: 1.7-2.1 GB/s and 0.07-0.08 CPU s/GB
-written in place, against 1.2-1.8 GB/s and 0.16-0.28 s/GB staged).
+one write replaces six 1 MiB ones: about half the CPU per GB of staged writes, at the disk's throughput.
 
 Filesystems without ``O_DIRECT`` (tmpfs on older kernels, some network filesystems) get a plain buffered file.
 """

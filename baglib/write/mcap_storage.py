@@ -13,7 +13,7 @@ chunk is written straight from the caller's buffers (a ``memoryview`` of the ima
 :mod:`.cdr_fast`), so its payload is not copied before the kernel gets it (and with direct I/O not
 even by the kernel, see below). The layout, indexes and summary are the same as the Python writer's.
 Chunk CRCs stay zero, as ``enable_crcs=False`` wrote them (and rosbag2's ``fastwrite``/``zstd_fast``
-presets): zlib's crc32 of one 1080p frame takes 2-3 ms here, longer than writing the frame.
+presets): zlib's crc32 of one 1080p frame takes longer than writing the frame.
 
 An MCAP file without its summary cannot be opened by ``rosbags`` (ros2/rosbag2#1079, #2003), and
 the disk filling up is exactly when the summary fails to be written. So when a write fails, this

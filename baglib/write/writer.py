@@ -338,9 +338,9 @@ class BagWriter:
 
     def sync(self) -> None:
         """:meth:`flush`, then fsync the current file (what was written survives a power loss too) on a thread
-        of its own. Returns at once: an fsync took up to 130 ms on this VM while the disk was busy, and every
-        message waited behind it. Its failure is raised by the next call, as a failed write. While the previous
-        fsync still runs, none is started (the next call covers what this one would have)."""
+        of its own. Returns at once: an fsync can take a hundred milliseconds or more while the disk is busy,
+        and every message would wait behind it. Its failure is raised by the next call, as a failed write. While
+        the previous fsync still runs, none is started (the next call covers what this one would have)."""
         self._on_current_file(self._start_fsync)
 
     def _start_fsync(self, storage: _Storage) -> None:
@@ -519,8 +519,8 @@ class BagWriter:
 
     def _split(self) -> None:
         """Switch to the next file at once and finish the full one on a thread of its own: closing a file
-        (its last chunk, summary and fsync, then ``metadata.yaml``) took 10-45 ms, during which every
-        message waited, and each split showed as a spike in the receive-to-write latency."""
+        (its last chunk, summary and fsync, then ``metadata.yaml``) takes tens of milliseconds, during which
+        every message would wait, and each split would show as a spike in the receive-to-write latency."""
         self._settle_closing(wait=True)  # files are listed in order; a failure of the last one stops here
         storage, entry, closing_metadata = self._detach_storage()
         self._file_index += 1

@@ -7,8 +7,8 @@ remap rules. Services (private, rosbag2_interfaces): ``~/pause``, ``~/resume``, 
 ``~/stop``, plus ``~/get_stats`` (std_srvs/Trigger, JSON: position, published, publish-time error
 percentiles, schedule shifts). Events: ``events/read_split`` when playback moves on to the next file.
 
-In a container with intra-process comms, in-process subscribers get message objects (deserialized once, on
-the read-ahead thread, only while such a subscriber exists); DDS readers get the recorded CDR bytes.
+In a container with intra-process comms, in-process subscribers get message objects (deserialized once, by
+the playback thread before they are due, only while such a subscriber exists); DDS readers get the recorded CDR bytes.
 Topics whose type is not installed are skipped with a warning naming the type; the rest plays.
 
 Timing: start the container with ``--low-latency`` (component_container.process_tuning; ``ipc-component bag

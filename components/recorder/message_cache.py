@@ -54,7 +54,7 @@ def _point_cloud2_size(msg: PointCloud2) -> int:
 
 
 # The big sensor messages are sized from their buffers without serializing (at most a few bytes of padding
-# over the exact size, never under it), and the Imu, ten thousand a second in S3, exactly; exact types only,
+# over the exact size, never under it), and the Imu, which comes at kilohertz rates, exactly; exact types only,
 # as in cdr_fast.
 _FAST_SIZES: dict[type, Callable[[Any], int]] = {
     Image: _image_size,

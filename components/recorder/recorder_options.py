@@ -57,7 +57,7 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     "storage_preset_profile": "",
     "snapshot_mode": False,
     "custom_data": [""],
-    # Not in rosbag2: the loss bounds (README "Crash and power-loss guarantees").
+    # Not in rosbag2: the loss bounds (docs/recorder.md, "Crash and power-loss guarantees").
     "flush_interval": 1.0,
     "sync_interval": 1.0,
     "min_free_space": 256 * 1024 * 1024,
