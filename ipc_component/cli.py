@@ -414,6 +414,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Package name to look for registered components in")
     p.set_defaults(handler=run_types)
 
+    from ipc_component import create  # the verb lives in its own module (no ROS needed)
+
+    p = add("create", help="Create a new package of rclpy components (like `ros2 pkg create`)",
+            description="Create a new package of rclpy components: pyproject.toml with the entry point, "
+                        "a package with one component class, README.")
+    create.add_arguments(p)
+    p.set_defaults(handler=create.run_create)
+
     p = add("bag", help="Inspect and play rosbag2 bags (what `ros2 bag` offers)",
             description="Inspect and play rosbag2 bags.")
     bag_verbs = p.add_subparsers(dest="bag_verb", title="commands")
