@@ -215,6 +215,28 @@ class FuzzScene:
             self.node.destroy_subscription(subscription)
         return {topic: count / elapsed for topic, count in counts.items()}
 
+    def fresh_sequences(self, count: int = 5, timeout: float = 30.0) -> dict[str, list[int]]:
+        """The drivers' sequence numbers (Imu ``orientation_covariance[1]``, Image ``data[0:8]``) of the first
+        ``count`` messages a plain rclpy subscriber receives on each driver topic from now on; fewer if the
+        generous ``timeout`` passes first (a driver that stopped)."""
+        sequences: dict[str, list[int]] = {topic: [] for topic in RATES}
+
+        def on_message(topic: str, msg: Any) -> None:
+            if isinstance(msg, Imu):
+                sequences[topic].append(int(msg.orientation_covariance[1]))
+            else:
+                sequences[topic].append(int.from_bytes(bytes(msg.data[:8]), "little"))
+
+        subscriptions = [self.node.create_subscription(
+            msg_type, topic, lambda msg, topic=topic: on_message(topic, msg), 10)
+            for topic, (msg_type, _rate) in RATES.items()]
+        try:
+            wait_until(lambda: all(len(seqs) >= count for seqs in sequences.values()), timeout, self.node)
+        finally:
+            for subscription in subscriptions:
+                self.node.destroy_subscription(subscription)
+        return sequences
+
     def finish_recorder(self) -> None:
         recorder_id = next(uid for uid, name in self.protected.items() if name == f"/{RECORDER}")
         response = self.client.unload(recorder_id)
