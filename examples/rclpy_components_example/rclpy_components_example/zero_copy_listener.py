@@ -3,9 +3,11 @@
 Loaded with ``use_intra_process_comms`` into the container that runs a CounterPublisher, its callback gets the
 very String object the publisher built. Each message names its own object (``... @<id() in hex>``), so the
 callback can tell: ``id(msg)`` equal to the named id means "the same object". A copy (the container copies
-the first few messages of every publisher while it checks that the publisher does not reuse them, see
-``IntraProcessPublisher`` in component_container/component_node.py) is made while the original is still alive,
-so it can never have that id. Messages from outside the process arrive over DDS and count as copies.
+the first few messages of every publisher while it checks that the publisher does not reuse them: "Ownership
+and the reuse rule" in docs/intra-process.md) is made while the original is still alive, so it can never have
+that id. Messages from outside the process arrive over DDS and count as copies. (Load both components with
+intra-process delivery: without it, the publisher's object may be freed before the listener's DDS copy is made,
+and that copy could by chance take the same address.)
 
 Its ``/diagnostics`` status (``health()``) reports ``received``, ``by_reference``, ``copies`` and ``last``.
 
