@@ -3,13 +3,15 @@ starts them and always stopped by their pid."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import pathlib
 import subprocess
-from typing import Iterator
+from typing import Any, Iterator
 
 from rclpy.node import Node
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from ipc_testing import ContainerClient, ContainerProcess, call, wait_until  # noqa: F401 - shared by the tests
 
@@ -84,6 +86,65 @@ class Containers:
             print(f"--- output of container {process.pid} (exit code {process.process.returncode}):\n"
                   f"{process.output}")  # shown by pytest when the test failed
             assert not process.alive() and not pid_alive(process.pid), f"container {process.pid} still runs"
+
+
+class SharedContainer:
+    """One container shared by the tests of a module (a module-scoped fixture), under a name of its own, with a
+    client on a node of its own.
+
+    :meth:`check` runs after every test: the container is alive and ListNodes answers with nothing loaded (what a
+    test left is unloaded first, so that the next test starts clean, and the test is reported). :meth:`close`
+    stops it: it must exit 0. A test that reads the container's log takes ``mark = shared.mark()`` first and
+    reads ``shared.output_since(mark)``.
+    """
+
+    def __init__(self, *args: str, name: str) -> None:
+        self.node = Node(f"{name}_client")
+        self.process = ContainerProcess(*args, name=name, cwd=str(REPO))
+        self.client = ContainerClient(self.node, self.process.name)
+        try:
+            self.client.wait(timeout=30.0)
+        except AssertionError:
+            self.process.stop(check=False)
+            raise AssertionError(f"container {self.process.name} did not come up:\n{self.process.output}") from None
+
+    def mark(self) -> int:
+        return len(self.process.output)
+
+    def output_since(self, mark: int) -> str:
+        return self.process.output[mark:]
+
+    def check(self) -> None:
+        assert self.process.alive(), (f"shared container {self.process.name} died (exit code "
+                                      f"{self.process.process.poll()}):\n{self.process.output[-3000:]}")
+        left = self.client.listing()
+        for unique_id, _name in left:
+            self.client.unload(unique_id)
+        assert left == [], f"the test left components loaded in {self.process.name}: {left}"
+
+    def close(self) -> None:
+        with self.process:
+            status = self.process.stop() if self.process.alive() else self.process.returncode
+        self.client.destroy()
+        self.node.destroy_node()
+        print(f"--- output of shared container {self.process.name} ({self.process.pid}, exit code {status}):\n"
+              f"{self.process.output}")
+        assert status == 0, f"shared container {self.process.name} exited with {status}"
+        assert not pid_alive(self.process.pid)
+
+
+def recorder_stats(node: Node, recorder: str) -> dict[str, Any]:
+    """The live counts a recorder's ``~/get_stats`` answers (JSON), called until it answers."""
+    client = node.create_client(Trigger, f"{recorder}/get_stats")
+    try:
+        return json.loads(call(node, client, Trigger.Request(), again=True).message)
+    finally:
+        node.destroy_client(client)
+
+
+def written(node: Node, recorder: str, topic: str) -> int:
+    """Messages of ``topic`` the recorder has written to its current bag."""
+    return recorder_stats(node, recorder)["current"]["topics"].get(topic, {}).get("written", 0)
 
 
 @contextlib.contextmanager
