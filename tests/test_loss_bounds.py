@@ -3,31 +3,38 @@ the file, whatever happens to the process next. Real container processes, killed
 read as the kill left them (no finalization, no repair), with mcap's stream reader and sqlite3.
 
 A 5 Hz IMU fills no 768 KiB MCAP chunk and no SQLite batch in seconds: without time-based flushing, nothing of
-it would be in the file after the kill.
+it would be in the file after the kill. "Older than the flush interval" is told by sequence numbers: the file must
+reach the newest IMU message a plain subscriber in the test process had received a flush interval (plus a margin)
+before the kill. The kill comes at a seeded random moment: a fixed seed by default, fresh ones with
+``make sweep``; the seed is printed and ``IPC_LOSS_SEED`` replays it.
 """
 from __future__ import annotations
 
+import os
 import pathlib
 import random
 import sqlite3
-import struct
-import time
 
 import pytest
 from mcap.stream_reader import StreamReader
 from mcap.records import Channel, Message
+from rclpy.node import Node
 from rosbags.typesys import Stores, get_typestore
+from sensor_msgs.msg import Imu
 
 from container_process import Containers, wait_until
+from ipc_testing import spin_for
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 IMU_RATE = 5.0
 FLUSH_INTERVAL = 1.0
+MARGIN = 0.5  # beyond the flush interval: the recorder, in the driver's process, had the message first
+DEFAULT_SEED = 4_242
 
 
-def imu_stamps_in_mcap(path: pathlib.Path) -> list[float]:
-    """Header stamps (s) of the IMU messages in the complete records of a possibly cut MCAP file."""
-    stamps: list[float] = []
+def imu_sequences_in_mcap(path: pathlib.Path) -> list[int]:
+    """Sequence numbers of the IMU messages in the complete records of a possibly cut MCAP file."""
+    stamps: list[int] = []
     channels: dict[int, str] = {}
     with open(path, "rb") as stream:
         try:
@@ -35,30 +42,29 @@ def imu_stamps_in_mcap(path: pathlib.Path) -> list[float]:
                 if isinstance(record, Channel):
                     channels[record.id] = record.topic
                 elif isinstance(record, Message) and channels.get(record.channel_id) == "/imu/imu":
-                    stamps.append(_stamp(bytes(record.data)))
+                    stamps.append(_sequence(bytes(record.data)))
         except Exception:  # noqa: BLE001 - the cut: everything before it has been read
             pass
     return stamps
 
 
-def imu_stamps_in_sqlite(path: pathlib.Path) -> list[float]:
-    """Header stamps (s) of the IMU rows a crashed SQLite3 bag holds (sqlite rolls back what was in flight)."""
+def imu_sequences_in_sqlite(path: pathlib.Path) -> list[int]:
+    """Sequence numbers of the IMU rows a crashed SQLite3 bag holds (sqlite rolls back what was in flight)."""
     with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
         rows = db.execute("SELECT data FROM messages JOIN topics ON topics.id = messages.topic_id "
                           "WHERE topics.name = '/imu/imu' ORDER BY messages.id").fetchall()
-    return [_stamp(bytes(data)) for (data,) in rows]
+    return [_sequence(bytes(data)) for (data,) in rows]
 
 
-def _stamp(cdr: bytes) -> float:
-    sec, nanosec = struct.unpack_from("<iI", cdr, 4)  # header.stamp right after the encapsulation header
-    return sec + nanosec * 1e-9
+def _sequence(cdr: bytes) -> int:
+    """The ImuDriver's sequence number: orientation_covariance[1], decoded by rosbags."""
+    return int(TYPESTORE.deserialize_cdr(cdr, "sensor_msgs/msg/Imu").orientation_covariance[1])
 
 
-@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
-def test_a_killed_recorder_has_every_message_older_than_the_flush_interval(
-        containers: Containers, tmp_path: pathlib.Path, storage: str) -> None:
-    seed = random.randrange(1_000_000)
-    print(f"loss-bound seed {seed}")
+def kill_and_read(containers: Containers, probe: Node, tmp_path: pathlib.Path, storage: str, seed: int) -> None:
+    print(f"IPC_LOSS_SEED={seed}")
+    live: list[int] = []
+    probe.create_subscription(Imu, "/imu/imu", lambda msg: live.append(int(msg.orientation_covariance[1])), 10)
     process, client = containers.start("--use-intra-process-comms")
     assert client.load("components::ImuDriver", parameters={"rate": IMU_RATE}).success
     uri = tmp_path / "killed_bag"
@@ -66,17 +72,31 @@ def test_a_killed_recorder_has_every_message_older_than_the_flush_interval(
         "storage.uri": str(uri), "storage.storage_id": storage, "record.topics": ["/imu/imu"],
         "storage.flush_interval": FLUSH_INTERVAL})
     assert recorder.success, recorder
-    time.sleep(2.0 + random.Random(seed).uniform(0.0, 2.0))  # a random moment of steady recording
+    assert spin_for(probe, 20.0, lambda: bool(live)), "no IMU message arrived"
+    spin_for(probe, 1.0 + random.Random(seed).uniform(0.0, 2.0))  # a random moment of steady recording
+    older = max(live)  # the newest message the test has: older than the flush interval at the kill
+    spin_for(probe, FLUSH_INTERVAL + MARGIN)
     process.process.kill()
-    killed = time.time()
     process.process.wait()
     files = sorted(uri.glob(f"*.{'mcap' if storage == 'mcap' else 'db3'}"))
     assert len(files) == 1 and not (uri / "metadata.yaml").exists()  # a crash: nothing was finalized
-    stamps = (imu_stamps_in_mcap if storage == "mcap" else imu_stamps_in_sqlite)(files[0])
-    assert stamps, "nothing of the recording reached the file"
-    first = stamps[0]
-    due = [first + i / IMU_RATE for i in range(int((killed - FLUSH_INTERVAL - 0.05 - first) * IMU_RATE) + 1)]
-    assert len(stamps) >= len(due), (f"{len(due)} messages were received more than {FLUSH_INTERVAL} s before "
-                                     f"the kill, the file holds {len(stamps)}")
-    assert stamps == sorted(set(stamps)), "a message is in the file twice or out of order"
+    seqs = (imu_sequences_in_mcap if storage == "mcap" else imu_sequences_in_sqlite)(files[0])
+    assert seqs, "nothing of the recording reached the file"
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "a message is missing, twice or out of order"
+    assert seqs[-1] >= older, (f"the file ends at IMU message {seqs[-1]}; the test had received message {older} "
+                               f"more than the flush interval ({FLUSH_INTERVAL} s) before the kill")
     assert wait_until(lambda: not process.alive(), 5.0)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_killed_recorder_has_every_message_older_than_the_flush_interval(
+        containers: Containers, probe: Node, tmp_path: pathlib.Path, storage: str) -> None:
+    kill_and_read(containers, probe, tmp_path, storage, int(os.environ.get("IPC_LOSS_SEED") or DEFAULT_SEED))
+
+
+@pytest.mark.sweep
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_recorder_killed_at_random_moments_has_every_message_older_than_the_flush_interval(
+        containers: Containers, probe: Node, tmp_path: pathlib.Path, storage: str) -> None:
+    seed = int(os.environ.get("IPC_LOSS_SEED") or random.randrange(1_000_000))
+    kill_and_read(containers, probe, tmp_path, storage, seed)
