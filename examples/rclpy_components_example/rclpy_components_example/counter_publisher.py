@@ -93,7 +93,7 @@ class CounterPublisher(ComponentNode):
     def destroy_node(self) -> None:
         """Unload: stop the timer first, then let ComponentNode leave intra-process delivery and destroy the
         node (publisher, parameter services) with it."""
-        if getattr(self, "_timer", None) is not None:
+        if getattr(self, "_timer", None) is not None:  # also called from a constructor that failed half-way
             self.destroy_timer(self._timer)
             self._timer = None
         super().destroy_node()
