@@ -30,7 +30,7 @@ sweep: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
 
 bench: $(STAMP)
-	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python benchmarks/record_bench.py
+	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python benchmarks/record_bench.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -2,7 +2,7 @@
 """Wall-clock time of ``ipc-component list`` / ``load`` / ``unload`` against a container that already runs.
 
 Why a script and not a test: the target (each verb within 1.5 s) depends on the machine and its load, so it
-is measured and reported (README, "Performance"), never asserted.
+is measured and reported (docs/performance.md), never asserted.
 
 Each command is run as a user runs it: the installed console script as a fresh process whose environment
 has no ``_ROS_WHEELS_BOOTSTRAP_COMPLETE`` (so the ros_wheels_bootstrapper start-up re-exec is included, as in
@@ -33,11 +33,11 @@ from typing import Callable, Sequence  # noqa: E402
 
 import rclpy  # noqa: E402
 
-from container_process import ContainerClient, ContainerProcess  # noqa: E402
+from ipc_testing import ContainerClient, ContainerProcess  # noqa: E402
 
 CONTAINER = "/ComponentManager"
 TALKER = "components::Talker"
-TARGET = 1.5  # s, issue #11
+TARGET = 1.5  # s per command, reported (never asserted)
 
 
 def user_environment() -> dict[str, str]:

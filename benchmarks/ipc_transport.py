@@ -34,7 +34,8 @@ Latency = receive time in the subscriber callback (``time.time_ns()``) minus ``h
 from ``time.time_ns()`` just before ``publish()`` (same clock in both processes).
 
 Isolation: ``ROS_DOMAIN_ID`` is set to a random 1..100 unless already set, and
-``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, before rclpy is imported; the child gets the same environment.
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, before rclpy is imported (benchmarks/isolation.py); the child gets
+the same environment.
 The child is always stopped by pid (and exits by itself when its stdin closes).
 
     python benchmarks/ipc_transport.py             # full run (about 40 s on 2 cores)
@@ -43,16 +44,11 @@ The child is always stopped by pid (and exits by itself when its stdin closes).
 """
 from __future__ import annotations
 
-import os
-import random
-
-# Before rclpy is imported (ros_wheels_bootstrapper may already have re-executed Python; that is fine).
-if not os.environ.get("ROS_DOMAIN_ID"):
-    os.environ["ROS_DOMAIN_ID"] = str(random.randint(1, 100))
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+import isolation  # noqa: F401  (first: the ROS environment before rclpy is imported)
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import queue  # noqa: E402
 import signal  # noqa: E402

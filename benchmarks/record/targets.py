@@ -1,0 +1,177 @@
+"""The pass/fail targets. Each compares figures measured side by side in the same run (a ratio of two modes, or
+of a mode and a limit measured on the same disk), never an absolute time: the machine and its load change the
+absolute numbers, much less the ratios.
+
+A target is PASS, FAIL, or N/A when the run did not measure what it compares (a scenario or mode not selected,
+a mode that failed, a ramp capped before the recorder lost anything).
+"""
+from __future__ import annotations
+
+import argparse
+from typing import Any, Optional
+
+from benchmarks.record.figures import good, total_us_per_msg
+from benchmarks.record.report import fmt
+from benchmarks.record.scenarios import PUBLISH_RATE_OK
+
+DEFAULT_CACHE = 100 * 1024 * 1024  # rosbag2's storage.max_cache_size default
+S1_CPU_RATIO = 0.5            # S1: ipc total CPU per GB at most half of dds's
+SPLIT_P99_RATIO = 2.0         # S1: splitting at most doubles the receive-to-write p99
+RSS_MARGIN_MIB = 300          # S1: the ipc container's peak RSS below max_cache_size plus this
+S2_CAMERAS_RATIO = 2          # S2: ipc records at least twice as many cameras without loss as dds
+S2_DIRECT_SHARE_PCT = 85      # S2: ipc lossless at >= this % of the direct-write limit of the same run
+OVERLOAD_CEILING_SHARE = 0.7  # S2: past its lossless limit, ipc still writes >= this share of the ceiling
+S3_RECORDER_RATIO = 1 / 3     # S3: the ipc recorder's CPU per message at most a third of the dds recorder's
+S3_BASELINE_RATIO = 0.5       # S3: drivers + recorder CPU per message at most half of --baseline's
+REPEAT_RUNS = 5               # --repeat: ipc lossless in every one of at least this many runs
+REPEAT_CPU_RATIO = 0.33       # --repeat: ipc / dds total CPU per GB in every run
+
+
+class Targets:
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+
+    def add(self, name: str, ok: Optional[bool], detail: str) -> None:
+        self.rows.append({"target": name, "result": "N/A" if ok is None else ("PASS" if ok else "FAIL"),
+                          "detail": detail})
+
+
+def default_storage(args: argparse.Namespace) -> bool:
+    return args.storage == "mcap" and args.cache_mb * 1024 * 1024 == DEFAULT_CACHE
+
+
+def without_loss(entry: dict[str, Any]) -> bool:
+    return entry["lost"] == 0 and entry["min_pub_ratio"] >= PUBLISH_RATE_OK
+
+
+def s1_targets(s1: dict[str, Any], args: argparse.Namespace, targets: Targets) -> None:
+    ipc, dds, split = s1.get("ipc"), s1.get("dds"), s1.get("split")
+    name = "S1 ipc zero loss (mcap, default cache)"
+    if good(ipc):
+        targets.add(name, without_loss(ipc) if default_storage(args) else None,
+                    f"lost {ipc['lost']} of {ipc['published']}, drivers at >= {100 * ipc['min_pub_ratio']:.1f} % of "
+                    "nominal" + ("" if default_storage(args) else " (not the default storage/cache: not evaluated)"))
+    else:
+        targets.add(name, None, "not measured")
+    name = f"S1 ipc total CPU s/GB <= {S1_CPU_RATIO:g} of dds"
+    if good(ipc) and good(dds) and ipc.get("total_cpu_s_per_gb") and dds.get("total_cpu_s_per_gb"):
+        a, b = ipc["total_cpu_s_per_gb"], dds["total_cpu_s_per_gb"]
+        targets.add(name, a <= S1_CPU_RATIO * b, f"ipc {a:.2f} vs dds {b:.2f} s/GB (ratio {a / b:.2f})")
+    else:
+        targets.add(name, None, "not measured")
+    name = f"S1 split ({args.split_mb:g} MiB files) lossless, write latency p99 <= {SPLIT_P99_RATIO:g}x unsplit"
+    a, b = ((e.get("latency_ms") or {}).get("p99") if good(e) else None for e in (split, ipc))
+    if a and b:
+        targets.add(name, split["lost"] == 0 and a <= SPLIT_P99_RATIO * b,
+                    f"lost {split['lost']} of {split['published']}, p99 {a:.1f} vs {b:.1f} ms unsplit "
+                    f"(ratio {a / b:.2f}), {split.get('bag_files', '?')} files")
+    else:
+        targets.add(name, None, "not measured")
+    name = f"S1 ipc container peak RSS < max_cache_size + {RSS_MARGIN_MIB} MiB"
+    if good(ipc):
+        limit = args.cache_mb + RSS_MARGIN_MIB
+        targets.add(name, ipc["recorder_rss_mb"] < limit, f"{ipc['recorder_rss_mb']:.0f} MiB vs {limit:.0f} MiB")
+    else:
+        targets.add(name, None, "not measured")
+
+
+def s2_targets(s2: Optional[dict[str, Any]], targets: Targets) -> None:
+    """Judged on the largest lossless ipc step; below a target they fail only when ipc did lose messages at the
+    next step (a ramp capped below the target proves nothing)."""
+    name = f"S2 ipc lossless cameras >= {S2_CAMERAS_RATIO}x dds"
+    if s2 and "ipc" in s2["largest_lossless"] and "dds" in s2["largest_lossless"]:
+        a, b = s2["largest_lossless"]["ipc"], s2["largest_lossless"]["dds"]
+        capped = "" if s2["limit_reached"].get("ipc") else f" (ipc capped at {s2['cap']})"
+        targets.add(name, a >= max(1, S2_CAMERAS_RATIO * b),
+                    f"ipc {a} vs dds {b}{capped}" + (" (no lossless step at all)" if a == 0 else ""))
+    else:
+        targets.add(name, None, "not measured")
+    s2_direct_target(s2, targets)
+    name = f"ipc MB/s >= {100 * OVERLOAD_CEILING_SHARE:.0f} % of the ceiling past its lossless limit"
+    over = s2.get("ipc_overload") if s2 else None
+    if over and s2.get("ceiling"):
+        ratio = over["mb_per_s"] / s2["ceiling"]["mb_per_s"]
+        targets.add(name, ratio >= OVERLOAD_CEILING_SHARE,
+                    f"{over['mb_per_s']:.0f} MB/s at {over['cameras']} cameras vs ceiling "
+                    f"{s2['ceiling']['mb_per_s']:.0f} MB/s ({100 * ratio:.0f} %)")
+    else:
+        targets.add(name, None, "ipc was not driven past its lossless limit" if s2 else "not measured")
+
+
+def s2_direct_target(s2: Optional[dict[str, Any]], targets: Targets) -> None:
+    """ipc lossless at >= S2_DIRECT_SHARE_PCT of the direct-write limit, on its largest lossless step."""
+    name = f"S2 ipc lossless at >= {S2_DIRECT_SHARE_PCT} % of the direct-write limit"
+    steps = [step for step in (s2 or {}).get("steps", []) if step["mode"] == "ipc" and good(step)]
+    if not s2 or not steps:
+        targets.add(name, None, "not measured")
+        return
+    best = max((step for step in steps if step["lossless"]), key=lambda step: step["cameras"], default=None)
+    reached = s2["limit_reached"].get("ipc", False)
+    capped = "" if reached else f" (no loss up to the cap of {s2['cap']})"
+    pct = best.get("direct_write_pct") if best else 0.0
+    if pct is None:
+        targets.add(name, None, "no direct-write limit measured (--direct-mb 0)")
+        return
+    targets.add(name, True if pct >= S2_DIRECT_SHARE_PCT else (False if reached else None),
+                f"{best['mb_per_s'] if best else 0:.0f} MB/s at {best['cameras'] if best else 0} cameras = "
+                f"{pct:.0f} % of the direct-write limit{capped}")
+
+
+def s3_targets(s3: dict[str, Any], args: argparse.Namespace, targets: Targets) -> None:
+    ipc, dds, baseline = s3.get("ipc"), s3.get("dds"), s3.get("baseline")
+    name = f"S3 ipc zero loss, recorder CPU per message <= 1/{1 / S3_RECORDER_RATIO:g} of dds"
+    a = ipc.get("recorder_cpu_best_us_per_msg") if good(ipc) else None
+    b = dds.get("recorder_cpu_best_us_per_msg") if good(dds) else None
+    if a is not None and b:
+        how = ("writer thread; the subtraction gave " + fmt(ipc["recorder_cpu_us_per_msg"], ".1f") + " us"
+               if ipc.get("recorder_cpu_subtraction_below_writer") else "ipc total - drivers only")
+        targets.add(name, without_loss(ipc) and a <= S3_RECORDER_RATIO * b,
+                    f"lost {ipc['lost']} of {ipc['published']}, drivers at >= {100 * ipc['min_pub_ratio']:.1f} % "
+                    f"of nominal; {a:.1f} ({how}) vs {b:.1f} us/msg (ratio {a / b:.2f})")
+    else:
+        targets.add(name, None, "not measured")
+    name = f"S3 ipc zero loss, drivers + recorder CPU per message <= {S3_BASELINE_RATIO:g} of --baseline"
+    if good(ipc) and good(baseline):
+        ratio = total_us_per_msg(ipc) / total_us_per_msg(baseline)
+        targets.add(name, without_loss(ipc) and ratio <= S3_BASELINE_RATIO,
+                    f"{total_us_per_msg(ipc):.1f} vs {total_us_per_msg(baseline):.1f} us/msg at {baseline['code']} "
+                    f"(ratio {ratio:.2f}); lost {ipc['lost']} of {ipc['published']}")
+    elif args.baseline:
+        targets.add(name, None, "not measured")
+
+
+def repeat_targets(repeat: dict[str, Any], args: argparse.Namespace, targets: Targets) -> None:
+    name = f"S1 ipc lossless in {REPEAT_RUNS} of {REPEAT_RUNS} consecutive runs"
+    m = repeat["per_mode"].get("ipc")
+    if m and args.repeat >= REPEAT_RUNS:
+        targets.add(name, m["lossless_runs"] == m["runs"] if default_storage(args) else None,
+                    f"lossless in {m['lossless_runs']} of {m['runs']} consecutive runs (all must be); lost % max "
+                    f"{fmt(m['lost_pct_max'], '.2f')}" + ("" if default_storage(args) else
+                                                          " (not the default storage/cache)"))
+    else:
+        targets.add(name, None, f"needs ipc and --repeat >= {REPEAT_RUNS}")
+    name = f"S1 ipc total CPU per GB <= {REPEAT_CPU_RATIO:g} of dds in every run"
+    ratios = repeat["ipc_dds_cpu_per_gb_ratio"]
+    if ratios:
+        targets.add(name, all(r is not None and r <= REPEAT_CPU_RATIO for r in ratios),
+                    "ratio per run: " + ", ".join(fmt(r, ".2f") for r in ratios))
+    else:
+        targets.add(name, None, "needs ipc and dds")
+    m, ratios = repeat["per_mode"].get("split"), repeat["split_ipc_p99_ratio"]
+    if m and ratios:
+        targets.add(f"S1 split lossless, write latency p99 <= {SPLIT_P99_RATIO:g}x unsplit in every run "
+                    f"({m['runs']})",
+                    m["lossless_runs"] == m["runs"] and all(r is not None and r <= SPLIT_P99_RATIO for r in ratios),
+                    f"split lossless in {m['lossless_runs']} of {m['runs']} runs; p99 ratio per run: "
+                    + ", ".join(fmt(r, ".2f") for r in ratios))
+
+
+def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
+    targets = Targets()
+    s1 = report.get("S1") or {}
+    s1_targets(s1, args, targets)
+    if s1.get("repeat"):
+        repeat_targets(s1["repeat"], args, targets)
+    s2_targets(report.get("S2"), targets)
+    s3_targets(report.get("S3") or {}, args, targets)
+    return targets.rows

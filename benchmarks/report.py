@@ -1,0 +1,355 @@
+#!/usr/bin/env python3
+"""The result tables of the documentation, generated from the benchmarks' result files.
+
+    python -m benchmarks.report [--check] [--results DIR] [--docs FILE ...]
+
+Every result folder (``benchmarks/results/<date>-<commit>/``) with JSON files gets its ``README.md``: the tables
+of its own JSON. In the documentation (README.md and docs/*.md by default), whatever stands between the lines
+``<!-- BEGIN GENERATED: NAME -->`` and ``<!-- END GENERATED: NAME -->`` is replaced by the table NAME (see
+``TABLES``) made from the newest result file that holds what it needs; nothing else in a file changes.
+A block whose table no result file can give is left as it is, with a message saying what run would give it.
+
+``--check`` changes nothing: it prints every difference and exits 1 if there is one, so that the tables in the
+documentation are never typed by hand.
+"""
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import os
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+REPO = Path(__file__).resolve().parents[1]
+if __package__ in (None, ""):  # run as a script: benchmarks.* from this checkout
+    sys.path.insert(1, str(REPO))
+
+from benchmarks.record.report import fmt  # noqa: E402
+from benchmarks.result_folder import RESULTS  # noqa: E402
+
+BLOCK = re.compile(r"^<!-- BEGIN GENERATED: (?P<name>[\w.-]+) -->\n(?P<body>.*?)^<!-- END GENERATED: (?P=name) -->$",
+                   re.MULTILINE | re.DOTALL)
+FOLDER_TABLES = "README.md"
+
+
+class Missing(Exception):
+    """A result file lacks what a table needs."""
+
+
+# ----------------------------------------------------------------------------------------------- tables
+def markdown(headers: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers),
+            *("| " + " | ".join(row) + " |" for row in rows)]
+
+
+def part(record: dict[str, Any], key: str) -> dict[str, Any]:
+    if not record.get(key):
+        raise Missing(f"no {key} in this run")
+    return record[key]
+
+
+def measured(entry: Optional[dict[str, Any]]) -> bool:
+    return entry is not None and "error" not in entry
+
+
+def lost_text(entry: dict[str, Any]) -> str:
+    return f"{entry['lost']}" + (f" ({entry['lost_pct']:.1f} %)" if entry["lost"] else "")
+
+
+def rss_text(entry: dict[str, Any]) -> str:
+    return " + ".join(f"{v:.0f}" for v in (entry.get("peak_rss_mb") or {}).values()) + " MiB"
+
+
+def s1_table(record: dict[str, Any]) -> list[str]:
+    s1 = part(record, "S1")
+    split_mb = record["config"]["split_mb"]
+    rows = []
+    for mode, label in (("ipc", "ipc"), ("split", f"split ({split_mb:g} MiB files)"), ("dds", "dds")):
+        e = s1.get(mode)
+        if e is None:
+            continue
+        if not measured(e):
+            rows.append([label, f"failed: {e['error'][:80]}"] + [""] * 7)
+            continue
+        lat = e.get("latency_ms") or {}
+        rows.append([label, str(e["published"]), str(e["recorded"]), f"{e['lost_pct']:.2f} %", fmt(e["mb_per_s"]),
+                     fmt(e["total_cpu_s"], ".2f"), fmt(e.get("total_cpu_s_per_gb"), ".2f"), rss_text(e),
+                     f"{fmt(lat.get('p50'))} / {fmt(lat.get('p99'))} ms"])
+    if measured(s1.get("drivers")):
+        rows.append(["drivers only", "", "", "", "", fmt(s1["drivers"]["total_cpu_s"], ".2f"), "",
+                     rss_text(s1["drivers"]), ""])
+    if measured(s1.get("ceiling")):
+        c = s1["ceiling"]
+        rows.append(["ceiling (buffered)", "", "", "", fmt(c["mb_per_s"]), fmt(c["total_cpu_s"], ".2f"),
+                     fmt(c["total_cpu_s_per_gb"], ".2f"), "", ""])
+    if not rows:
+        raise Missing("no S1 mode measured")
+    if measured(record.get("direct_write")):
+        d = record["direct_write"]
+        rows.append(["direct-write limit (O_DIRECT)", "", "", "", fmt(d["mb_per_s"]), "", fmt(d["cpu_s_per_gb"], ".2f"),
+                     "", ""])
+    return markdown(["mode", "published", "recorded", "lost", "MB/s", "total CPU s", "CPU s per GB", "peak RSS",
+                     "receive-to-write p50 / p99"], rows)
+
+
+def s2_table(record: dict[str, Any]) -> list[str]:
+    s2 = part(record, "S2")
+    rows = []
+    for step in s2["steps"]:
+        if not measured(step):
+            rows.append([step["mode"], str(step["cameras"]), f"failed: {step['error'][:80]}", "", "", "no"])
+            continue
+        rows.append([step["mode"], str(step["cameras"]), lost_text(step), fmt(step["mb_per_s"]),
+                     fmt(step["total_cpu_s"], ".2f"), "yes" if step["lossless"] else "no"])
+    return markdown(["mode", "cameras", "lost", "MB/s", f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
+
+
+def micro(value: Optional[float]) -> str:
+    return "" if value is None else f"{value:.1f} µs"
+
+
+def s3_table(record: dict[str, Any]) -> list[str]:
+    s3 = part(record, "S3")
+    rows = []
+    for mode in ("ipc", "dds"):
+        e = s3.get(mode)
+        if e is None:
+            continue
+        if not measured(e):
+            rows.append([mode, f"failed: {e['error'][:80]}", "", "", "", ""])
+            continue
+        reliable = not e.get("recorder_cpu_subtraction_below_writer")
+        rows.append([mode, str(e["published"]), str(e["recorded"]), str(e["lost"]),
+                     micro(e.get("writer_thread_us_per_msg")),
+                     micro(e.get("recorder_cpu_us_per_msg") if reliable else None)])
+    if not rows:
+        raise Missing("no S3 recorder mode measured")
+    return markdown(["mode", "published", "recorded", "lost", "writer thread per message",
+                     "recorder CPU per message"], rows)
+
+
+def targets_table(record: dict[str, Any]) -> list[str]:
+    rows = [[t["target"], f"{t['result']}: {t['detail']}"] for t in part(record, "targets")]
+    return markdown(["target", "result"], rows)
+
+
+def headline_table(record: dict[str, Any]) -> list[str]:
+    s1, s2 = part(record, "S1"), part(record, "S2")
+    ipc, dds = s1.get("ipc"), s1.get("dds")
+    if not measured(ipc) or not measured(dds):
+        raise Missing("S1 lacks ipc or dds")
+    scenario = s1["scenario"]
+
+    def lost(e: dict[str, Any]) -> str:
+        return f"{e['lost']} of {e['published']}" + (f" ({e['lost_pct']:.2f} %)" if e["lost"] else "")
+
+    def cameras(mode: str) -> str:
+        capped = "" if s2["limit_reached"].get(mode) else f" (no loss up to the ramp's cap of {s2['cap']})"
+        return f"{s2['largest_lossless'].get(mode, '-')}{capped}"
+
+    return markdown([f"S1 rig: {scenario['describe']}; {scenario['nominal_mb_per_s']:.0f} MB/s",
+                     "recorder in the drivers' container (intra-process)", "recorder in its own process (DDS)"],
+                    [["messages lost", lost(ipc), lost(dds)],
+                     ["CPU per GB recorded", *(f"{fmt(e.get('total_cpu_s_per_gb'), '.2f')} s" for e in (ipc, dds))],
+                     ["receive-to-write latency p99",
+                      *(f"{fmt((e.get('latency_ms') or {}).get('p99'))} ms" for e in (ipc, dds))],
+                     ["1080p cameras recorded without loss (S2 ramp)", cameras("ipc"), cameras("dds")]])
+
+
+def highest_rate(result: dict[str, Any]) -> str:
+    """The highest sustained rate, and why the next one was not."""
+    runs = result["runs"]
+    best = result["highest_sustained_rate"]
+    last = runs[-1] if runs else None
+    if last is None or last.get("sustained"):
+        return f"{fmt(best, 'g', 'none')}x (every rate tried)"
+    if "error" in last:
+        why = f"failed: {last['error'][:60]}"
+    else:
+        missing = last["expected"] - last["delivered"]
+        why = (f"{missing} lost, " if missing else "") + f"wall {last['wall_s'] / last['ideal_s']:.2f}x ideal"
+    return (f"{best:g}x" if best else "none") + f" ({last['rate']:g}x: {why})"
+
+
+def replay_table(replay: dict[str, Any]) -> list[str]:
+    rows = []
+    for mode, result in replay.get("modes", {}).items():
+        if not measured(result):
+            rows.append([mode, f"failed: {result['error'][:80]}", "", "", "", ""])
+            continue
+        one = next((r for r in result["runs"] if r["rate"] == 1.0 and "error" not in r), None)
+        err = one["publish_error_ms"] if one else {}
+        rows.append([mode, highest_rate(result), f"{one['delivered']} / {one['expected']}" if one else "",
+                     fmt(one["wall_s"] / one["ideal_s"], ".3f") if one else "",
+                     f"{fmt(err.get('p50'), '.2f')} / {fmt(err.get('p99'), '.2f')} / {fmt(err.get('max'), '.1f')} ms"
+                     if one else "", " + ".join(f"{v:.1f}" for v in one["cpu_s"].values()) if one else ""])
+    if not rows:
+        raise Missing("no replay mode measured")
+    target = replay["target"]
+    return [*markdown(["mode", "highest sustained rate", "rate 1: delivered", "wall / ideal",
+                       "publish error p50 / p99 / max", "CPU s"], rows),
+            "", f"Target, {target['target']}: {target['result']} ({target['detail']})."]
+
+
+@dataclass
+class Table:
+    source: str   # the result file it is made from: record or replay (.json)
+    needs: str    # what that file must hold, for the message when none does
+    command: str  # a run that gives it
+    make: Callable[[dict[str, Any]], list[str]]
+    title: str    # its heading in a result folder's README.md
+
+
+TABLES: dict[str, Table] = {
+    "headline": Table("record", "S1 (ipc and dds) and S2 of one run", "make bench", headline_table, ""),
+    "s1": Table("record", "S1", "python benchmarks/record_bench.py --quick", s1_table, "S1 rig"),
+    "s2": Table("record", "S2", "python benchmarks/record_bench.py --scenarios s2", s2_table, "S2 ramp"),
+    "s3": Table("record", "S3", "python benchmarks/record_bench.py --scenarios s3", s3_table, "S3 IMU storm"),
+    "targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
+    "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
+}
+
+
+# ----------------------------------------------------------------------------------------------- result files
+@dataclass
+class Result:
+    path: Path            # benchmarks/results/<folder>/<source>.json
+    data: dict[str, Any]
+
+    @property
+    def started_at(self) -> str:
+        return self.data.get("started_at", "")
+
+
+def results(results_dir: Path) -> dict[str, list[Result]]:
+    """Every result file under ``results_dir`` by source (``record``, ``replay``), the newest first."""
+    found: dict[str, list[Result]] = {}
+    for path in sorted(results_dir.glob("*/*.json")):
+        found.setdefault(path.stem, []).append(Result(path, json.loads(path.read_text())))
+    for entries in found.values():
+        entries.sort(key=lambda result: (result.started_at, result.path.parent.name), reverse=True)
+    return found
+
+
+def caption(result: Result, doc: Path) -> str:
+    """Where a generated block comes from: the command and the result file (a link relative to ``doc``)."""
+    data = result.data
+    link = Path(os.path.relpath(result.path, doc.parent)).as_posix()
+    shown = result.path.relative_to(REPO if result.path.is_relative_to(REPO) else result.path.parents[2]).as_posix()
+    git = data.get("git", {})
+    return (f"Measured by `{data.get('command', '?')}` at {data.get('started_at', '?')[:16].replace('T', ' ')} "
+            f"(code {git.get('commit', '?')}{', with uncommitted changes' if git.get('modified') else ''}); "
+            f"results: [{shown}]({link}).")
+
+
+def generated(name: str, found: dict[str, list[Result]], doc: Path) -> tuple[Optional[list[str]], str]:
+    """The lines of block ``name`` for ``doc``, from the newest result file that gives it; or (None, why not)."""
+    table = TABLES.get(name)
+    if table is None:
+        return None, f"no table is called {name!r} (known: {', '.join(TABLES)})"
+    reasons = []
+    for result in found.get(table.source, []):
+        try:
+            lines = table.make(result.data)
+        except Missing as missing:
+            reasons.append(f"{result.path.parent.name}: {missing}")
+            continue
+        return [*lines, "", caption(result, doc)], ""
+    tried = f" (newest first: {'; '.join(reasons[:3])})" if reasons else ""
+    return None, (f"needs {table.needs} in a {table.source}.json; no result folder has one{tried}. Run "
+                  f"`{table.command}`, then this generator")
+
+
+# ----------------------------------------------------------------------------------------------- files
+def folder_tables(folder: Path) -> str:
+    """The README.md of a result folder: every table its own JSON files give."""
+    lines = [f"# Benchmark results {folder.name}", "",
+             "Generated from the JSON files of this folder by `python -m benchmarks.report`; do not edit."]
+    for path in sorted(folder.glob("*.json")):
+        data = json.loads(path.read_text())
+        git = data.get("git", {})
+        lines += ["", f"## {path.name}", "", f"`{data.get('command', '?')}`, started {data.get('started_at', '?')}, "
+                  f"code at {git.get('commit', '?')}"
+                  + (f" + uncommitted changes in {', '.join(git['modified'])}" if git.get("modified") else "")
+                  + f"; {data.get('elapsed_s', 0):.0f} s."]
+        for table in TABLES.values():
+            if table.source == path.stem and table.title:
+                try:
+                    lines += ["", f"### {table.title}", "", *table.make(data)]
+                except Missing:
+                    continue
+    return "\n".join(lines) + "\n"
+
+
+def write_folder_tables(folder: Path) -> None:
+    (folder / FOLDER_TABLES).write_text(folder_tables(folder))
+
+
+def shown(path: Path) -> str:
+    """``path`` relative to the current directory when below it."""
+    return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
+
+
+def regenerate(text: str, doc: Path, found: dict[str, list[Result]], notes: list[str]) -> str:
+    """``text`` with every generated block rewritten; a note per block left as it is."""
+    def replace(match: re.Match) -> str:
+        lines, why = generated(match["name"], found, doc)
+        if lines is None:
+            notes.append(f"{shown(doc)}: block {match['name']!r} left as it is: {why}")
+            return match[0]
+        return (f"<!-- BEGIN GENERATED: {match['name']} -->\n" + "\n".join(lines)
+                + f"\n<!-- END GENERATED: {match['name']} -->")
+
+    return BLOCK.sub(replace, text)
+
+
+def default_docs(repo: Path) -> list[Path]:
+    return [path for path in [repo / "README.md", *sorted((repo / "docs").glob("*.md"))] if path.exists()]
+
+
+def targets_of(results_dir: Path, docs: list[Path]) -> list[tuple[Path, str, list[str]]]:
+    """(file, what it should hold, notes) for every doc and every result folder's table file."""
+    found = results(results_dir)
+    out = []
+    for doc in docs:
+        notes: list[str] = []
+        out.append((doc, regenerate(doc.read_text(), doc, found, notes), notes))
+    for folder in sorted({result.path.parent for entries in found.values() for result in entries}):
+        out.append((folder / FOLDER_TABLES, folder_tables(folder), []))
+    return out
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="change nothing; exit 1 if a file is out of date")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the directory of the result folders")
+    parser.add_argument("--docs", type=Path, nargs="+", help="the files to rewrite (default: README.md, docs/*.md)")
+    args = parser.parse_args(argv)
+    stale = []
+    for path, wanted, notes in targets_of(args.results, args.docs or default_docs(REPO)):
+        for note in notes:
+            print(note, file=sys.stderr)
+        current = path.read_text() if path.exists() else ""
+        if current == wanted:
+            continue
+        stale.append(path)
+        if args.check:
+            sys.stdout.writelines(difflib.unified_diff(current.splitlines(True), wanted.splitlines(True),
+                                                       f"{shown(path)} (as it is)",
+                                                       f"{shown(path)} (from the results)"))
+        else:
+            path.write_text(wanted)
+            print(f"rewrote {shown(path)}")
+    if args.check and stale:
+        print(f"{len(stale)} file(s) differ from what the results give: run python -m benchmarks.report",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
