@@ -36,25 +36,43 @@ class ThrowingComponent(Node):
 
 
 class BlockingComponent(Node):
-    """A timer callback that blocks: touches ``marker`` (if set) and then sleeps ``block_seconds``."""
+    """A timer callback that blocks: touches ``marker`` (if set), then sleeps ``block_seconds``, or, with ``gate``
+    set, waits for as long as the file ``gate`` exists (returning at once when it does not). Then, with a
+    marker, it writes ``<marker>.done``: ``alive`` if its node was still alive, else ``destroyed``."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("blocking_component", **kwargs)
         self.block_seconds = self.declare_parameter("block_seconds", 5.0).value
         self.marker = self.declare_parameter("marker", "").value
+        self.gate = self.declare_parameter("gate", "").value
         self._timer = self.create_timer(0.05, self._block)
 
     def _block(self) -> None:
+        if self.gate and not pathlib.Path(self.gate).exists():
+            return
         if self.marker:
             pathlib.Path(self.marker).write_text(str(time.monotonic()))
-        time.sleep(self.block_seconds)
+        if self.gate:
+            while pathlib.Path(self.gate).exists():
+                time.sleep(0.01)
+        else:
+            time.sleep(self.block_seconds)
+        if self.marker:
+            try:
+                with self.handle:
+                    state = "alive"
+            except Exception:  # noqa: BLE001 - InvalidHandle: destroyed under the running callback
+                state = "destroyed"
+            pathlib.Path(self.marker + ".done").write_text(state)
 
 
 class LoggingComponent(Node):
-    """Logs one DEBUG and one INFO line per tick, for a few ticks, naming itself."""
+    """Logs one DEBUG and one INFO line per tick, for three ticks, naming itself; then touches ``marker`` (if
+    set): once it exists, every line this component was going to log has been logged."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("logging_component", **kwargs)
+        self.marker = self.declare_parameter("marker", "").value
         self._ticks = 0
         self._timer = self.create_timer(0.05, self._log)
 
@@ -64,6 +82,8 @@ class LoggingComponent(Node):
             return
         self.get_logger().debug(f"debug-probe from {self.get_name()}")
         self.get_logger().info(f"info-probe from {self.get_name()}")
+        if self._ticks == 3 and self.marker:
+            pathlib.Path(self.marker).touch()
 
 
 class GuardedComponent(Node):
