@@ -15,26 +15,25 @@ import pathlib
 import shutil
 import subprocess
 import sys
-import time
-from importlib.metadata import entry_points
+import tomllib
 from typing import Any, Iterator
 
 import pytest
 import rclpy
 
-from container_process import ContainerClient, ContainerProcess
+from container_process import ContainerClient, ContainerProcess, wait_until
 
 IPC_COMPONENT = shutil.which("ipc-component", path=str(pathlib.Path(sys.executable).parent)) \
     or shutil.which("ipc-component")
 MAIN, OTHER = "/ComponentManager", "/other"
 TALKER, LISTENER = "components::Talker", "components::Listener"
 PROBE = "cli_probe:Probe"
-BUDGET = 5.0
 # Bare `list` watches the graph 0.6 s by default (ros2cli: 0.5 s); on a machine busy with the whole test suite
 # a container can take longer to show up, and these tests check what is listed, not how fast.
 LIST_ALL = ("list", "--spin-time", "3")
-SLACK = 8.0  # start-up, import and shutdown of several CLIs at once on a loaded 2-core machine: this checks
-# that the CLI gives up after its budget instead of hanging, not how fast it is (benchmarks/cli_latency.py)
+# rcl refuses to initialize with this: a command that contacts ROS at all fails with rcl's error.
+NO_ROS = {"ROS_DOMAIN_ID": "not_a_domain"}
+PYPROJECT = pathlib.Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 PROBE_SOURCE = '''
 """A component that writes down, once it runs, what the container gave it."""
@@ -76,34 +75,29 @@ class Probe(ComponentNode):
 
 
 # --- helpers ----------------------------------------------------------------------------------------------
-def cli(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess:
-    """Run ``ipc-component`` with ``args``; the result has .returncode, .stdout, .stderr and .seconds."""
+def cli(*args: str, timeout: float = 90.0, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run ``ipc-component`` with ``args`` (``env``: variables changed for it); a generous ``timeout`` only
+    catches a CLI that hangs."""
     assert IPC_COMPONENT, "the ipc-component console script is not installed next to this Python"
-    start = time.monotonic()
-    result = subprocess.run([IPC_COMPONENT, *args], capture_output=True, text=True, timeout=timeout,
-                            env=dict(os.environ))
-    result.seconds = time.monotonic() - start  # type: ignore[attr-defined]
-    return result
+    return subprocess.run([IPC_COMPONENT, *args], capture_output=True, text=True, timeout=timeout,
+                          env=dict(os.environ, **(env or {})))
 
 
 def cli_parallel(*commands: tuple[str, ...], timeout: float = 90.0) -> list[subprocess.CompletedProcess]:
     """Run several ``ipc-component`` commands at the same time (each waits for discovery on its own)."""
-    start = time.monotonic()
     processes = [subprocess.Popen([IPC_COMPONENT, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                   text=True, env=dict(os.environ)) for args in commands]
     results = []
     for args, process in zip(commands, processes):
         try:
-            stdout, stderr = process.communicate(timeout=max(1.0, timeout - (time.monotonic() - start)))
+            stdout, stderr = process.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
             for other in processes:
                 if other.poll() is None:
                     other.kill()
                     other.wait()
             raise
-        result = subprocess.CompletedProcess([IPC_COMPONENT, *args], process.returncode, stdout, stderr)
-        result.seconds = time.monotonic() - start  # type: ignore[attr-defined]
-        results.append(result)
+        results.append(subprocess.CompletedProcess([IPC_COMPONENT, *args], process.returncode, stdout, stderr))
     return results
 
 
@@ -119,11 +113,8 @@ def assert_fails(result: subprocess.CompletedProcess, stderr: str, stdout: str =
     assert (result.returncode, result.stderr, result.stdout) == (1, stderr, stdout), result
 
 
-def read_report(path: pathlib.Path, timeout: float = 10.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while not path.exists():
-        assert time.monotonic() < deadline, f"the probe component never wrote {path}"
-        time.sleep(0.05)
+def read_report(path: pathlib.Path, timeout: float = 20.0) -> dict[str, Any]:
+    assert wait_until(path.exists, timeout), f"the probe component never wrote {path}"
     return json.loads(path.read_text())
 
 
@@ -190,7 +181,6 @@ def test_list_shows_every_container_and_its_components(clients: dict[str, Contai
     assert_ok(result, lines(
         MAIN, f"  {talker[0]}  /talker", f"  {listener[0]}  /ns/listener",
         OTHER, f"  {other_talker[0]}  /other_talker"))
-    assert result.seconds < BUDGET + SLACK
 
 
 def test_list_containers_only_and_empty_containers(clients: dict[str, ContainerClient]) -> None:
@@ -223,8 +213,7 @@ def test_unknown_container_for_every_verb(clients: dict[str, ContainerClient]) -
         # the full name is required, as with ros2 component
         ("list", "ComponentManager"))
     for result, name in zip(results, ["/nowhere"] * 4 + ["ComponentManager"]):
-        assert_fails(result, lines(f"Unable to find container node '{name}'"))
-        assert result.seconds < BUDGET + SLACK, "waited for the container longer than the budget"
+        assert_fails(result, lines(f"Unable to find container node '{name}'"))  # gave up: no hang
     assert len(clients[MAIN].list().unique_ids) == 0
 
 
@@ -332,10 +321,9 @@ def test_load_constructor_failure(clients: dict[str, ContainerClient]) -> None:
                             "or 10, 20, 30, 40 or 50"),
 ])
 def test_load_malformed_arguments_fail_before_contacting_anyone(args: list[str], message: str) -> None:
-    # No container fixture: these must fail at once even with no container on the graph.
-    result = cli("load", "/nowhere", "components", TALKER, *args)
+    # No container fixture, and no ROS at all: these must fail before any ROS contact (no waiting for discovery).
+    result = cli("load", "/nowhere", "components", TALKER, *args, env=NO_ROS)
     assert_fails(result, lines(message))
-    assert result.seconds < BUDGET, "a malformed argument must not wait for discovery"
 
 
 # --- unload -----------------------------------------------------------------------------------------------
@@ -374,16 +362,18 @@ def test_unload_stops_at_the_first_failure(clients: dict[str, ContainerClient]) 
 
 
 def test_unload_invalid_id() -> None:
-    result = cli("unload", "/nowhere", "abc")
+    result = cli("unload", "/nowhere", "abc", env=NO_ROS)  # refused before any ROS contact
     assert_fails(result, lines("Invalid component unique id 'abc': expected a non-negative integer"))
-    assert result.seconds < BUDGET
 
 
 # --- types ------------------------------------------------------------------------------------------------
 def registered_plugins() -> dict[str, list[str]]:
-    packages: dict[str, set[str]] = {}
-    for entry_point in entry_points(group="rclpy_components"):
-        packages.setdefault(entry_point.module.split(".")[0], set()).add(entry_point.name)
+    """What this project registers, read from pyproject.toml: plugin names per Python package of their class."""
+    with open(PYPROJECT, "rb") as stream:
+        registered = tomllib.load(stream)["project"]["entry-points"]["rclpy_components"]
+    packages: dict[str, list[str]] = {}
+    for name, target in registered.items():
+        packages.setdefault(target.split(":")[0].split(".")[0], []).append(name)
     return {package: sorted(names) for package, names in sorted(packages.items())}
 
 
