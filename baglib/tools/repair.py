@@ -35,6 +35,7 @@ import yaml
 from mcap.opcode import Opcode
 
 from baglib.format.bag_files import RECOVER_COMMAND, STORAGE_EXTENSIONS, storage_files
+from baglib.tools.patch_journal import Patch, apply_all, finish_journals
 from baglib.format.mcap_records import MAGIC, Scan, Totals, scan, summary_tail
 from baglib.write.mcap_storage import METADATA_KEY, METADATA_NAME
 from baglib.format.metadata import METADATA_FILENAME, SAFE_LOADER, BagMetadata, FileInfo, TopicInfo
@@ -108,8 +109,11 @@ class _Recovered:
     topics: list[TopicInfo]
     custom_data: dict[str, str] | None
     #: Writes the repaired file at the temporary path, given the bag's metadata to close it with;
-    #: ``None`` when the file is intact and kept as it is.
+    #: ``None`` when the file is intact (or was repaired in place already) and is kept as it is.
     write: Callable[[Path, str], None] | None
+    #: The in-place repair, given the bag's metadata: a :class:`Patch` of the file, or ``None`` when only
+    #: a copy can repair it (then ``write`` does).
+    patch: Callable[[str], Patch | None] | None = None
 
 
 def recover_bag(bag: str | os.PathLike[str], output: str | os.PathLike[str] | None = None) -> RecoveryReport:
@@ -141,6 +145,8 @@ def recover_bag(bag: str | os.PathLike[str], output: str | os.PathLike[str] | No
     except OSError as error:
         report.error = f"{error.filename or bag}: {error.strerror or error}"
         report.metadata = None
+        with contextlib.suppress(OSError):  # leave no half-written copy behind (a full disk stays full)
+            _finish_interrupted(bag)
     return report
 
 
@@ -159,7 +165,7 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         if report.storage == "mcap":
             result = _recover_mcap(path)
         else:
-            result = _recover_sqlite(path, target / f".{path.name}{_TEMP}")
+            result = _recover_sqlite(path, target / f".{path.name}{_TEMP}", in_place=target == bag)
         report.files.append(result.report)
         if result.report.action != "left out":
             recovered.append(result)
@@ -168,10 +174,13 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         return
     metadata = _bag_metadata(bag, report.storage, recovered)
     serialized = metadata.to_yaml()
-    written = []
+    written, patches = [], []
     for result in recovered:
         destination = target / result.info.path
-        if result.write is not None:
+        patch = result.patch(serialized) if target == bag and result.patch is not None else None
+        if patch is not None:
+            patches.append(patch)
+        elif result.write is not None:
             temporary = target / f".{result.info.path}{_TEMP}"
             result.write(temporary, serialized)
             _fsync_file(temporary)
@@ -179,6 +188,7 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         elif target != bag:
             shutil.copyfile(bag / result.info.path, destination)
             _fsync_file(destination)
+    apply_all(patches)
     for temporary, destination in written:
         _replace(temporary, destination)
     metadata.write(target)
@@ -281,7 +291,10 @@ def _recover_mcap(path: Path) -> _Recovered:
     def write(temporary: Path, serialized_metadata: str) -> None:
         _write_mcap(path, temporary, found, totals, serialized_metadata)
 
-    return _Recovered(report, info, topics, custom_data, None if intact else write)
+    def patch(serialized_metadata: str) -> Patch | None:
+        return _mcap_patch(path, found, totals, serialized_metadata)
+
+    return _Recovered(report, info, topics, custom_data, None if intact else write, None if intact else patch)
 
 
 def _summary_intact(file: Any, size: int, found: Scan) -> bool:
@@ -298,6 +311,37 @@ def _summary_intact(file: Any, size: int, found: Scan) -> bool:
     file.seek(summary_start)
     summary = file.read(size - len(MAGIC) - 4 - summary_start)
     return crc == 0 or zlib.crc32(summary) == crc
+
+
+def _mcap_patch(path: Path, found: Scan, totals: Totals, serialized_metadata: str) -> Patch | None:
+    """The file repaired in place: cut after its last kept record (before the message indexes of its last chunk,
+    which are rewritten) and closed with the rebuilt summary. Every record before the cut stays where it is, so
+    the file's own message indexes must be the ones the scan rebuilt; ``None`` if they are not (a writer that
+    orders them otherwise, or none at all): then only a copy repairs the file."""
+    chunk_indexes, metadata_indexes = [], []
+    last = found.units[-1] if found.units else None
+    with open(path, "rb") as file:
+        for unit in found.units:
+            if unit is not last and unit.indexes is not None:
+                file.seek(unit.record_end)
+                if file.read(unit.end - unit.record_end) != unit.indexes:
+                    return None
+            chunk_index, metadata_index = unit.moved(unit.start)
+            if chunk_index is not None:
+                chunk_indexes.append(chunk_index)
+            if metadata_index is not None:
+                metadata_indexes.append(metadata_index)
+    if last is None:
+        cut, indexes = found.start, b""
+    elif last.indexes is not None:
+        cut, indexes = last.record_end, last.indexes
+    else:
+        cut, indexes = last.end, b""
+    tail = indexes + summary_tail(
+        cut + len(indexes), [found.schemas[key] for key in sorted(found.schemas)],
+        [found.channels[key] for key in sorted(found.channels)],
+        {METADATA_NAME: {METADATA_KEY: serialized_metadata}}, totals, chunk_indexes, metadata_indexes)
+    return Patch.prepare(path, cut, tail)
 
 
 def _write_mcap(source: Path, temporary: Path, found: Scan, totals: Totals, serialized_metadata: str) -> None:
@@ -336,11 +380,17 @@ def _copy(src: Any, dst: Any, start: int, end: int) -> None:
 # --- SQLite3 ---------------------------------------------------------------------------------
 
 
-def _recover_sqlite(path: Path, temporary: Path) -> _Recovered:
-    """Read the committed rows (via a copy sqlite may roll back or replay) into ``temporary``."""
+def _recover_sqlite(path: Path, temporary: Path, in_place: bool = False) -> _Recovered:
+    """The file as it is if intact; else, ``in_place``, sqlite's own recovery in the file (a hot journal rolled
+    back, a log replayed) if that makes it intact; else the committed rows read (via a copy sqlite may roll back
+    or replay) into ``temporary``."""
     report = FileReport(path.name)
-    side_files = [suffix for suffix in _SQLITE_SIDE_FILES if path.with_name(path.name + suffix).exists()]
-    if not side_files and _sqlite_intact(path):
+    side_files = _side_files(path)
+    intact = not side_files and _sqlite_intact(path)
+    if not intact and in_place and ("-journal" in side_files or "-wal" in side_files):
+        intact = _recovered_in_place(path, side_files, report)
+        side_files = _side_files(path)
+    if intact:
         with contextlib.suppress(sqlite3.Error, ValueError):  # else rebuilt, or left out with the reason
             topics, info, custom_data = _sqlite_content(_connect(f"file:{path}?mode=ro", uri=True),
                                                         path.name, report)
@@ -381,6 +431,37 @@ def _recover_sqlite(path: Path, temporary: Path) -> _Recovered:
     report.action = "repaired"
     # The new database is already at the temporary path (written while the rows were read).
     return _Recovered(report, info, topics, custom_data, lambda _temporary, _metadata: None)
+
+
+def _recovered_in_place(path: Path, side_files: list[str], report: FileReport) -> bool:
+    """Let sqlite recover the database where it is from its journal or log, as any client opening it would
+    (crash-safe by sqlite's own design, no second copy; sqlite plays back only a valid journal). True if the file
+    is then intact and no journal or log is left; the reasons say what was done."""
+    reasons = []
+    if "-journal" in side_files:
+        reasons.append("hot journal rolled back in place (the transaction in progress is discarded)")
+    if "-wal" in side_files:
+        reasons.append("write-ahead log replayed in place (its committed transactions are kept)")
+    try:
+        db = sqlite3.connect(path)
+        try:
+            db.execute("SELECT count(*) FROM sqlite_master").fetchone()  # rolls a hot journal back
+            if "-wal" in side_files:
+                db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+                db.execute("PRAGMA journal_mode=DELETE").fetchone()  # folds the log in and removes it
+        finally:
+            db.close()
+    except sqlite3.Error:
+        return False
+    if _side_files(path) or not _sqlite_intact(path):
+        return False
+    report.action = "repaired"
+    report.reasons += reasons
+    return True
+
+
+def _side_files(path: Path) -> list[str]:
+    return [suffix for suffix in _SQLITE_SIDE_FILES if path.with_name(path.name + suffix).exists()]
 
 
 def _connect(database: str | Path, uri: bool = False) -> sqlite3.Connection:
@@ -578,7 +659,9 @@ def _replace(temporary: Path, destination: Path) -> None:
 
 
 def _finish_interrupted(bag: Path) -> None:
-    """Complete a replacement an interrupted recover began, and remove what it left half-written."""
+    """Complete a replacement or an in-place patch an interrupted recover began, and remove what it left
+    half-written."""
+    finish_journals(bag)
     for aside in bag.glob(f".*{_ASIDE}"):
         database = aside.name[1:-len(_ASIDE)]
         for suffix in _SQLITE_SIDE_FILES:
