@@ -193,3 +193,39 @@ def test_a_repair_that_cannot_grow_the_file_leaves_it_as_found(original: Path, t
     report = recover_bag(bag)  # with room, the same bag recovers
     assert report.readable, report.text()
     assert read_back(bag) == surviving(original, cut)
+
+
+#: A writer killed inside a transaction whose pages already reached the database file (hot journal).
+KILLED_IN_TRANSACTION = textwrap.dedent("""
+    import os, sqlite3, sys
+    db = sqlite3.connect(sys.argv[1], isolation_level=None)
+    db.execute("PRAGMA journal_mode=DELETE")
+    db.execute("PRAGMA cache_size=1")  # spill: the uncommitted transaction reaches the database file
+    db.execute("BEGIN")
+    db.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES (1, ?, ?)",
+                   [(n, b"x" * 3000) for n in range(300)])
+    os._exit(0)  # as SIGKILL would: no rollback
+""")
+
+
+def test_a_sqlite_bag_with_a_hot_journal_recovers_in_place_on_a_full_disk(tmp_path: Path) -> None:
+    with small_filesystem(tmp_path / "disk", 32 * 1024 * 1024) as mounted:
+        assert mounted, "needs root to mount a small tmpfs (the tests run as root in CI)"
+        bag = tmp_path / "disk" / "bag"
+        with BagWriter(bag, "sqlite3") as writer:
+            writer.add_topic(TOPIC)
+            for n in range(MESSAGES):
+                writer.write(TOPIC.name, payload(n), T0 + n * 1_000_000, T0 + n * 1_000_000)
+        (bag / "metadata.yaml").unlink()
+        database = next(bag.glob("*.db3"))
+        subprocess.run([sys.executable, "-c", KILLED_IN_TRANSACTION, str(database)], check=True, timeout=60)
+        assert database.with_name(database.name + "-journal").stat().st_size
+        with open(tmp_path / "disk" / "filler", "wb") as file:
+            file.write(b"\0" * max(0, free_bytes(bag) - 256 * 1024))
+        assert free_bytes(bag) < database.stat().st_size  # no room for a copy
+        report = recover_bag(bag)
+        assert report.readable, report.text()
+        assert "rolled back in place" in report.text()
+        with Reader(bag) as reader:
+            assert [bytes(raw) for _, _, raw in reader.messages()] == [payload(n) for n in range(MESSAGES)]
+        assert sorted(os.listdir(bag)) == sorted([database.name, "metadata.yaml"])
