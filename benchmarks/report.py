@@ -192,7 +192,7 @@ def replay_table(replay: dict[str, Any]) -> list[str]:
     target = replay["target"]
     return [*markdown(["mode", "highest sustained rate", "rate 1: delivered", "wall / ideal",
                        "publish error p50 / p99 / max", "CPU s"], rows),
-            "", f"Target, {target['target']}: {target['result']} ({target['detail']})."]
+            "", f"Target ({target['target']}): {target['result']}; {target['detail']}."]
 
 
 @dataclass

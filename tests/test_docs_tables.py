@@ -74,8 +74,9 @@ def test_a_table_no_result_gives_is_left_with_a_message(tmp_path: pathlib.Path) 
     results = results_with(tmp_path, record)
     doc = tmp_path / "page.md"
     doc.write_text(HAND_TYPED.replace("GENERATED: s1", "GENERATED: s2"))
-    done = generator("--check", "--results", str(results), "--docs", str(doc))
-    assert done.returncode == 0, done.stdout + done.stderr
-    assert "block 's2' left as it is: needs S2 in a record.json" in done.stderr
-    assert "record_bench.py --scenarios s2" in done.stderr
-    assert doc.read_text() == HAND_TYPED.replace("GENERATED: s1", "GENERATED: s2")
+    for mode in ((), ("--check",)):
+        done = generator(*mode, "--results", str(results), "--docs", str(doc))
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert "block 's2' left as it is: needs S2 in a record.json" in done.stderr
+        assert "record_bench.py --scenarios s2" in done.stderr
+        assert doc.read_text() == HAND_TYPED.replace("GENERATED: s1", "GENERATED: s2")
