@@ -34,6 +34,7 @@ from benchmarks.result_folder import RESULTS  # noqa: E402
 BLOCK = re.compile(r"^<!-- BEGIN GENERATED: (?P<name>[\w.-]+) -->\n(?P<body>.*?)^<!-- END GENERATED: (?P=name) -->$",
                    re.MULTILINE | re.DOTALL)
 FOLDER_TABLES = "README.md"
+NUMBER_WORDS = "no one two three four five six seven eight nine".split()
 
 
 class Missing(Exception):
@@ -151,13 +152,17 @@ def headline_table(record: dict[str, Any]) -> list[str]:
         capped = "" if s2["limit_reached"].get(mode) else f" (no loss up to the ramp's cap of {s2['cap']})"
         return f"{s2['largest_lossless'].get(mode, '-')}{capped}"
 
-    return markdown([f"S1 rig: {scenario['describe']}; {scenario['nominal_mb_per_s']:.0f} MB/s",
-                     "recorder in the drivers' container (intra-process)", "recorder in its own process (DDS)"],
+    config = record["config"]
+    camera = f"{config['height']}p{config['fps']:g}"
+    count = NUMBER_WORDS[scenario["cameras"]] if scenario["cameras"] < len(NUMBER_WORDS) else scenario["cameras"]
+    return markdown([f"S1 rig: {count} {camera} cameras, a LiDAR, an IMU; {scenario['nominal_mb_per_s']:.0f} MB/s "
+                     f"for {scenario['seconds']:g} s", "recorder in the drivers' container (intra-process)",
+                     "recorder in its own process (DDS)"],
                     [["messages lost", lost(ipc), lost(dds)],
                      ["CPU per GB recorded", *(f"{fmt(e.get('total_cpu_s_per_gb'), '.2f')} s" for e in (ipc, dds))],
                      ["receive-to-write latency p99",
                       *(f"{fmt((e.get('latency_ms') or {}).get('p99'))} ms" for e in (ipc, dds))],
-                     ["1080p cameras recorded without loss (S2 ramp)", cameras("ipc"), cameras("dds")]])
+                     [f"{camera} cameras recorded without loss (S2 ramp)", cameras("ipc"), cameras("dds")]])
 
 
 def highest_rate(result: dict[str, Any]) -> str:
