@@ -2,10 +2,11 @@
 
 Like ``ros2 bag info`` it takes a bag directory or a single ``.mcap`` / ``.db3`` file. For a directory it reads
 ``metadata.yaml`` (versions 4 to 9, :mod:`baglib.read.metadata_read`) and the sizes of the files it lists; for a
-file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed
-as services, not as topics, and their messages are not counted in ``Messages:``. A bag a crash left
-unfinished (no ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such,
-with the command that repairs it.
+file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them
+the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed as services, not as
+topics, and their messages are not counted in ``Messages:``. A bag a crash left unfinished (no
+``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with the command
+that repairs it.
 """
 from __future__ import annotations
 
