@@ -20,6 +20,7 @@ SPLIT_P99_RATIO = 2.0         # S1: splitting at most doubles the receive-to-wri
 RSS_MARGIN_MIB = 300          # S1: the ipc container's peak RSS below max_cache_size plus this
 S2_CAMERAS_RATIO = 2          # S2: ipc records at least twice as many cameras without loss as dds
 S2_DIRECT_SHARE_PCT = 85      # S2: ipc lossless at >= this % of the direct-write limit of the same run
+S2_CAMERAS = 5                # S2: ipc records this many 1080p30 cameras (with the LiDAR and IMU) without loss
 OVERLOAD_CEILING_SHARE = 0.7  # S2: past its lossless limit, ipc still writes >= this share of the ceiling
 S3_RECORDER_RATIO = 1 / 3     # S3: the ipc recorder's CPU per message at most a third of the dds recorder's
 S3_BASELINE_RATIO = 0.5       # S3: drivers + recorder CPU per message at most half of --baseline's
@@ -99,15 +100,22 @@ def s2_targets(s2: Optional[dict[str, Any]], targets: Targets) -> None:
 
 
 def s2_direct_target(s2: Optional[dict[str, Any]], targets: Targets) -> None:
-    """ipc lossless at >= S2_DIRECT_SHARE_PCT of the direct-write limit, on its largest lossless step."""
+    """ipc lossless with S2_CAMERAS cameras, and at >= S2_DIRECT_SHARE_PCT of the direct-write limit, both judged
+    on its largest lossless step; below a target they fail only when ipc did lose messages at the next step (a
+    ramp capped below the target proves nothing)."""
+    cameras_name = f"S2 ipc lossless with {S2_CAMERAS} cameras"
     name = f"S2 ipc lossless at >= {S2_DIRECT_SHARE_PCT} % of the direct-write limit"
     steps = [step for step in (s2 or {}).get("steps", []) if step["mode"] == "ipc" and good(step)]
     if not s2 or not steps:
+        targets.add(cameras_name, None, "not measured")
         targets.add(name, None, "not measured")
         return
     best = max((step for step in steps if step["lossless"]), key=lambda step: step["cameras"], default=None)
     reached = s2["limit_reached"].get("ipc", False)
     capped = "" if reached else f" (no loss up to the cap of {s2['cap']})"
+    count = best["cameras"] if best else 0
+    targets.add(cameras_name, True if count >= S2_CAMERAS else (False if reached else None),
+                f"largest lossless ipc step: {count} cameras{capped}")
     pct = best.get("direct_write_pct") if best else 0.0
     if pct is None:
         targets.add(name, None, "no direct-write limit measured (--direct-mb 0)")
