@@ -87,25 +87,32 @@ def test_external_subscriber_gets_everything_and_local_one_no_duplicates(context
     external = Node("external", context=outside)
     local_got: list[String] = []
     external_got: list[str] = []
-    sub_node.create_subscription(String, "chatter", local_got.append, 100)
-    external.create_subscription(String, "chatter", lambda m: external_got.append(m.data), 100)
-    publisher = pub_node.create_publisher(String, "chatter", 100)
+    local = sub_node.create_subscription(String, "wire_chatter", local_got.append, 100)
+    external_sub = external.create_subscription(String, "wire_chatter", lambda m: external_got.append(m.data), 100)
+    # A plain DDS reader next to the in-process subscription: what reaches it over DDS reaches the in-process
+    # subscription's own DDS reader too (same participant, same writer), which must not deliver it again.
+    witness = Node("dds_witness", context=inside)
+    witness_got: list[str] = []
+    witness_sub = witness.create_subscription(String, "wire_chatter", lambda m: witness_got.append(m.data), 100)
+    publisher = pub_node.create_publisher(String, "wire_chatter", 100)
     inside_exec = SingleThreadedExecutor(context=inside)
     inside_exec.add_node(sub_node)
+    inside_exec.add_node(witness)
     outside_exec = SingleThreadedExecutor(context=outside)
     outside_exec.add_node(external)
-    deadline = time.monotonic() + 10
-    while publisher.get_subscription_count() < 2 and time.monotonic() < deadline:
-        time.sleep(0.05)  # the local DDS reader and the external one
-    spin_until(outside_exec, lambda: False, timeout=0.5)  # let the reader side finish matching too
+    # matched on both sides: the local DDS readers, the witness and the external one (a topic of its own: a
+    # stale endpoint of an earlier test cannot count)
+    assert spin_until(outside_exec, lambda: publisher.get_subscription_count() >= 3
+                      and external_sub.get_publisher_count() >= 1, timeout=20)
+    assert spin_until(inside_exec, lambda: witness_sub.get_publisher_count() >= 1
+                      and local.dds_subscription.get_publisher_count() >= 1, timeout=20)
     published = [String(data=f"m{i}") for i in range(50)]
     for msg in published:
         publisher.publish(msg)
         time.sleep(0.002)
-    assert spin_until(outside_exec, lambda: len(external_got) == 50, timeout=10)
+    assert spin_until(outside_exec, lambda: len(external_got) == 50, timeout=20)
     assert external_got == [m.data for m in published]
-    # Give the local DDS reader every chance to deliver a duplicate before checking there is none.
-    spin_until(inside_exec, lambda: False, timeout=1.0)
+    assert spin_until(inside_exec, lambda: len(witness_got) == 50, timeout=20)
     assert len(local_got) == 50
     assert delivered(local_got, published)
     inside_exec.shutdown()
@@ -117,17 +124,16 @@ def test_external_publisher_reaches_in_process_subscriber(contexts, ipm):
     sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
     external = Node("external_pub", context=outside)
     got: list[str] = []
-    sub_node.create_subscription(String, "chatter", lambda m: got.append(m.data), 100)
-    publisher = external.create_publisher(String, "chatter", 100)
+    subscription = sub_node.create_subscription(String, "wire_inbound", lambda m: got.append(m.data), 100)
+    publisher = external.create_publisher(String, "wire_inbound", 100)
     executor = SingleThreadedExecutor(context=inside)
     executor.add_node(sub_node)
-    deadline = time.monotonic() + 10
-    while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
-        time.sleep(0.05)
-    spin_until(executor, lambda: False, timeout=0.5)  # let the reader side finish matching too
+    # matched on both sides (a topic of its own: a stale endpoint of an earlier test cannot count)
+    assert spin_until(executor, lambda: publisher.get_subscription_count() >= 1
+                      and subscription.dds_subscription.get_publisher_count() >= 1, timeout=20)
     for i in range(20):
         publisher.publish(String(data=f"x{i}"))
-    assert spin_until(executor, lambda: len(got) == 20, timeout=10)
+    assert spin_until(executor, lambda: len(got) == 20, timeout=20), got
     assert got == [f"x{i}" for i in range(20)]
     executor.shutdown()
 
@@ -145,7 +151,7 @@ def test_keep_last_queue_drops_oldest_and_counts(contexts, ipm):
     executor = SingleThreadedExecutor(context=inside)
     executor.add_node(sub_node)
     assert spin_until(executor, lambda: len(got) == 5)
-    spin_until(executor, lambda: False, timeout=0.3)
+    assert not subscription.queue.queue  # nothing more to come: only DDS could add, and nobody is outside
     assert [m.data for m in got] == [str(i) for i in range(15, 20)]
     assert subscription.dropped_count == 15
     assert subscription.received_count == 20
@@ -163,10 +169,15 @@ def test_transient_local_late_joiner_gets_last_n(contexts, ipm):
     sub_node = ComponentNode("late", context=inside, intra_process_manager=ipm)
     got: list[String] = []
     sub_node.create_subscription(String, "map", got.append, latched)
+    # A plain DDS reader joining alike gets the DDS history (transient_local publishers always write to DDS);
+    # once it has, the late subscription's own DDS reader has had it too, and must not deliver a second copy.
+    witness = Node("dds_witness", context=inside)
+    witness_got: list[str] = []
+    witness.create_subscription(String, "map", lambda m: witness_got.append(m.data), latched)
     executor = SingleThreadedExecutor(context=inside)
     executor.add_node(sub_node)
-    assert spin_until(executor, lambda: len(got) == 3)
-    spin_until(executor, lambda: False, timeout=0.5)  # and no second copy through the DDS history
+    executor.add_node(witness)
+    assert spin_until(executor, lambda: len(got) >= 3 and witness_got == ["2", "3", "4"], timeout=20), witness_got
     assert len(got) == 3
     assert delivered(got, published[2:], first_index=2)
     executor.shutdown()
@@ -195,10 +206,11 @@ def test_fan_out_and_qos_compatibility(contexts, ipm):
     lossy_pub = pub_node.create_publisher(String, "fan", best_effort)
     lossy = String(data="lossy")
     lossy_pub.publish(lossy)
-    assert spin_until(executor, lambda: len(best_effort_got) == 2)
-    spin_until(executor, lambda: False, timeout=0.3)
-    assert best_effort_got[1] == lossy
-    assert all(len(sink) == 1 for sink in reliable_got)
+    after = String(data="after")
+    reliable_pub.publish(after)  # delivered after the lossy one: once it is in, the lossy one would be too
+    assert spin_until(executor, lambda: all(len(sink) == 2 for sink in reliable_got) and len(best_effort_got) == 3)
+    assert best_effort_got[1] == lossy and best_effort_got[2] == after
+    assert all(sink[1] == after for sink in reliable_got)
     executor.shutdown()
 
 
@@ -391,8 +403,9 @@ def test_keep_all_queues_are_bounded_and_count_drops(contexts, ipm):
     frame_bytes = 1920 * 1080 * 3
     for _ in range(KEEP_ALL_MAX_BYTES // frame_bytes + 20):
         frames.publish(Image(height=1080, width=1920, encoding="rgb8", step=1920 * 3, data=bytes(frame_bytes)))
-    assert len(big.queue.queue) == KEEP_ALL_MAX_BYTES // (frame_bytes + 256)
-    assert big.dropped_count == big.received_count - len(big.queue.queue) >= 20
+    queued = len(big.queue.queue)  # as many frames as the byte limit holds: one more frame's data would not fit
+    assert queued * frame_bytes <= KEEP_ALL_MAX_BYTES < (queued + 1) * frame_bytes, queued
+    assert big.dropped_count == big.received_count - queued >= 20
 
 
 def test_a_reused_message_object_is_copied_for_in_process_subscribers(contexts, ipm):
