@@ -246,9 +246,8 @@ def caption(result: Result, doc: Path) -> str:
     link = Path(os.path.relpath(result.path, doc.parent)).as_posix()
     shown = result.path.relative_to(REPO if result.path.is_relative_to(REPO) else result.path.parents[2]).as_posix()
     git = data.get("git", {})
-    return (f"Measured by `{data.get('command', '?')}` at {data.get('started_at', '?')[:16].replace('T', ' ')} "
-            f"(code {git.get('commit', '?')}{', with uncommitted changes' if git.get('modified') else ''}); "
-            f"results: [{shown}]({link}).")
+    return (f"Measured by `{data.get('command', '?')}` on the code of {git.get('commit', '?')}"
+            f"{' with uncommitted changes' if git.get('modified') else ''}; results: [{shown}]({link}).")
 
 
 def generated(name: str, found: dict[str, list[Result]], doc: Path) -> tuple[Optional[list[str]], str]:

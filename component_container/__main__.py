@@ -56,7 +56,7 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m component_container", description=__doc__.splitlines()[0])
     parser.add_argument("--executor", choices=EXECUTOR_KINDS, default="single",
                         help="executor model for the components (default: single; events: rclpy's "
-                             "EventsExecutor, see README \"Executors\")")
+                             "EventsExecutor, see docs/container.md)")
     parser.add_argument("--use-intra-process-comms", action="store_true",
                         help="components use intra-process communication unless a load request says false")
     parser.add_argument("--allow-module-plugins", action="store_true",
