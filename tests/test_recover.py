@@ -2,8 +2,10 @@
 readable (rosbags, and the mcap seeking reader) with exactly what was intact before the damage.
 
 One source bag per kind is written with :class:`BagWriter` (no ROS processes); every case works on a
-copy. The cut offsets come from a seeded generator: the seed is printed, ``IPC_RECOVER_SEED=<seed>``
-replays a run.
+copy. The default run cuts each kind at chosen offsets (at and around record, chunk and page boundaries, the
+magic, the header and the summary) and at a few random offsets of a fixed seed (:data:`SEED`); the full sweep
+of random cuts (``make sweep``: ``-m sweep``) draws a fresh seed each run, prints it, and
+``IPC_RECOVER_SEED=<seed>`` replays it (the default run's seed too).
 """
 from __future__ import annotations
 
@@ -34,9 +36,14 @@ from ipc_component.cli import main as cli_main
 
 T0 = 1_718_000_000_000_000_000
 MESSAGES = 1200
+#: Random cuts per kind: of the sweep, and of the fixed-seed subset the default run checks next to the chosen ones.
 CUTS = 200
+DEFAULT_CUTS = 12
 LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-SEED = int(os.environ.get("IPC_RECOVER_SEED") or random.randrange(2**32))
+#: The default run's random cuts and zeroed blocks: fixed, so that every run checks the same ones.
+SEED = int(os.environ.get("IPC_RECOVER_SEED") or 3_141_592_653)
+#: The sweep's: a fresh one each run unless IPC_RECOVER_SEED replays one.
+SWEEP_SEED = int(os.environ.get("IPC_RECOVER_SEED") or random.randrange(2**32))
 QOS = {"history": "keep_last", "depth": 7, "reliability": "reliable", "durability": "volatile",
        "deadline": {"sec": 9223372036, "nsec": 854775807}, "lifespan": {"sec": 9223372036, "nsec": 854775807},
        "liveliness": "automatic", "liveliness_lease_duration": {"sec": 9223372036, "nsec": 854775807},
@@ -60,7 +67,7 @@ def payload(n: int, kind: str = "chunked") -> bytes:
 
 @pytest.fixture(scope="session", autouse=True)
 def announce_seed() -> None:
-    print(f"\ntest_recover seed: {SEED} (IPC_RECOVER_SEED={SEED} replays it)")
+    print(f"\ntest_recover seeds: default run {SEED}, sweep {SWEEP_SEED} (IPC_RECOVER_SEED=<seed> replays one)")
 
 
 def write_bag(path: Path, storage_id: str, preset: str, monkeypatch: pytest.MonkeyPatch,
@@ -152,6 +159,15 @@ def mcap_units(path: Path) -> list[tuple[int, int, set[int]]]:
         position = end
 
 
+def mcap_data_end(path: Path) -> int:
+    """Offset of the DataEnd record: the summary section and the footer follow it."""
+    raw = path.read_bytes()
+    position = 8
+    while raw[position] != 0x0F:
+        position += 9 + struct.unpack_from("<Q", raw, position + 1)[0]
+    return position
+
+
 def _varint(data: bytes, offset: int) -> tuple[int, int]:
     value = 0
     for index in range(9):
@@ -225,21 +241,53 @@ def recover_copy(source: Path, tmp: Path, damage: Callable[[Path], None]) -> tup
 # --- the fault injection ---------------------------------------------------------------------------
 
 
+def chosen_cuts(kind: str, source: Path) -> list[int]:
+    """Cuts where recovery has decisions to make: inside the magic and the header, at, just before and just
+    after the start and end of the first, second, a middle and the last chunk / message record (MCAP) or table
+    leaf page (SQLite3), at the data end, inside the summary and the footer, and one byte short of the end."""
+    path = storage_file(source)
+    size = path.stat().st_size
+    units = sqlite_leaf_rows(path) if kind == "sqlite3" else mcap_units(path)
+    assert len(units) >= 4, f"{kind}: too few records to cut at"
+    cuts = {0, 1, 7, 8, 9, 16, size - 1}
+    for start, end, _ in (units[0], units[1], units[len(units) // 2], units[-1]):
+        cuts |= {start - 1, start, start + 1, start + 9, (start + end) // 2, end - 1, end, end + 1}
+    if kind != "sqlite3":
+        data_end = mcap_data_end(path)
+        cuts |= {data_end, data_end + 5, data_end + 13, (data_end + size) // 2, size - 28, size - 8}
+    return sorted(cut for cut in cuts if 0 <= cut < size)
+
+
+def random_cuts(kind: str, source: Path, seed: int, count: int) -> list[int]:
+    size = storage_file(source).stat().st_size
+    generator = random.Random(f"{seed}-{kind}")
+    return sorted(generator.randrange(size) for _ in range(count))
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_truncated_at_chosen_and_fixed_seed_cuts(kind: str, sources: dict[str, Path], work: Path) -> None:
+    """The default run: every chosen cut, and the first DEFAULT_CUTS random cuts of the fixed seed."""
+    source = sources[kind]
+    for cut in chosen_cuts(kind, source):
+        check_cut(kind, source, cut, work, "chosen")
+    for cut in random_cuts(kind, source, SEED, DEFAULT_CUTS):
+        check_cut(kind, source, cut, work, f"seed {SEED}")
+
+
+@pytest.mark.sweep
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_truncated_anywhere(kind: str, sources: dict[str, Path], work: Path) -> None:
+    """The sweep: CUTS random cuts per kind, from a fresh seed each run."""
     source = sources[kind]
-    size = storage_file(source).stat().st_size
-    generator = random.Random(f"{SEED}-{kind}")
-    cuts = sorted(generator.randrange(size) for _ in range(CUTS))
-    for cut in cuts:
-        check_cut(kind, source, cut, work)
+    for cut in random_cuts(kind, source, SWEEP_SEED, CUTS):
+        check_cut(kind, source, cut, work, f"seed {SWEEP_SEED}")
 
 
-def check_cut(kind: str, source: Path, cut: int, work: Path) -> None:
+def check_cut(kind: str, source: Path, cut: int, work: Path, origin: str) -> None:
     """Recover a copy of ``source`` cut at ``cut``: exactly the complete records before the cut come back."""
     bag, report = recover_copy(source, work, lambda path: os.truncate(path, cut))
     expect = expected(kind, storage_file(source), cut)
-    context = f"{kind} cut at {cut} (seed {SEED}):\n{report.text()}"
+    context = f"{kind} cut at {cut} ({origin}):\n{report.text()}"
     if not report.readable:  # cut inside the magic or header: nothing there to keep
         assert not expect.must_keep, context
         return
@@ -265,14 +313,23 @@ def test_cut_at_and_inside_padding_records(kind: str, sources: dict[str, Path], 
     assert 0 < len(padding) <= MESSAGES // 100  # the big messages of this kind went out in place
     for start, end in padding:
         for cut in (start, start + 5, (start + 9 + end) // 2, end):
-            check_cut(kind, source, cut, work)
+            check_cut(kind, source, cut, work, "padding record")
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], work: Path) -> None:
-    source = sources[kind]
+    check_garbage_and_zeroed_blocks(kind, sources[kind], work, SEED)
+
+
+@pytest.mark.sweep
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_garbage_appended_and_zeroed_block_fresh_seed(kind: str, sources: dict[str, Path], work: Path) -> None:
+    check_garbage_and_zeroed_blocks(kind, sources[kind], work, SWEEP_SEED)
+
+
+def check_garbage_and_zeroed_blocks(kind: str, source: Path, work: Path, seed: int) -> None:
     size = storage_file(source).stat().st_size
-    generator = random.Random(f"{SEED}-{kind}-zero")
+    generator = random.Random(f"{seed}-{kind}-zero")
 
     def append(path: Path) -> None:
         with open(path, "ab") as file:
@@ -290,7 +347,7 @@ def test_garbage_appended_and_zeroed_block(kind: str, sources: dict[str, Path], 
                 file.write(bytes(4096))
 
         bag, report = recover_copy(source, work, zero)
-        context = f"{kind} zeroed at {start} (seed {SEED}):\n{report.text()}"
+        context = f"{kind} zeroed at {start} (seed {seed}):\n{report.text()}"
         assert report.readable, context
         kept = check_readable(bag)
         # Whatever lies wholly before the block is kept intact. Without CRCs (this writer's MCAP files
