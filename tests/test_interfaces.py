@@ -235,10 +235,12 @@ def test_rosbag2_write_split_event_between_two_nodes(pair: _Pair) -> None:
     from rosbag2_interfaces.msg import WriteSplitEvent
 
     received: list[WriteSplitEvent] = []
-    pair.client.create_subscription(WriteSplitEvent, "/events/write_split", received.append, 10)
+    subscription = pair.client.create_subscription(WriteSplitEvent, "/events/write_split", received.append, 10)
     publisher = pair.server.create_publisher(WriteSplitEvent, "/events/write_split", 10)
-    deadline = time.monotonic() + 10.0
-    while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
+    deadline = time.monotonic() + 20.0
+    # matched on both sides: a reliable sample sent before the reader knows the writer can be lost
+    while (publisher.get_subscription_count() < 1 or subscription.get_publisher_count() < 1) \
+            and time.monotonic() < deadline:
         time.sleep(0.01)
     event = WriteSplitEvent(closed_file="/bags/b_0.mcap", opened_file="/bags/b_1.mcap",
                             node_name="/rosbag2_recorder")
