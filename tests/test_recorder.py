@@ -43,7 +43,7 @@ from rosbag2_interfaces.msg import WriteSplitEvent
 from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
-from sensor_msgs.msg import Imu
+from sensor_msgs.msg import Image, Imu
 from std_srvs.srv import Trigger
 
 from components.camera_driver import CameraDriver
@@ -67,6 +67,8 @@ EXT_CAMERA = {"width": 160, "height": 120, "fps": 10.0}
 HD_CAMERA = {"width": 1920, "height": 1080, "fps": 8.0}
 
 RIG_TOPICS = ["/camera/image_raw", "/camera/camera_info", "/imu/imu", "/lidar/points"]
+#: What a test waits for a recorder of the rig's topics to have written: a few periods of every driver.
+RIG_MINIMUMS = {"/camera/image_raw": 4, "/camera/camera_info": 4, "/imu/imu": 20, "/lidar/points": 2}
 EXT_TOPICS = ["/ext_imu/imu", "/ext_camera/image_raw", "/ext_camera/camera_info"]
 SEQUENCED = {"sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Imu"}
 
@@ -123,12 +125,54 @@ class Recorder:
     def is_paused(self) -> bool:
         return self.service(IsPaused, "is_paused").paused
 
+    def wait_written(self, minimums: dict[str, int], timeout: float = 15.0) -> dict[str, dict[str, int]]:
+        """Wait until the current bag holds at least ``minimums[topic]`` messages of each topic (a condition on
+        the recorder's own counts, not a recording time); returns the per-topic counts."""
+        def enough() -> dict[str, dict[str, int]] | None:
+            topics = self.stats()["current"]["topics"]
+            return topics if all(topics.get(t, {}).get("written", 0) >= n for t, n in minimums.items()) else None
+        topics = wait_until(enough, timeout, interval=0.05)
+        assert topics, f"{self.name}: {minimums} not written within {timeout} s: {self.stats()}"
+        return topics
+
     def unload(self) -> None:
         response = self.rig.client.unload(self.unique_id)
         assert response.success, response.error_message
         self.unloaded_ns = time.time_ns()
         self.rig.loaded.remove(self)
         self.destroy_clients()
+
+
+class Witness:
+    """A plain subscription of the test process to a driver's topic: the (sequence number, capture stamp) of what
+    it receives, in arrival order. What it saw before a request was sent was published before the request took
+    effect; a message whose stamp is later than a moment was captured, hence published, after that moment
+    (header stamps and ``time.time_ns()`` here read the same system clock). So the order of messages and service
+    calls is established without assuming any rate or latency."""
+
+    def __init__(self, node: Node, topic: str, msg_type: type) -> None:
+        self.node, self.topic = node, topic
+        self.seen: list[tuple[int, int]] = []
+        self.subscription = node.create_subscription(
+            msg_type, topic, self._received, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+
+    def _received(self, msg: Any) -> None:
+        seq = (int(msg.orientation_covariance[1]) if isinstance(msg, Imu)
+               else int.from_bytes(bytes(msg.data[:8]), "little"))
+        self.seen.append((seq, msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec))
+
+    def captured_after(self, moment_ns: int, timeout: float = 10.0) -> int:
+        """The sequence number of the first message received whose capture stamp is after ``moment_ns``."""
+        def first() -> int | None:
+            return next((seq for seq, stamp in self.seen if stamp > moment_ns), None)
+        assert spin_for(self.node, timeout, lambda: first() is not None), \
+            f"{self.topic}: nothing captured after {moment_ns} arrived within {timeout} s"
+        seq = first()
+        assert seq is not None
+        return seq
+
+    def destroy(self) -> None:
+        self.node.destroy_subscription(self.subscription)
 
 
 class Rig:
@@ -402,6 +446,11 @@ def assert_complete(bag: "Bag", topic: str, stats: dict[str, dict[str, int]]) ->
     assert len(lost) <= counts["dropped"], f"{topic}: {lost[:20]} missing, {counts['dropped']} reported dropped"
 
 
+def file_index(path: str) -> int:
+    """N of a bag file ``<bag>_N.<extension>``."""
+    return int(Path(path).stem.rsplit("_", 1)[1])
+
+
 def missing(seqs: list[int], limit: int | None = 20) -> list[int]:
     return sorted(set(range(min(seqs), max(seqs) + 1)) - set(seqs))[:limit]
 
@@ -521,6 +570,11 @@ def split_events(probe: Node) -> Iterator[list[WriteSplitEvent]]:
 
 
 # --- the recording itself ---------------------------------------------------------------------------------------
+#: What the main test waits for the recorder to have written of each topic: a few periods of every driver.
+MAIN_MINIMUMS = {"/camera/image_raw": 4, "/camera/camera_info": 4, "/imu/imu": 25, "/lidar/points": 3,
+                 "/ext_imu/imu": 12, "/ext_camera/image_raw": 3, "/ext_camera/camera_info": 3}
+
+
 def test_records_intra_process_and_dds_topics_into_one_bag(rig: Rig, external: Rig, refs: References,
                                                            tmp_path: Path) -> None:
     uri = tmp_path / "rig_bag"
@@ -528,7 +582,7 @@ def test_records_intra_process_and_dds_topics_into_one_bag(rig: Rig, external: R
                                                   "record.exclude_regex": NOT_INFRASTRUCTURE})
     # Topics of the other process are found by graph discovery, which may take a moment.
     assert wait_until(lambda: set(RIG_TOPICS + EXT_TOPICS) <= set(recorder.stats()["current"]["topics"]), 10.0)
-    time.sleep(3.0)
+    recorder.wait_written(MAIN_MINIMUMS)
     recorder.unload()
     assert {"/camera", "/imu", "/lidar"} <= rig.listed() and "/recorder_main" not in rig.listed()
     assert rig.container.alive()
@@ -549,10 +603,8 @@ def test_records_intra_process_and_dds_topics_into_one_bag(rig: Rig, external: R
         assert stats[topic]["received"] == stats[topic]["written"] == bag.counts()[topic]
     for topic in ("/ext_imu/imu", "/ext_camera/image_raw"):
         assert_contiguous(bag.seqs(topic), topic)
-    for topic, rate in (("/camera/image_raw", 30), ("/imu/imu", 200), ("/lidar/points", 10),
-                        ("/ext_imu/imu", 100), ("/ext_camera/image_raw", 10)):
-        count = len(bag.seqs(topic))
-        assert count >= 0.5 * 3.0 * rate, f"{topic}: only {count} messages in 3 s at {rate} Hz"
+    for topic, minimum in MAIN_MINIMUMS.items():
+        assert len(bag.topic(topic)) >= minimum, f"{topic}: {len(bag.topic(topic))} messages, {minimum} were written"
     check_driver_content(bag, refs)
     check_driver_content(bag, refs, "ext_", camera=EXT_CAMERA, lidar=None, imu=EXT_IMU)
 
@@ -582,7 +634,7 @@ def test_full_hd_camera_at_moderate_rate(rig: Rig, refs: References, tmp_path: P
         uri = tmp_path / "hd"
         recorder = rig.record("recorder_hd", uri,
                               **{"record.topics": ["/hd_camera/image_raw", "/hd_camera/camera_info"]})
-        time.sleep(2.5)
+        recorder.wait_written({"/hd_camera/image_raw": 5})
         stop = recorder.trigger("stop_recording")
         recorder.unload()
     finally:
@@ -592,7 +644,7 @@ def test_full_hd_camera_at_moderate_rate(rig: Rig, refs: References, tmp_path: P
     bag = verify_bag(uri)
     seqs = bag.seqs("/hd_camera/image_raw")
     assert_contiguous(seqs, "1080p images")
-    assert len(seqs) >= 0.6 * 2.5 * HD_CAMERA["fps"]
+    assert len(seqs) >= 5
     assert stats["topics"]["/hd_camera/image_raw"] == {"received": len(seqs), "written": len(seqs),
                                                        "dropped": 0, "queue_dropped": 0}
     assert stats["error"] is None and stats["bytes_written"] == (uri / "hd_0.mcap").stat().st_size
@@ -605,79 +657,106 @@ def test_full_hd_camera_at_moderate_rate(rig: Rig, refs: References, tmp_path: P
 # --- services -------------------------------------------------------------------------------------------------
 def test_stop_and_start_recording_make_a_second_bag(rig: Rig, tmp_path: Path) -> None:
     uri = tmp_path / "session"
-    recorder = rig.record("recorder_stopstart", uri, **{"record.topics": ["/imu/imu", "/camera/image_raw"]})
-    time.sleep(1.0)
-    stop = recorder.trigger("stop_recording")
-    assert stop.success, stop.message
-    first_stats = json.loads(stop.message)
-    assert first_stats["bag"] == str(uri) and first_stats["error"] is None
-    first = verify_bag(uri)  # finalized while the recorder is still loaded
-    again = recorder.trigger("stop_recording")
-    assert not again.success and "not recording" in again.message
-    stats = recorder.stats()
-    assert stats["recording"] is False and len(stats["finished"]) == 1
+    topics = {"/imu/imu": Imu, "/camera/image_raw": Image}
+    witnesses = {topic: Witness(rig.probe, topic, msg_type) for topic, msg_type in topics.items()}
+    try:
+        recorder = rig.record("recorder_stopstart", uri, **{"record.topics": list(topics)})
+        recorder.wait_written({"/imu/imu": 20, "/camera/image_raw": 3})
+        stop = recorder.trigger("stop_recording")
+        stopped = time.time_ns()
+        assert stop.success, stop.message
+        first_stats = json.loads(stop.message)
+        assert first_stats["bag"] == str(uri) and first_stats["error"] is None
+        first = verify_bag(uri)  # finalized while the recorder is still loaded
+        again = recorder.trigger("stop_recording")
+        assert not again.success and "not recording" in again.message
+        stats = recorder.stats()
+        assert stats["recording"] is False and len(stats["finished"]) == 1
 
-    time.sleep(0.5)
-    start = recorder.trigger("start_recording")
-    assert start.success, start.message
-    second_uri = tmp_path / "session_1"
-    assert str(second_uri) in start.message
-    assert recorder.trigger("start_recording").success is False
-    time.sleep(1.0)
-    recorder.unload()
+        # Messages published while stopped (captured after the stop, seen before the start) are in neither bag.
+        between = {topic: witness.captured_after(stopped) for topic, witness in witnesses.items()}
+        start = recorder.trigger("start_recording")
+        assert start.success, start.message
+        second_uri = tmp_path / "session_1"
+        assert str(second_uri) in start.message
+        assert recorder.trigger("start_recording").success is False
+        recorder.wait_written({"/imu/imu": 20, "/camera/image_raw": 3})
+        recorder.unload()
+    finally:
+        for witness in witnesses.values():
+            witness.destroy()
     second = verify_bag(second_uri)
     assert first.meta["relative_file_paths"] == ["session_0.mcap"]
     assert second.meta["relative_file_paths"] == ["session_1_0.mcap"]
     second_stats = closing_stats(rig.container, second_uri)
-    for topic in ("/imu/imu", "/camera/image_raw"):
+    for topic in topics:
         assert_complete(first, topic, first_stats["topics"])
         assert_complete(second, topic, second_stats)
-        assert min(second.seqs(topic)) > max(first.seqs(topic)) + 1  # the stopped half second is in neither
+        assert max(first.seqs(topic)) < between[topic] < min(second.seqs(topic)), (topic, between[topic])
     assert first.messages[-1].log_time < second.messages[0].log_time
 
 
 def test_pause_resume_toggle(rig: Rig, tmp_path: Path) -> None:
+    """What is published while paused is skipped, what is published before and after is all recorded. The
+    witnesses tell which messages were published in which phase (see :class:`Witness`)."""
     uri = tmp_path / "paused"
-    recorder = rig.record("recorder_pause", uri, **{"record.start_paused": True,
-                                                    "record.topics": ["/imu/imu", "/camera/image_raw"]})
-    time.sleep(0.5)
-    assert recorder.is_paused() is True
-    assert all(t["written"] == 0 for t in recorder.stats()["current"]["topics"].values())
-    resume_sent = time.time_ns()
-    recorder.service(Resume, "resume")
-    assert recorder.is_paused() is False
-    time.sleep(1.0)
-    recorder.service(Pause, "pause")
-    paused_at = time.time_ns()
-    assert recorder.is_paused() is True
-    recorder.service(Pause, "pause")  # pausing twice is harmless
-    time.sleep(1.0)
-    toggle_sent = time.time_ns()
-    recorder.service(TogglePaused, "toggle_paused")
-    assert recorder.is_paused() is False
-    time.sleep(1.0)
-    recorder.service(TogglePaused, "toggle_paused")
-    assert recorder.is_paused() is True
-    recorder.unload()
+    topics = {"/imu/imu": Imu, "/camera/image_raw": Image}
+    minimums = {"/imu/imu": 20, "/camera/image_raw": 3}
+    witnesses = {topic: Witness(rig.probe, topic, msg_type) for topic, msg_type in topics.items()}
+
+    def captured_after(moment: int) -> dict[str, int]:
+        return {topic: witness.captured_after(moment) for topic, witness in witnesses.items()}
+
+    try:
+        recorder = rig.record("recorder_pause", uri, **{"record.start_paused": True, "record.topics": list(topics)})
+        loaded = time.time_ns()
+        assert recorder.is_paused() is True
+        while_start_paused = captured_after(loaded)
+        assert all(t["written"] == 0 for t in recorder.stats()["current"]["topics"].values())
+        resume_sent = time.time_ns()
+        recorder.service(Resume, "resume")
+        resumed = time.time_ns()
+        assert recorder.is_paused() is False
+        while_recording = captured_after(resumed)
+        recorder.wait_written(minimums)
+        recorder.service(Pause, "pause")
+        paused_at = time.time_ns()
+        assert recorder.is_paused() is True
+        recorder.service(Pause, "pause")  # pausing twice is harmless
+        while_paused = captured_after(paused_at)
+        toggle_sent = time.time_ns()
+        recorder.service(TogglePaused, "toggle_paused")
+        toggled = time.time_ns()
+        assert recorder.is_paused() is False
+        after_toggle = captured_after(toggled)
+        written = recorder.stats()["current"]["topics"]
+        recorder.wait_written({topic: written[topic]["written"] + n for topic, n in minimums.items()})
+        recorder.service(TogglePaused, "toggle_paused")
+        assert recorder.is_paused() is True
+        recorder.unload()
+    finally:
+        for witness in witnesses.values():
+            witness.destroy()
 
     bag = verify_bag(uri)
     for m in bag.messages:
         assert m.log_time >= resume_sent, "recorded while start_paused"
         assert not paused_at < m.log_time < toggle_sent, f"{m.topic} {m.seq} recorded while paused"
     stats = closing_stats(rig.container, uri)
-    for topic, rate in (("/imu/imu", 200), ("/camera/image_raw", 30)):
+    for topic in topics:
         seqs = bag.seqs(topic)
         assert stats[topic]["received"] == stats[topic]["written"] == len(seqs)
         before = [s for m, s in zip(bag.topic(topic), seqs) if m.log_time <= paused_at]
         after = [s for m, s in zip(bag.topic(topic), seqs) if m.log_time >= toggle_sent]
         assert len(before) + len(after) == len(seqs)
-        assert len(before) >= 0.5 * rate and len(after) >= 0.5 * rate, (len(before), len(after))
+        assert len(before) >= minimums[topic] and len(after) >= minimums[topic], (len(before), len(after))
         # Each recorded stretch is whole (up to what the recorder reports dropped before its intake) ...
         assert len(missing(before, None)) + len(missing(after, None)) <= stats[topic]["dropped"], runs(seqs)
-        # ... and the pause skipped about as many messages as the driver published meanwhile.
-        gap = after[0] - before[-1] - 1
-        expected = (toggle_sent - paused_at) / 1e9 * rate
-        assert 0.5 * expected <= gap <= 1.5 * expected + 10, f"{topic}: {gap} messages skipped, not ~{expected}"
+        # ... it holds what was published while recording, and the pause skipped what was published while paused.
+        assert while_start_paused[topic] < before[0], (topic, while_start_paused[topic], runs(seqs))
+        assert while_recording[topic] in before, (topic, while_recording[topic], runs(seqs))
+        assert before[-1] < while_paused[topic] < after[0], (topic, while_paused[topic], runs(seqs))
+        assert after_toggle[topic] in after, (topic, after_toggle[topic], runs(seqs))
 
 
 def test_split_bagfile_service_and_events(rig: Rig, split_events: list[WriteSplitEvent], tmp_path: Path) -> None:
@@ -685,11 +764,17 @@ def test_split_bagfile_service_and_events(rig: Rig, split_events: list[WriteSpli
     recorder = rig.record("recorder_split", uri, **{"record.topics": ["/imu/imu", "/camera/image_raw"]})
     assert spin_for(rig.probe, 10.0, lambda: any(
         p.node_name == "recorder_split" for p in rig.probe.get_publishers_info_by_topic("/events/write_split")))
-    time.sleep(0.7)
+
+    def write_some() -> None:  # into the current file: a few messages of each topic more than so far
+        topics = recorder.stats()["current"]["topics"]
+        recorder.wait_written({topic: topics.get(topic, {}).get("written", 0) + more
+                               for topic, more in (("/imu/imu", 10), ("/camera/image_raw", 2))})
+
+    write_some()
     recorder.service(SplitBagfile, "split_bagfile")
-    time.sleep(0.7)
+    write_some()
     recorder.service(SplitBagfile, "split_bagfile")
-    time.sleep(0.7)
+    write_some()
     recorder.unload()
     spin_for(rig.probe, 5.0, lambda: len([e for e in split_events if e.node_name == "/recorder_split"]) >= 3)
 
@@ -712,11 +797,13 @@ def test_max_bagfile_size_splits(rig: Rig, split_events: list[WriteSplitEvent], 
     limit = 1_000_000
     recorder = rig.record("recorder_sized", uri, **{"record.topics": ["/camera/image_raw", "/imu/imu"],
                                                     "storage.max_bagfile_size": limit})
-    time.sleep(1.5)
+    # ~230 kB per image: a split every few images; the fifth file is open once four are full
+    assert wait_until(lambda: file_index(recorder.stats()["current"]["current_file"]) >= 4, 15.0, interval=0.05), \
+        recorder.stats()
     recorder.unload()
     bag = verify_bag(uri)
     files = bag.meta["relative_file_paths"]
-    assert len(files) >= 4, f"~10 MB with a 1 MB limit gave only {files}"
+    assert len(files) >= 5, f"only {files} with a 1 MB limit"
     frame = CAMERA["width"] * CAMERA["height"] * 3
     for name in files[:-1]:
         size = (uri / name).stat().st_size
@@ -734,9 +821,12 @@ def test_max_bagfile_size_splits(rig: Rig, split_events: list[WriteSplitEvent], 
 def test_get_stats_live_counts(rig: Rig, tmp_path: Path) -> None:
     uri = tmp_path / "stats"
     recorder = rig.record("recorder_stats", uri)
-    time.sleep(0.6)
+    recorder.wait_written({topic: 1 for topic in RIG_TOPICS})
     first = recorder.stats()
-    time.sleep(0.6)
+    # every topic receives more (a condition on the counts, not a time)
+    assert wait_until(lambda: all(now["received"] > first["current"]["topics"][topic]["received"]
+                                  for topic, now in recorder.stats()["current"]["topics"].items()), 15.0,
+                      interval=0.05)
     second = recorder.stats()
     assert first["recording"] and not first["paused"] and first["current"]["error"] is None
     assert first["current"]["bag"] == str(uri)
@@ -747,9 +837,6 @@ def test_get_stats_live_counts(rig: Rig, tmp_path: Path) -> None:
         assert after["received"] > before["received"] > 0
         assert before["written"] <= before["received"] and after["dropped"] == after["queue_dropped"]
     assert second["current"]["bytes_written"] > first["current"]["bytes_written"] > 0
-    imu_growth = (second["current"]["topics"]["/imu/imu"]["received"]
-                  - first["current"]["topics"]["/imu/imu"]["received"])
-    assert 0.3 * 0.6 * IMU["rate"] <= imu_growth <= 2 * 0.6 * IMU["rate"]
     assert recorder.service(Snapshot, "snapshot").success is False  # not in snapshot mode
 
     stop = recorder.trigger("stop_recording")
@@ -770,32 +857,41 @@ def test_snapshot_mode_writes_the_ring(rig: Rig, tmp_path: Path) -> None:
     recorder = rig.record("recorder_snap", uri, **{"record.topics": ["/camera/image_raw", "/imu/imu"],
                                                    "storage.snapshot_mode": True,
                                                    "storage.max_cache_size": cache})
-    time.sleep(1.5)
+    frame = CAMERA["width"] * CAMERA["height"] * 3
+
+    def camera() -> dict[str, int]:
+        return recorder.stats()["current"]["topics"].get("/camera/image_raw", {"received": 0, "written": 0})
+
+    # More images than the ring holds, so that it has dropped its oldest ones
+    assert wait_until(lambda: camera()["received"] > cache // frame + 5, 15.0, interval=0.05), recorder.stats()
     before = recorder.stats()["current"]["topics"]
-    assert before["/camera/image_raw"]["received"] > 20
     assert all(t["written"] == 0 for t in before.values()), "snapshot mode wrote before a snapshot"
-    snapshot_sent = time.time_ns()
+    witness = Witness(rig.probe, "/camera/image_raw", Image)
+    try:  # an image published before the snapshot (seen before it was asked for): it or a newer one ends the bag
+        newest_before = witness.captured_after(time.time_ns())
+    finally:
+        witness.destroy()
     assert recorder.service(Snapshot, "snapshot").success is True
     snapshot_done = time.time_ns()
-    assert wait_until(lambda: recorder.stats()["current"]["topics"]["/camera/image_raw"]["written"] > 0, 5.0)
-    time.sleep(0.5)  # more arrives in the ring; without another snapshot it is never written
+    assert wait_until(lambda: camera()["written"] > 0, 5.0)
+    received = camera()["received"]  # more arrives in the ring; without another snapshot it is never written
+    assert wait_until(lambda: camera()["received"] >= received + 5, 10.0, interval=0.05)
     recorder.unload()
     bag = verify_bag(uri)
     images = bag.topic("/camera/image_raw")
-    frame = CAMERA["width"] * CAMERA["height"] * 3
     assert 3 <= len(images) <= cache // frame, f"{len(images)} images from a {cache} byte ring"
     stats = closing_stats(rig.container, uri)
     for topic in ("/camera/image_raw", "/imu/imu"):  # the ring holds the newest messages, none missing
         assert len(missing(bag.seqs(topic), None)) <= stats[topic]["dropped"], runs(bag.seqs(topic))
     assert all(m.log_time <= snapshot_done for m in bag.messages), "written after the snapshot"
-    assert images[-1].log_time >= snapshot_sent - 200_000_000, "the ring lost its newest images"
+    assert images[-1].seq >= newest_before, f"the ring lost its newest images: {runs(bag.seqs('/camera/image_raw'))}"
 
 
 # --- storage options ------------------------------------------------------------------------------------------
 def test_sqlite3_storage(rig: Rig, refs: References, tmp_path: Path) -> None:
     uri = tmp_path / "db"
     recorder = rig.record("recorder_sqlite", uri, **{"storage.storage_id": "sqlite3"})
-    time.sleep(1.5)
+    recorder.wait_written(RIG_MINIMUMS)
     recorder.unload()
     bag = verify_bag(uri, "sqlite3", window=(recorder.loaded_ns, recorder.unloaded_ns))
     assert bag.meta["relative_file_paths"] == ["db_0.db3"]
@@ -810,7 +906,7 @@ def test_sqlite3_storage(rig: Rig, refs: References, tmp_path: Path) -> None:
 def test_mcap_storage_presets(rig: Rig, refs: References, tmp_path: Path, preset: str) -> None:
     uri = tmp_path / preset
     recorder = rig.record(f"recorder_{preset}", uri, **{"storage.storage_preset_profile": preset})
-    time.sleep(1.2)
+    recorder.wait_written(RIG_MINIMUMS)
     recorder.unload()
     bag = verify_bag(uri)
     stats = closing_stats(rig.container, uri)
@@ -839,8 +935,7 @@ def test_container_signal_finalizes_the_bag(probe: Node, log_dir: Path, tmp_path
         rig.load_driver("components::ImuDriver", f"{sig.name.lower()}_imu", IMU)
         rig.load_driver("components::CameraDriver", f"{sig.name.lower()}_camera", CAMERA)
         uri = tmp_path / "signalled"
-        rig.record("recorder", uri, **{"record.topics": [imu, camera]})
-        time.sleep(1.5)
+        rig.record("recorder", uri, **{"record.topics": [imu, camera]}).wait_written({imu: 20, camera: 3})
         code = container.stop(sig)
     finally:
         container.kill()
@@ -851,7 +946,7 @@ def test_container_signal_finalizes_the_bag(probe: Node, log_dir: Path, tmp_path
     stats = closing_stats(container, uri)
     assert_complete(bag, imu, stats)
     assert_complete(bag, camera, stats)
-    assert len(bag.seqs(imu)) >= 0.5 * 1.5 * IMU["rate"]
+    assert len(bag.seqs(imu)) >= 20 and len(bag.seqs(camera)) >= 3
 
 
 # --- failures ---------------------------------------------------------------------------------------------------
@@ -904,9 +999,9 @@ def test_disk_full_stops_recording_cleanly(probe: Node, rig: Rig, log_dir: Path,
                                  r"(No space left on device|File too large)", log), target.container.output[-3000:]
         # The container and the drivers carry on; the recorder keeps counting what it can no longer write.
         received = recorder.stats()["current"]["topics"][imu]["received"]
-        time.sleep(0.5)
-        after = recorder.stats()
-        assert after["current"]["topics"][imu]["received"] > received
+        after = wait_until(lambda: (s := recorder.stats())["current"]["topics"][imu]["received"] > received + 5
+                           and s, 10.0, interval=0.05)
+        assert after, f"the recorder stopped counting {imu} after the failure: {recorder.stats()}"
         assert after["current"]["topics"][imu]["dropped"] > 0
         assert target.container.alive() and drivers | {"/recorder_full"} <= target.listed()
         recorder.unload()
@@ -944,11 +1039,14 @@ def test_parameter_aliases(rig: Rig, tmp_path: Path) -> None:
     rig.probe.destroy_client(client)
     assert [values[0].string_value, values[1].string_value, values[2].bool_value, values[3].double_value] == \
         [str(uri), "sqlite3", True, 1.0], "alias values are mirrored to their rosbag2 parameter names"
-    time.sleep(2.6)
+    # the first split comes once the IMU's messages span more than the 1 s of max_bag_duration
+    assert wait_until(lambda: file_index(recorder.stats()["current"]["current_file"]) >= 1, 15.0, interval=0.05), \
+        recorder.stats()
+    recorder.wait_written({"/imu/imu": recorder.stats()["current"]["topics"]["/imu/imu"]["written"] + 5})
     recorder.unload()
     bag = verify_bag(uri, "sqlite3")
     assert set(bag.counts()) == {"/imu/imu"}
-    assert len(bag.meta["relative_file_paths"]) >= 3, "max_bag_duration 1 s did not split 2.6 s"
+    assert len(bag.meta["relative_file_paths"]) >= 2, "max_bag_duration 1 s did not split"
     assert_complete(bag, "/imu/imu", closing_stats(rig.container, uri))
     for info in bag.meta["files"][:-1]:
         assert info["duration"]["nanoseconds"] <= 1e9
@@ -991,7 +1089,7 @@ def test_not_set_means_default_and_unknown_names_are_reported(rig: Rig, tmp_path
     recorder = rig.record("recorder_hygiene", uri, **{
         "storage.uri": None, "bag_name": str(uri),  # NOT_SET (as a launch file's None sends it): the default
         "record.topic": ["/imu/imu"], "max_bag_sise": 5, "record.topics": ["/imu/imu"]})
-    time.sleep(0.5)
+    recorder.wait_written({"/imu/imu": 5})
     recorder.unload()
     assert set(verify_bag(uri).counts()) == {"/imu/imu"}
     warnings = re.findall(r"\[recorder_hygiene\]: Unknown parameters, ignored: (.*)", rig.container.output)
