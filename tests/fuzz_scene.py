@@ -19,6 +19,7 @@ from typing import Any
 
 from composition_interfaces.srv import LoadNode, UnloadNode
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import Image, Imu
 from std_msgs.msg import String
@@ -140,9 +141,12 @@ class FuzzScene:
         report = FuzzReport(seed, requests)
         pipeline = Pipeline(fuzz_node, max_in_flight)
         prefix = "/ComponentManager/_container"
-        load = fuzz_node.create_client(LoadNode, f"{prefix}/load_node")
-        unload = fuzz_node.create_client(UnloadNode, f"{prefix}/unload_node")
-        recorder = {name: fuzz_node.create_client(srv_type, f"/{RECORDER}/{name}")
+        # Replies of up to max_in_flight calls can arrive in one burst: a client's default depth of 10 would let
+        # its reader drop some (keep_last), and each such call would then wait out the pipeline's timeout.
+        replies = QoSProfile(depth=4 * max_in_flight)
+        load = fuzz_node.create_client(LoadNode, f"{prefix}/load_node", qos_profile=replies)
+        unload = fuzz_node.create_client(UnloadNode, f"{prefix}/unload_node", qos_profile=replies)
+        recorder = {name: fuzz_node.create_client(srv_type, f"/{RECORDER}/{name}", qos_profile=replies)
                     for name, srv_type in RECORDER_SERVICES.items()}
         loaded: list[int] = []
 
