@@ -1,15 +1,15 @@
 """Tests of the simulated sensor drivers (components.camera_driver / lidar_driver / imu_driver).
 
 Each DDS test runs a driver and a plain rclpy listener node in one process and one fresh rclpy Context,
-waits until the listener's subscriptions are matched, spins a SingleThreadedExecutor for a while and checks
-what arrived.
+waits until the listener's subscriptions are matched, spins a SingleThreadedExecutor until enough has arrived
+(a count, not a time), takes what is still in flight (reliable: until every published message arrived) and
+checks what arrived. Rates and phases are checked with a fake clock of the rate loop; how evenly real timers
+tick on a loaded machine is the benchmarks' business.
 """
 from __future__ import annotations
 
 import array
-import bisect
 import collections
-import itertools
 import math
 import statistics
 import time
@@ -36,7 +36,8 @@ from components.camera_driver import CameraDriver, camera_info_topic_for
 from components.imu_driver import ImuDriver
 from components.lidar_driver import POINT_DTYPE, LidarDriver
 
-SPIN_SECONDS = 1.5
+#: How long a spin may take before the test fails: a guard against hanging, not a claim about speed.
+PATIENCE_S = 20.0
 
 
 class Ros:
@@ -75,22 +76,22 @@ class Ros:
             assert time.monotonic() < deadline, "listener subscriptions never matched the driver's publishers"
             time.sleep(0.02)
 
-    def spin(self, *drivers: Node, seconds: float = SPIN_SECONDS) -> float:
-        """Match, then spin listener and drivers for ``seconds``; returns the time spun."""
+    def spin(self, *drivers: Node, until: Callable[[], bool], drained: Callable[[], bool] | None = None) -> None:
+        """Match, then spin listener and drivers until ``until()``; stop the drivers and spin the listener until
+        ``drained()`` (what was published has arrived)."""
         self.wait_matched()
         self.executor.add_node(self.listener)
         for driver in drivers:
             self.executor.add_node(driver)
-        start = time.monotonic()
-        while time.monotonic() - start < seconds:
+        deadline = time.monotonic() + PATIENCE_S
+        while not until():
+            assert time.monotonic() < deadline, "the drivers did not publish enough"
             self.executor.spin_once(timeout_sec=0.05)
-        elapsed = time.monotonic() - start
-        for driver in drivers:  # stop publishing, then drain what is in flight
+        for driver in drivers:  # stop publishing, then take what is in flight
             self.executor.remove_node(driver)
-        drain_end = time.monotonic() + 0.3
-        while time.monotonic() < drain_end:
+        while drained is not None and not drained():
+            assert time.monotonic() < deadline, "published messages never arrived"
             self.executor.spin_once(timeout_sec=0.02)
-        return elapsed
 
     def close(self) -> None:
         try:
@@ -142,7 +143,8 @@ def test_camera_publishes_images_and_camera_info(ros):
     assert camera.rate == 30.0 and camera.width == 320 and camera.encoding == "rgb8"
     images = ros.listen(Image, topic_of(camera, "~/image_raw"))
     infos = ros.listen(CameraInfo, topic_of(camera, "~/camera_info"))
-    ros.spin(camera)
+    ros.spin(camera, until=lambda: len(images) >= 10,
+             drained=lambda: len(images) == len(infos) == camera.published_count)
 
     msgs = [m for _, m in images]
     check_sequence_and_stamps(msgs, seq_from_data)
@@ -236,20 +238,28 @@ def test_frames_kept_by_an_intra_process_subscriber_stay_intact(ros):
                                                        Parameter("width", value=64), Parameter("height", value=48)]))
     consumer = ros.add(ComponentNode("consumer", context=ros.context, intra_process_manager=manager))
     kept: list[tuple[Image, bytes]] = []
-    received = itertools.count(1)
+    received: list[int] = []
     window: collections.deque[Image] = collections.deque(maxlen=2)  # held a while, like the recorder's cache
 
     def on_image(msg: Image) -> None:
         window.append(msg)
-        if next(received) % 3 == 0:  # and every third frame kept for good
+        received.append(seq_from_data(msg))
+        if len(received) % 3 == 0:  # and every third frame kept for good
             kept.append((msg, bytes(msg.data)))
 
     consumer.create_subscription(Image, "/cam/image_raw", on_image, 100)
-    ros.executor.add_node(camera)
+    # Frames are published by hand, each taken by the subscriber before the next (the camera's timer never runs):
+    # the subscriber keeps up, as on an idle machine. On a loaded one the subscription's queue would hold frames
+    # for a while, and the fresh buffers the driver then fills would be right, but not countable.
     ros.executor.add_node(consumer)
-    deadline = time.monotonic() + 10.0
-    while camera._frames.reused < 100 and time.monotonic() < deadline:
-        ros.executor.spin_once(timeout_sec=0.05)
+    deadline = time.monotonic() + PATIENCE_S
+    while camera._frames.reused < 100 and len(received) < 1000:
+        published = len(received) + 1
+        camera.publish_frame()
+        while len(received) < published:
+            assert time.monotonic() < deadline, "the subscriber did not take the frame"
+            ros.executor.spin_once(timeout_sec=0.05)
+    assert received == list(range(len(received)))
     assert camera._frames.reused >= 100, "the driver never got a buffer back"
     assert len(kept) > 30
     # A buffer is filled again only for a slot whose last frame the subscriber kept (plus each slot's first):
@@ -277,7 +287,7 @@ def test_destroyed_drivers_drop_their_frame_buffers(ros):
 def test_lidar_publishes_point_clouds(ros):
     lidar = ros.driver(LidarDriver, "lidar", points_per_scan=4096, rings=16, rate=20.0)
     clouds = ros.listen(PointCloud2, topic_of(lidar, "~/points"))
-    ros.spin(lidar)
+    ros.spin(lidar, until=lambda: len(clouds) >= 6, drained=lambda: len(clouds) == lidar.published_count)
 
     msgs = [m for _, m in clouds]
     check_sequence_and_stamps(msgs, seq_from_data)
@@ -316,7 +326,7 @@ def test_lidar_large_scan(ros):
 def test_imu_publishes_at_1khz(ros):
     imu = ros.driver(ImuDriver, "imu", rate=1000.0)
     received = ros.listen(Imu, topic_of(imu, "~/imu"))
-    ros.spin(imu)
+    ros.spin(imu, until=lambda: len(received) >= 300, drained=lambda: len(received) == imu.published_count)
 
     msgs = [m for _, m in received]
     check_sequence_and_stamps(msgs, lambda m: int(m.orientation_covariance[1]))
@@ -362,13 +372,14 @@ def test_imu_falls_back_to_the_constructors_when_the_assembly_differs(ros, monke
     assert len(warnings) == 1 and "building each message with the constructors" in warnings[0]
     assert imu.make_imu == imu.construct_imu
     received = ros.listen(Imu, topic_of(imu, "~/imu"))
-    ros.spin(imu, seconds=0.5)
+    ros.spin(imu, until=lambda: len(received) >= 10, drained=lambda: len(received) == imu.published_count)
     check_sequence_and_stamps([m for _, m in received], lambda m: int(m.orientation_covariance[1]))
 
 
 def test_capture_time_follows_sim_time(ros):
     imu = ros.driver(ImuDriver, "imu")
-    assert abs(imu.capture_ns() - time.time_ns()) < 50_000_000  # the system clock without sim time
+    before = time.time_ns()
+    assert before <= imu.capture_ns() <= time.time_ns()  # the system clock without sim time
     clock = imu.get_clock()
     clock._set_ros_time_is_active(True)
     clock.set_ros_time_override(rclpy.time.Time(seconds=42, clock_type=clock.clock_type))
@@ -379,7 +390,7 @@ def test_capture_time_follows_sim_time(ros):
 def test_imu_default_rate(ros):
     imu = ros.driver(ImuDriver, "imu")
     received = ros.listen(Imu, topic_of(imu, "~/imu"))
-    ros.spin(imu, seconds=1.0)
+    ros.spin(imu, until=lambda: len(received) >= 20, drained=lambda: len(received) == imu.published_count)
     check_sequence_and_stamps([m for _, m in received], lambda m: int(m.orientation_covariance[1]))
 
 
@@ -453,7 +464,7 @@ def test_sensor_data_qos_is_best_effort(ros):
             assert time.monotonic() < deadline, f"no publisher on {name} in the graph"
             time.sleep(0.02)
         assert [i.qos_profile.reliability for i in infos] == [ReliabilityPolicy.BEST_EFFORT]
-    ros.spin(camera, seconds=0.5)
+    ros.spin(camera, until=lambda: len(images) >= 5)  # best effort: nothing to drain
     assert len(images) >= 5
 
 
@@ -468,31 +479,6 @@ def test_reliable_qos_in_graph(ros):
 
 
 # ---------------------------------------------------------------------------------------------- rate loop
-def test_drivers_of_one_rate_tick_together(ros):
-    """Drivers created a third of a period apart publish at the same instants all the same: their ticks lie on
-    one grid (sensor_driver "Shared tick grid"), so one executor wake-up serves all of them."""
-    period = 0.06
-    imus = []
-    for index in range(3):
-        imus.append(ros.driver(ImuDriver, f"imu{index}", rate=1 / period))
-        time.sleep(period / 3)
-    received = [ros.listen(Imu, topic_of(imu, "~/imu")) for imu in imus]
-    ros.spin(*imus, seconds=1.5)
-
-    # Each driver's first frame comes from its first tick, before its timer is on the grid.
-    stamps = [[stamp_ns_of(m) for _, m in messages[1:]] for messages in received]
-    assert all(len(s) >= 10 for s in stamps), [len(s) for s in stamps]
-    reference = stamps[0]
-    for index, own in enumerate(stamps[1:], 1):
-        distances = []
-        for stamp in own:  # to the nearest frame of the first driver
-            at = bisect.bisect_left(reference, stamp)
-            distances.append(min(abs(stamp - reference[i]) for i in (at - 1, at) if 0 <= i < len(reference)))
-        # On their own phases they would be 20 ms apart; one tick of three drivers takes well under 1 ms.
-        median = statistics.median(distances)
-        assert median < 5e6, f"imu{index} publishes {median / 1e6:.1f} ms away from imu0"
-
-
 class FakeClock:
     """The steady clock of the drivers' rate loop, advanced by hand (capture times stay real)."""
 
@@ -511,6 +497,45 @@ class FakeClock:
 
     def advance(self, seconds: float) -> None:
         self.ns += round(seconds * 1e9)
+
+
+def test_drivers_of_one_rate_tick_together(ros, monkeypatch):
+    """Drivers of one rate whose first ticks come a third of a period apart have their frames due at the same
+    instants all the same: frames are due half a period before the ticks of one grid, the multiples of the timer
+    period on the steady clock (sensor_driver "Shared tick grid"), so one executor wake-up serves all of them.
+    Just before each such instant no driver has a new frame due, just after it every driver has one."""
+    clock = FakeClock.install(monkeypatch)
+    period = 0.06
+    period_ns = round(period * 1e9)
+    imus = []
+    for index in range(3):
+        imu = ros.driver(ImuDriver, f"imu{index}", rate=1 / period)
+        imu._on_tick()  # its first tick: frame 0, and the timer moves onto the grid
+        assert imu.published_count == 1
+        # the real timer: the shortened period up to the grid was armed, its own period restored
+        assert imu._timer.timer_period_ns == period_ns
+        assert 0 < imu._timer.time_until_next_call() <= 1.5 * period_ns
+        imus.append(imu)
+        clock.advance(period / 3)
+
+    def due_instant(k: int) -> int:  # half a period before the k-th tick of the grid
+        return k * period_ns - period_ns // 2
+
+    k = -(-clock.ns // period_ns) + 1
+    clock.ns = due_instant(k) + 1_000
+    for imu in imus:  # catch up to here (frame 0's tick was at most a period ago)
+        imu._on_tick()
+    for k in range(k + 1, k + 11):
+        counts = [imu.published_count for imu in imus]
+        clock.ns = due_instant(k) - 1_000
+        for imu in imus:
+            imu._on_tick()
+        assert [imu.published_count for imu in imus] == counts, f"a frame due off the grid before instant {k}"
+        clock.ns = due_instant(k) + 1_000
+        for imu in imus:
+            imu._on_tick()
+        assert [imu.published_count for imu in imus] == [c + 1 for c in counts], f"not all due at instant {k}"
+    assert all(imu.skipped_count == 0 for imu in imus)
 
 
 def test_rate_loop_catches_up_and_caps_bursts(ros, monkeypatch):
