@@ -655,6 +655,23 @@ def test_split_by_duration(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("storage_id", ["mcap", "sqlite3"])
+def test_circular_split_by_duration_keeps_the_newest_files(tmp_path: Path, storage_id: str) -> None:
+    """max_bag_files with max_bagfile_duration (the recorder's circular test splits by size): as in
+    test_split_by_duration, 0.1 s apart and at most 0.25 s per file is three messages per file, seven files
+    for twenty; the newest two stay, with the last five messages."""
+    bag = tmp_path / "ring"
+    ext = ".mcap" if storage_id == "mcap" else ".db3"
+    with BagWriter(bag, storage_id=storage_id, max_bagfile_duration=0.25, max_bag_files=2) as writer:
+        writer.add_topic(topic_info("/imu"))
+        written = write_messages(writer, [("/imu", i) for i in range(20)], step=100_000_000)
+    assert writer.deleted_files == [f"ring_{n}{ext}" for n in range(5)]
+    assert sorted(p.name for p in bag.iterdir() if p.suffix == ext) == [f"ring_5{ext}", f"ring_6{ext}"]
+    meta = check_split_bag(bag, written[-5:], storage_id)
+    assert meta["relative_file_paths"] == [f"ring_5{ext}", f"ring_6{ext}"]
+    assert [f["message_count"] for f in meta["files"]] == [3, 2]
+
+
+@pytest.mark.parametrize("storage_id", ["mcap", "sqlite3"])
 def test_manual_split(tmp_path: Path, storage_id: str) -> None:
     bag = tmp_path / "manual"
     events: list[tuple[str, str]] = []
