@@ -177,6 +177,12 @@ def describe(msg: Any) -> str:
     return f"{type(msg).__name__}[{msg.header.frame_id!r}, {size}]"
 
 
+#: The variations by type: one test per type goes through all of its variations (a test per variation made
+#: some 2600 tests, whose per-test overhead under pytest-xdist cost more than the checks). Every failure names
+#: the variation (``describe`` and its index).
+BY_TYPE = {cls.__name__: [msg for msg in MESSAGES if type(msg) is cls] for cls in TYPE_NAMES}
+
+
 # --- identity --------------------------------------------------------------------------------------
 
 
@@ -195,33 +201,37 @@ def test_rclpy_leaves_padding_uninitialized_and_only_padding_differs() -> None:
     assert garbage > 0  # if this ever fails, rclpy zeroes padding and plain equality would do
 
 
-@pytest.mark.parametrize("msg", MESSAGES, ids=describe)
-def test_byte_identical_except_rclpy_padding(msg: Any) -> None:
-    result = serialize(msg)
-    fast = bytes(result)
-    expected, padding = reference(msg)
-    assert fast == expected  # exact, padding included (zeros)
-    assert all(fast[i] == 0 for i in padding)
-    mask = np.ones(len(fast), dtype=bool)
-    mask[padding] = False
-    for _ in range(3):
-        from_rclpy = np.frombuffer(serialize_message(msg), dtype=np.uint8)
-        assert len(from_rclpy) == len(fast)
-        assert np.array_equal(from_rclpy[mask], np.frombuffer(fast, dtype=np.uint8)[mask])
-    if len(getattr(msg, "data", ())) >= MIN_BUFFERS_SIZE:
-        assert isinstance(result, SerializedBuffers) and len(result) == len(fast)
-    else:
-        assert isinstance(result, bytes)
+@pytest.mark.parametrize("type_name", list(BY_TYPE))
+def test_byte_identical_except_rclpy_padding(type_name: str) -> None:
+    assert len(BY_TYPE[type_name]) > 10
+    for index, msg in enumerate(BY_TYPE[type_name]):
+        where = f"{describe(msg)} (variation {index})"
+        result = serialize(msg)
+        fast = bytes(result)
+        expected, padding = reference(msg)
+        assert fast == expected, where  # exact, padding included (zeros)
+        assert all(fast[i] == 0 for i in padding), where
+        mask = np.ones(len(fast), dtype=bool)
+        mask[padding] = False
+        for _ in range(3):
+            from_rclpy = np.frombuffer(serialize_message(msg), dtype=np.uint8)
+            assert len(from_rclpy) == len(fast), where
+            assert np.array_equal(from_rclpy[mask], np.frombuffer(fast, dtype=np.uint8)[mask]), where
+        if len(getattr(msg, "data", ())) >= MIN_BUFFERS_SIZE:
+            assert isinstance(result, SerializedBuffers) and len(result) == len(fast), where
+        else:
+            assert isinstance(result, bytes), where
 
 
-@pytest.mark.parametrize("msg", MESSAGES, ids=describe)
-def test_decodes_back_to_the_message(msg: Any) -> None:
-    fast = bytes(serialize(msg))
-    decoded = deserialize_message(fast, type(msg))
-    if "\x00" in msg.header.frame_id:
-        assert decoded.header.frame_id == msg.header.frame_id.split("\x00")[0]
-        decoded.header.frame_id = msg.header.frame_id
-    assert decoded == msg
+@pytest.mark.parametrize("type_name", list(BY_TYPE))
+def test_decodes_back_to_the_message(type_name: str) -> None:
+    for index, msg in enumerate(BY_TYPE[type_name]):
+        fast = bytes(serialize(msg))
+        decoded = deserialize_message(fast, type(msg))
+        if "\x00" in msg.header.frame_id:
+            assert decoded.header.frame_id == msg.header.frame_id.split("\x00")[0]
+            decoded.header.frame_id = msg.header.frame_id
+        assert decoded == msg, f"{describe(msg)} (variation {index})"
 
 
 def fields(type_name: str, msg: Any) -> tuple:
@@ -247,16 +257,20 @@ def fields(type_name: str, msg: Any) -> tuple:
     return header, msg.format, data
 
 
-@pytest.mark.parametrize("msg", MESSAGES[::3], ids=describe)
-def test_rosbags_decodes_both_alike(msg: Any) -> None:
-    type_name = TYPE_NAMES[type(msg)]
-    fast = fields(type_name, TYPESTORE.deserialize_cdr(bytes(serialize(msg)), type_name))
-    assert fast == fields(type_name, TYPESTORE.deserialize_cdr(serialize_message(msg), type_name))
-    if type_name in ("sensor_msgs/msg/Imu", "sensor_msgs/msg/CameraInfo"):
-        return
-    assert fast[-1 if type_name != "sensor_msgs/msg/PointCloud2" else -2] == bytes(msg.data)
-    if type_name == "sensor_msgs/msg/PointCloud2":
-        assert fast[3] == [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+@pytest.mark.parametrize("name", list(BY_TYPE))
+def test_rosbags_decodes_both_alike(name: str) -> None:
+    for index, msg in enumerate(MESSAGES[::3]):  # every third variation, as before by type
+        if type(msg).__name__ != name:
+            continue
+        where = f"{describe(msg)} (variation {index * 3} of all)"
+        type_name = TYPE_NAMES[type(msg)]
+        fast = fields(type_name, TYPESTORE.deserialize_cdr(bytes(serialize(msg)), type_name))
+        assert fast == fields(type_name, TYPESTORE.deserialize_cdr(serialize_message(msg), type_name)), where
+        if type_name in ("sensor_msgs/msg/Imu", "sensor_msgs/msg/CameraInfo"):
+            continue
+        assert fast[-1 if type_name != "sensor_msgs/msg/PointCloud2" else -2] == bytes(msg.data), where
+        if type_name == "sensor_msgs/msg/PointCloud2":
+            assert fast[3] == [(f.name, f.offset, f.datatype, f.count) for f in msg.fields], where
 
 
 # --- buffers, fallbacks ----------------------------------------------------------------------------
