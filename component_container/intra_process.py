@@ -79,6 +79,10 @@ def qos_compatible(offered: QoSProfile, requested: QoSProfile) -> bool:
     return True
 
 
+#: The end of the time window of a write still in progress: any source timestamp after its start matches.
+_WRITING = 2**63 - 1
+
+
 class LocalPublicationLog:
     """Recent DDS writes of one local publisher: writer sequence number -> (time before, time after).
 
@@ -95,17 +99,27 @@ class LocalPublicationLog:
         self._lock = threading.Lock()
 
     def record(self, write: Callable[[], None]) -> None:
-        """Perform one DDS write and remember its sequence number and time window."""
+        """Perform one DDS write and remember its sequence number and time window.
+
+        The entry is made before the write, open-ended, and closed after it: a reader of this process may take
+        the sample while ``write`` is still running (another executor thread), and must already know it as
+        this publisher's, or the subscriber would get the message a second time, over DDS.
+        """
         with self._lock:  # serialises writes so the sequence number we record is the one DDS assigns
-            before = time.time_ns()
-            write()
-            after = time.time_ns()
             sequence = self._next_sequence
-            self._next_sequence += 1
-            self._writes[sequence] = (before, after)
+            before = time.time_ns()
+            self._writes[sequence] = (before, _WRITING)
             self._order.append(sequence)
             if len(self._order) > self._depth:
                 del self._writes[self._order.popleft()]
+            try:
+                write()
+            except BaseException:
+                del self._writes[sequence]
+                self._order.pop()
+                raise
+            self._writes[sequence] = (before, time.time_ns())
+            self._next_sequence += 1
 
     def contains(self, sequence: int, source_timestamp: int) -> bool:
         window = self._writes.get(sequence)
