@@ -199,11 +199,10 @@ def test_example_components_zero_copy_dds_parameters_and_clean_unload(example_en
         def listener_status() -> dict[str, str]:
             return statuses.of(f"/{listener}")
         assert wait_for(lambda: int(listener_status().get("by_reference", 0)) >= 5, 20.0, probe), statuses.latest
-        # The publisher's first messages arrive as copies (the reuse rule). Not "exactly": with a thread per
-        # component, a message the publisher also wrote to DDS (for this process) now and then reaches the
-        # listener a second time through its DDS reader (seen in about 1 of 10 runs of 60-100 messages; most likely
-        # taken by the listener's thread before the publisher's thread logged that write as the container's own).
-        assert int(listener_status()["copies"]) >= REUSE_WATCH
+        # The publisher's first messages arrive as copies (the reuse rule), and nothing twice: a message the
+        # publisher also wrote to DDS never reaches the listener again through its DDS reader, even when the
+        # listener's thread takes it while the publisher's thread is still writing it.
+        assert int(listener_status()["copies"]) == REUSE_WATCH
         # ... with the same data that reached this process over DDS
         assert wait_for(lambda: listener_status()["last"] in received, 10.0, probe), (listener_status(), received)
 
