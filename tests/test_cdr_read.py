@@ -76,9 +76,14 @@ def random_compressed(rng: random.Random) -> CompressedImage:
 RANDOM = {Image: random_image, PointCloud2: random_cloud, CompressedImage: random_compressed}
 
 
+def seeded(what: str) -> random.Random:
+    """The generator of one random input, from SEED; its name is printed (pytest shows it when the test fails)."""
+    print(f"CDR_READ_SEED={SEED} replays {what}")
+    return random.Random(f"{SEED}/{what}")
+
+
 def random_message(cls: type, case: int) -> Any:
-    print(f"CDR_READ_SEED={SEED} case {case}")  # shown by pytest when the test fails
-    return RANDOM[cls](random.Random(f"{SEED}/{cls.__name__}/{case}"))
+    return RANDOM[cls](seeded(f"{cls.__name__}/{case}"))
 
 
 def inputs(msg: Any) -> Iterator[tuple[str, bytes | bytearray | memoryview]]:
@@ -156,7 +161,7 @@ def refuse(*_: Any) -> None:
 def test_big_payload_is_copied_once_and_owned(cls: type) -> None:
     """A 1080p image's worth of payload: equal to rclpy's, one copy, independent of the input buffer."""
     msg = random_message(cls, 0)
-    msg.data = random.Random(SEED).randbytes(1920 * 1080 * 3)
+    msg.data = seeded("big payload").randbytes(1920 * 1080 * 3)
     raw = bytearray(bytes(serialize(msg)))
     tracemalloc.start()
     try:
@@ -238,7 +243,8 @@ def test_other_encapsulations_go_to_rclpy(kind: int, monkeypatch: pytest.MonkeyP
         return deserialize_message(data, cls)
 
     monkeypatch.setattr(cdr_read, "deserialize_message", spy)
-    raw = bytes([0, kind]) + reference(random_compressed(random.Random(SEED)), "<" if kind & 1 else ">")[0][2:]
+    message = random_compressed(seeded(f"encapsulation {kind:#04x}"))
+    raw = bytes([0, kind]) + reference(message, "<" if kind & 1 else ">")[0][2:]
     try:
         expected: Any = deserialize_message(raw, CompressedImage)
     except RuntimeError:
