@@ -16,12 +16,13 @@ from pathlib import Path
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosbag2_interfaces.srv import Resume
 from std_msgs.msg import String
 
 from baglib.format.cdr_fast import serialize
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.write.writer import BagWriter
-from container_process import wait_until
+from container_process import call, wait_until
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -42,17 +43,27 @@ def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
     bag = chatter_bag(tmp_path / "bag", 20, 50)
     got: list[String] = []
     subscription = probe.create_subscription(String, "/chatter", got.append, RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
     try:
-        # Spin while it plays: Fast DDS drops the samples of a writer that is gone before they were taken.
-        process = subprocess.Popen([CLI, "bag", "play", str(bag), "--delay", "2", "--rate", "2"],
+        # Started paused, resumed once this subscription has matched the player's publisher (instead of a
+        # delay long enough for discovery); --delay (applied before the paused start) is exercised on the way.
+        process = subprocess.Popen([CLI, "bag", "play", str(bag), "--start-paused", "--delay", "0.2", "--rate", "2"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        wait_until(lambda: process.poll() is not None, 60.0, probe)
+        try:
+            assert wait_until(lambda: subscription.get_publisher_count() > 0, 30.0, probe), "never matched"
+            call(probe, resume, Resume.Request(), 30.0, again=True)
+            # Spin while it plays: Fast DDS drops the samples of a writer that is gone before they were taken.
+            wait_until(lambda: process.poll() is not None, 60.0, probe)
+        finally:
+            if process.poll() is None:
+                process.kill()
         stdout, stderr = process.communicate(timeout=10)
         assert process.returncode == 0, stderr
         assert [m.data for m in got] == [f"message {n}" for n in range(20)]
         assert stdout.splitlines()[-1].startswith("[FINISHED]  0.950 / 0.950 s  rate 2.00  20 msgs")
         assert "\r" not in stdout  # no progress line when stdout is not a terminal
     finally:
+        probe.destroy_client(resume)
         probe.destroy_subscription(subscription)
 
 
