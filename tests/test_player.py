@@ -237,6 +237,21 @@ def test_plays_every_message_in_order_on_schedule(container: Any, tmp_path: Path
     handle.unload()
 
 
+def test_delay_holds_the_start(container: Any, tmp_path: Path) -> None:
+    """play.delay: the run starts that long after the load; none of its messages comes before."""
+    node, client, process = container
+    plan = [("/chatter", n * 10 * MS, chatter(n)) for n in range(5)]
+    bag = write_bag(tmp_path / "bag", plan)
+    delay = 500 * MS
+    handle = PlayerHandle(node, client, bag, {"play.delay.sec": 0, "play.delay.nsec": delay},
+                          topics=(("/chatter", "std_msgs/msg/String"),))
+    handle.wait_finished()
+    report = handle.report()
+    assert received(report, "/chatter") == expected(plan, "/chatter")
+    assert_not_early(report["/chatter"]["times"], [offset for _, offset, _ in plan], handle.load_sent + delay)
+    handle.unload()
+
+
 def test_out_of_process_subscriber_gets_the_recorded_bytes(container: Any, tmp_path: Path) -> None:
     node, client, process = container
     plan = regular_plan(30)
