@@ -791,10 +791,15 @@ def test_sync_does_not_wait_for_the_disk(tmp_path: Path, monkeypatch: pytest.Mon
             finished.append(fd)
 
     def wait_finished(count: int) -> None:
+        """Until ``count`` fsyncs returned and the sync thread has done its bookkeeping after the call."""
         deadline = time.monotonic() + 10
         while len(finished) < count and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.05)  # past the thread's bookkeeping after the call
+        assert len(finished) >= count
+        for thread in threading.enumerate():
+            if thread.name.startswith("bag_sync:"):
+                thread.join(10)
+                assert not thread.is_alive(), "the sync thread did not end"
 
     bag = tmp_path / "synced"
     writer = BagWriter(bag)
