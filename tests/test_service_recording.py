@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import rclpy
 import yaml
 from mcap.reader import make_reader
 from rclpy.node import Node
@@ -46,7 +45,7 @@ from baglib.write.writer import BagWriter
 from components.recorder.recorder_options import RecordOptions
 from components.recorder.topic_selection import TopicFilter
 
-from container_process import Containers, wait_until
+from container_process import Containers, call, wait_until
 
 HERE = Path(__file__).resolve().parent
 IPC_COMPONENT = Path(sys.executable).with_name("ipc-component")
@@ -345,12 +344,8 @@ class IntrospectionNode:
 def received(probe: Node, recorder: str) -> dict[str, int]:
     """Messages the recorder received per topic so far (its ~/get_stats)."""
     client = probe.create_client(Trigger, f"/{recorder}/get_stats")
-    try:
-        assert client.wait_for_service(timeout_sec=10.0)
-        future = client.call_async(Trigger.Request())
-        rclpy.spin_until_future_complete(probe, future, timeout_sec=10.0)
-        assert future.done(), f"/{recorder}/get_stats did not answer"
-        current = json.loads(future.result().message)["current"]
+    try:  # sent again until answered: Fast DDS drops the reply to a client the service has not matched yet
+        current = json.loads(call(probe, client, Trigger.Request(), 10.0, again=True).message)["current"]
         return {topic: counts["received"] for topic, counts in current["topics"].items()}
     finally:
         probe.destroy_client(client)
@@ -378,10 +373,8 @@ def test_recorders_record_service_events_as_selected(tmp_path: Path, probe: Node
             node.command(f"wait {topic} {subscribers}", "matched")
         node.command(f"call {CALLS}", "done")
         for name, (_, expected) in RECORDERS.items():
-            deadline = time.monotonic() + 20.0
-            while (counts := received(probe, name)) != expected and time.monotonic() < deadline:
-                time.sleep(0.1)
-            assert counts == expected, f"recorder {name} received {counts}, expected {expected}"
+            counts = wait_until(lambda: (c := received(probe, name)) == expected and c, 20.0, interval=0.05)
+            assert counts == expected, f"recorder {name} received {received(probe, name)}, expected {expected}"
         graph = [(p.node_name, p.node_namespace, str(p.qos_profile.durability))
                  for topic in (SET_FLAG_EVENTS, TRIGGER_EVENTS) for p in probe.get_publishers_info_by_topic(topic)]
         for name, unique_id in ids.items():
