@@ -87,14 +87,18 @@ def Container(name: str, log_dir: Path, *args: str, fsize_limit: int | None = No
 SERVICES = {"pause": Pause, "resume": Resume, "toggle_paused": TogglePaused, "is_paused": IsPaused,
             "split_bagfile": SplitBagfile, "snapshot": Snapshot, "start_recording": Trigger,
             "stop_recording": Trigger, "get_stats": Trigger}
+#: Requests that may be sent again until answered (a second one changes nothing); the others are sent once.
+IDEMPOTENT = {"pause", "resume", "is_paused", "get_stats"}
 
 
 class Recorder:
     """A recorder component loaded into a container, with clients of its services.
 
-    The clients are created at load, long before a test calls them: a service answers a new client only once
-    it has matched the client's reply reader, and Fast DDS drops the reply otherwise ("failed to send response
-    (timeout)"), a race that calls of non-idempotent services (split, toggle, stop...) could not retry.
+    The clients are created at load, before a test calls them: a service answers a new client only once it
+    has matched the client's reply reader, and Fast DDS drops the reply otherwise ("failed to send response
+    (timeout)"). Idempotent requests are sent again until answered (the first call of a test usually is one of
+    them, get_stats); the others (split, toggle, stop...) are sent once, by then the clients created together
+    have been matched.
     """
 
     def __init__(self, rig: "Rig", name: str, unique_id: int, uri: Path, loaded_ns: int) -> None:
@@ -107,7 +111,7 @@ class Recorder:
     def service(self, srv_type: Any, service: str, request: Any = None) -> Any:
         client = self.clients[service]
         assert client.srv_type is srv_type
-        return call(self.rig.probe, client, request)
+        return call(self.rig.probe, client, request, again=service in IDEMPOTENT)
 
     def destroy_clients(self) -> None:
         for client in self.clients.values():
