@@ -86,6 +86,17 @@ def rig(ros: None) -> Iterator[Rig]:
         probe.destroy_node()
 
 
+@pytest.fixture(autouse=True)
+def healthy(rig: Rig) -> Iterator[None]:
+    """After each test the shared container still runs, with nothing of the test left loaded in it."""
+    yield
+    left = listing(rig.client)
+    for unique_id, _ in left:
+        rig.client.unload(unique_id)
+    assert rig.process.alive(), rig.process.output[-3000:]
+    assert left == [], f"left loaded by the test: {left}"
+
+
 def refused(rig: Rig, plugin: str, name: str, parameters: dict[str, Any], package: str = "components") -> str:
     """Load a component that must be refused; returns the error. The container must stay up."""
     response = rig.load(plugin, name, parameters, package)
