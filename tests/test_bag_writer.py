@@ -5,6 +5,7 @@ every one of them is decoded and compared field by field.
 from __future__ import annotations
 
 import errno
+import functools
 import json
 import os
 import re
@@ -169,6 +170,12 @@ def mixed_plan(count: int) -> list[tuple[str, int]]:
 # --- readers ----------------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=None)
+def types_from_msg(text: str, name: str) -> dict:
+    """rosbags' parse of a definition text (one parse per distinct text: many bags store the same ones)."""
+    return get_types_from_msg(text, name)
+
+
 def read_rosbags(bag: Path) -> list[tuple[str, int, tuple]]:
     """All messages via rosbags' Reader, typed from the bag's own definitions (no typestore)."""
     out = []
@@ -176,7 +183,7 @@ def read_rosbags(bag: Path) -> list[tuple[str, int, tuple]]:
         store = get_typestore(Stores.EMPTY)
         for connection in reader.connections:
             assert connection.msgdef.format == MessageDefinitionFormat.MSG
-            store.register(get_types_from_msg(connection.msgdef.data, connection.msgtype))
+            store.register(types_from_msg(connection.msgdef.data, connection.msgtype))
         for connection, timestamp, raw in reader.messages():
             msg = store.deserialize_cdr(raw, connection.msgtype)
             out.append((connection.topic, timestamp, message_fields(connection.msgtype, msg)))
