@@ -34,7 +34,7 @@ KNOWN_PARAMETERS = [
     "record.all_services", "record.services", "record.exclude_services",
     "record.regex", "record.exclude_regex", "record.include_hidden_topics", "record.start_paused",
     "record.topic_polling_interval.sec", "record.topic_polling_interval.nsec", "storage.storage_id",
-    "storage.max_bagfile_size", "storage.max_bagfile_duration", "storage.max_cache_size",
+    "storage.max_bagfile_size", "storage.max_bagfile_duration", "storage.max_cache_size", "storage.stall_reserve",
     "storage.storage_preset_profile", "storage.snapshot_mode", "storage.custom_data", "record_all", "topics",
     "start_paused", "max_bag_size", "max_cache_size", "storage_id", "exclude", "start_recording_immediately",
     "play.rate", "play.loop", "play.topics_to_filter", "play.regex_to_filter", "play.exclude_regex_to_filter",

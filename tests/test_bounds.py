@@ -113,6 +113,9 @@ def refused(rig: Rig, plugin: str, name: str, parameters: dict[str, Any], packag
     ({"storage.max_cache_size": 10**18},
      "parameter 'storage.max_cache_size' must be in [1, {half_memory}] bytes (at most half the available memory)"),
     ({"max_cache_size": 10**18}, "parameter 'max_cache_size' (alias of 'storage.max_cache_size') must be in [1, "),
+    ({"storage.stall_reserve": 10**18}, "parameter 'storage.stall_reserve' must be 0 (drop as soon as max_cache_size "
+                                        "is full, as rosbag2 does; -1: automatic) or in [1, {half_memory}] bytes"),
+    ({"storage.stall_reserve": -2}, "parameter 'storage.stall_reserve' must be 0 (drop as soon as max_cache_size "),
     ({"record.topic_polling_interval.sec": 0, "record.topic_polling_interval.nsec": 1},
      "parameter 'record.topic_polling_interval' (.sec + .nsec) must be in [0.01, 60] s, got 1e-09"),
     ({"record.topic_polling_interval.sec": 3600},
@@ -125,7 +128,7 @@ def refused(rig: Rig, plugin: str, name: str, parameters: dict[str, Any], packag
      "parameter 'storage.max_bagfile_duration' must be 0 (no splitting) or in [1, 31536000] s, got 0.001"),
     ({"storage.max_bagfile_duration": float("inf")},
      "parameter 'storage.max_bagfile_duration' must be 0 (no splitting) or in [1, 31536000] s, got inf"),
-], ids=["cache_size", "cache_size_alias", "polling_1ns", "polling_1h", "bagfile_size_1_byte", "bagfile_size_1kib",
+], ids=["cache_size", "cache_size_alias", "stall_reserve", "stall_reserve_negative", "polling_1ns", "polling_1h", "bagfile_size_1_byte", "bagfile_size_1kib",
         "bagfile_duration_1ms", "bagfile_duration_inf"])
 def test_recorder_numbers_are_bounded(rig: Rig, tmp_path: Path, parameters: dict[str, Any], expected: str) -> None:
     uri = tmp_path / "never"

@@ -181,7 +181,7 @@ def test_health_reports_the_recording(in_process: tuple[Context, Node, MultiThre
     uri, topic = tmp_path / "healthy", "/health_probe"
     recorder = HangingDiskRecorder(context=context, parameter_overrides=[
         Parameter("storage.uri", value=str(uri)), Parameter("record.topics", value=[topic]),
-        Parameter("storage.max_cache_size", value=20_000)])
+        Parameter("storage.max_cache_size", value=20_000), Parameter("storage.stall_reserve", value=0)])
     recorder.shutdown_timeout = 1.0  # as a container started with --shutdown-timeout 1 sets it
     executor.add_node(recorder)
     try:

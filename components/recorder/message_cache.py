@@ -1,10 +1,13 @@
 """The hand-off between the recorder's intake callbacks and its writer thread.
 
 The intake side (the executor, or a publisher's thread for intra-process messages) must never wait on the
-disk: it only appends to this cache. The cache is bounded by ``max_cache_size`` bytes, counting both queued
-messages and those the writer holds until it has written them (so the bound is the recorder's whole buffer,
-not one half of a double buffer; the writer frees small messages' room a mebibyte at a time); a message that
-does not fit is dropped and counted for its topic (never silently lost). In snapshot mode the cache is a ring
+disk: it only appends to this cache. The cache holds ``max_cache_size`` bytes in steady state, counting both
+queued messages and those the writer holds until it has written them (so the bound is the recorder's whole
+buffer, not one half of a double buffer; the writer frees small messages' room a mebibyte at a time). When the
+writer falls behind (a disk that stalls for longer than the cache lasts), the cache grows into the stall
+``reserve`` before anything is dropped; a message that does not fit even then is dropped and counted for its
+topic (never silently lost). The backlog (bytes, and how far behind the oldest queued message is) is visible
+live. In snapshot mode the cache is a ring
 instead: the oldest messages make room, and nothing is written until a snapshot is requested.
 """
 from __future__ import annotations
@@ -82,8 +85,10 @@ def payload_size(payload: Any) -> int:
 class MessageCache:
     """A byte-bounded FIFO with per-topic drop counts; ``take_all`` blocks until data or close."""
 
-    def __init__(self, max_bytes: int, ring: bool = False) -> None:
+    def __init__(self, max_bytes: int, ring: bool = False, reserve: int = 0) -> None:
         self.max_bytes = max_bytes
+        self.reserve = 0 if ring else reserve  # a snapshot ring keeps its size: it evicts instead
+        self.peak_bytes = 0
         self._ring = ring
         self._queue: deque[CachedMessage] = deque()
         self._bytes = 0
@@ -102,6 +107,11 @@ class MessageCache:
     def bytes(self) -> int:
         return self._bytes
 
+    def backlog(self) -> tuple[int, int | None]:
+        """Bytes held (queued or being written), and the log time of the oldest queued message (None: none)."""
+        with self._mutex:
+            return self._bytes, (self._queue[0].log_time_ns if self._queue else None)
+
     def counts(self) -> tuple[Counter[str], Counter[str], Counter[str]]:
         """Copies of (received, dropped, refused), consistent with each other, for another thread to read."""
         with self._mutex:
@@ -119,11 +129,13 @@ class MessageCache:
                     old = self._queue.popleft()
                     self._bytes -= old.size
                     self.evicted[old.topic] += 1
-            elif self._queue and self._bytes + message.size > self.max_bytes:
+            elif self._queue and self._bytes + message.size > self.max_bytes + self.reserve:
                 self.dropped[message.topic] += 1
                 return False
             self._queue.append(message)
             self._bytes += message.size
+            if self._bytes > self.peak_bytes:
+                self.peak_bytes = self._bytes
             if not self._ring and self._bytes >= self._wake_bytes:
                 self._condition.notify()
             return True

@@ -44,6 +44,8 @@ class HealthMonitor:
             "free disk (MB)": f"{stats['free_bytes'] / 1e6:.0f}",
             "time to min_free_space (s)": ("not writing" if stats["seconds_until_min_free"] is None
                                            else f"{stats['seconds_until_min_free']:.0f}"),
+            "backlog (MB)": f"{stats['backlog_bytes'] / 1e6:.1f}",
+            "behind (s)": f"{stats['backlog_s']:.2f}",
         }
         if stats["error"]:
             return Health(ERROR, f"recording stopped: {stats['error']}", values)
@@ -52,5 +54,8 @@ class HealthMonitor:
         if recent_drops:
             since = f"in the last {interval:.1f} s" if interval else "so far"
             return Health(WARN, f"{recent_drops} messages dropped {since}", values)
+        if stats["reserve_in_use_bytes"]:
+            return Health(WARN, f"writer behind: {stats['backlog_bytes'] / 1e6:.0f} MB not yet written "
+                                f"({stats['backlog_s']:.1f} s), in the stall reserve", values)
         return Health(OK, "recording", values)
 

@@ -63,6 +63,9 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     "min_free_space": 256 * 1024 * 1024,
     # rosbag2 Rolling's circular recording (ros2/rosbag2#2218): keep the newest N split files
     "max_bag_files": 0,
+    # Not in rosbag2: memory beyond max_cache_size that a writer behind a stalled disk may fill before anything
+    # is dropped (-1: a quarter of the available memory, at most STALL_RESERVE_CAP; 0: none, as rosbag2).
+    "stall_reserve": -1,
 }
 DEFAULTS: dict[str, Any] = {**{f"record.{k}": v for k, v in RECORD_DEFAULTS.items()},
                              **{f"storage.{k}": v for k, v in STORAGE_DEFAULTS.items()}}
@@ -106,6 +109,10 @@ MIN_FREE_SPACE = Bounds(1, 2**63 - 1, "bytes")
 MAX_BAG_FILES = Bounds(1, 1_000_000, "files")
 #: The cache may take at most this share of the memory available when the recorder is loaded.
 CACHE_MEMORY_SHARE = 0.5
+#: storage.stall_reserve -1 (the default) is this share of the available memory ...
+STALL_RESERVE_SHARE = 0.25
+#: ... at most this many bytes: about 4 s of five 1080p30 cameras.
+STALL_RESERVE_CAP = 4 * 1024**3
 
 
 def memory_available() -> int:
@@ -120,6 +127,15 @@ def memory_available() -> int:
 def cache_size_bounds() -> Bounds:
     """storage.max_cache_size: at least one byte, at most half of the memory available now."""
     return Bounds(1, int(memory_available() * CACHE_MEMORY_SHARE), "bytes (at most half the available memory)")
+
+
+def stall_reserve(value: int, label: str) -> int:
+    """storage.stall_reserve in bytes: -1 derives it from the memory available now; else 0 up to half of it."""
+    if value == -1:
+        return min(STALL_RESERVE_CAP, int(memory_available() * STALL_RESERVE_SHARE))
+    Bounds(1, int(memory_available() * CACHE_MEMORY_SHARE), "bytes (at most half the available memory)").check(
+        label, value, zero_means="drop as soon as max_cache_size is full, as rosbag2 does; -1: automatic")
+    return value
 
 
 @dataclass
@@ -148,6 +164,8 @@ class RecordOptions:
     max_bagfile_size: int = 0
     max_bagfile_duration: float = 0.0
     max_cache_size: int = 100 * 1024 * 1024
+    #: bytes beyond max_cache_size that a writer behind a stalled disk may fill before anything is dropped
+    stall_reserve: int = 0
     storage_preset_profile: str = ""
     snapshot_mode: bool = False
     custom_data: dict[str, str] = field(default_factory=dict)
@@ -248,6 +266,7 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         max_bagfile_size=int(values["storage.max_bagfile_size"]),
         max_bagfile_duration=float(values["storage.max_bagfile_duration"]),
         max_cache_size=int(values["storage.max_cache_size"]),
+        stall_reserve=stall_reserve(int(values["storage.stall_reserve"]), labels["storage.stall_reserve"]),
         storage_preset_profile=values["storage.storage_preset_profile"],
         snapshot_mode=values["storage.snapshot_mode"],
         custom_data=custom,

@@ -96,7 +96,7 @@ class RecordingSession:
             raise
         self._next_disk_check = 0.0
         self._written_unreleased = 0  # bytes of messages written but still counted in the cache
-        self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode)
+        self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode, reserve=options.stall_reserve)
         # The live counts are the session's own, not the writer's: reading the writer's would wait on its lock,
         # which a write to a hung disk holds forever (and ~/get_stats, health and unload must still answer).
         self._topics: set[str] = set()
@@ -366,7 +366,7 @@ class RecordingSession:
             "bag": str(self.writer.path),
             "current_file": str(self.writer.current_file or ""),
             "bytes_written": self.writer.bytes_written if counts.idle else self._bytes_written,
-            "cache_bytes": self.cache.bytes,
+            **self._backlog(),
             "free_bytes": self.disk.free,
             "seconds_until_min_free": self.disk.seconds_left,
             "deleted_files": list(self.writer.deleted_files),
@@ -378,6 +378,16 @@ class RecordingSession:
             "drop_reasons": {t: dict(reasons[t]) for t in counts.topics if reasons[t]},
         }
 
+    def _backlog(self) -> dict[str, Any]:
+        """What the writer has not written yet: bytes, how far behind (s) the oldest queued message is, and how
+        much of the stall reserve that uses; the peak over the recording."""
+        held, oldest_ns = self.cache.backlog()
+        return {"cache_bytes": held, "backlog_bytes": held,
+                "backlog_s": 0.0 if oldest_ns is None else max(0.0, (time.time_ns() - oldest_ns) / 1e9),
+                "max_cache_size": self.cache.max_bytes, "stall_reserve": self.cache.reserve,
+                "reserve_in_use_bytes": max(0, held - self.cache.max_bytes),
+                "peak_backlog_bytes": self.cache.peak_bytes}
+
     def summary(self) -> str:
         stats = self.stats()
         lines = [f"Bag {stats['bag']} closed: {sum(t['written'] for t in stats['topics'].values())} messages, "
@@ -385,6 +395,10 @@ class RecordingSession:
         for topic, counts in stats["topics"].items():
             lines.append(f"  {topic}: received {counts['received']}, written {counts['written']}, "
                          f"dropped {counts['dropped']}")
+        if stats["peak_backlog_bytes"] > stats["max_cache_size"]:
+            lines.append(f"  the writer fell behind: backlog peaked at {stats['peak_backlog_bytes'] / 1e6:.0f} MB, "
+                         f"{(stats['peak_backlog_bytes'] - stats['max_cache_size']) / 1e6:.0f} MB of the "
+                         f"{stats['stall_reserve'] / 1e6:.0f} MB stall reserve")
         if stats["drop_reasons"]:
             lines.append("  dropped by reason: " + "; ".join(
                 f"{topic} " + ", ".join(f"{reason} {n}" for reason, n in reasons.items())

@@ -1,0 +1,137 @@
+"""A disk that stalls for longer than the cache lasts: the recorder keeps accepting messages into its stall
+reserve (``storage.stall_reserve``) instead of dropping them, shows the backlog live, and writes everything once
+the disk comes back. With no reserve (rosbag2's behaviour) the same stall drops frames, counted as cache_full.
+
+In-process: a container's manager, a camera driver and a recorder whose bag writer blocks while a test-owned
+event is clear, all delivering intra-process; the bag is read back with rosbags (sequence numbers in the
+frames' first 8 bytes).
+"""
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any, Iterator
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rosbags.rosbag2 import Reader
+
+from baglib.format.cdr_fast import CdrData
+from baglib.write.writer import BagWriter
+from component_container.component_manager import ComponentManager
+from component_container.health import WARN
+from component_container.startup_file import load_request
+from components.recorder.message_cache import CachedMessage, MessageCache
+from components.recorder.recorder import Recorder
+from ipc_testing import wait_until
+
+FRAME = {"width": 320, "height": 240, "fps": 30.0}          # 230 kB frames, ~7 MB/s
+CACHE = 1024 * 1024                                          # a cache that lasts ~0.15 s of this camera
+
+
+class StallingBagWriter(BagWriter):
+    """A bag on a disk that stalls while :data:`DISK_UP` is clear (a write blocks, as one stuck in the kernel)."""
+
+    DISK_UP = threading.Event()
+
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+        self.DISK_UP.wait()
+        super().write(topic, data, log_time_ns, publish_time_ns)
+
+
+class StallingRecorder(Recorder):
+    writer_class = StallingBagWriter
+
+
+@pytest.fixture()
+def manager() -> Iterator[ComponentManager]:
+    context = Context()
+    rclpy.init(context=context)
+    manager = ComponentManager("single", use_intra_process_comms=True, allow_module_plugins=True,
+                               node_name="stall_reserve_test", context=context)
+    StallingBagWriter.DISK_UP.set()
+    try:
+        yield manager
+    finally:
+        StallingBagWriter.DISK_UP.set()
+        manager.shutdown()
+        manager.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def load(manager: ComponentManager, plugin: str, package: str, **parameters: Any) -> Any:
+    return manager.load(load_request({"package": package, "plugin": plugin, "parameters": parameters}, 1))
+
+
+def sequences(bag: Path) -> list[int]:
+    with Reader(bag) as reader:
+        return [int.from_bytes(raw[-FRAME["width"] * FRAME["height"] * 3:][:8], "little")
+                for _, _, raw in reader.messages()]
+
+
+def record_through_a_stall(manager: ComponentManager, bag: Path, reserve: int) -> dict[str, Any]:
+    """Record the camera while the disk stalls until the backlog is 8 cache sizes; returns the final stats."""
+    loaded = load(manager, "test_stall_reserve:StallingRecorder", "test_stall_reserve", **{
+        "storage.uri": str(bag), "storage.max_cache_size": CACHE, "storage.stall_reserve": reserve,
+        "record.topics": ["/camera/image_raw"]})
+    recorder = loaded.node
+    StallingBagWriter.DISK_UP.clear()
+    camera = load(manager, "components::CameraDriver", "components", **FRAME)
+
+    def received() -> int:
+        current = recorder.stats()["current"]
+        return sum(topic["received"] for topic in current["topics"].values())
+
+    frames_for_8_caches = 8 * CACHE // (FRAME["width"] * FRAME["height"] * 3) + 1
+    assert wait_until(lambda: received() >= frames_for_8_caches, 30.0), recorder.stats()
+    live = recorder.stats()["current"]
+    health = recorder.health()
+    StallingBagWriter.DISK_UP.set()
+    manager.unload(camera.unique_id)
+    assert wait_until(lambda: recorder.stats()["current"]["backlog_bytes"] == 0, 30.0), recorder.stats()
+    final = recorder.stats()["current"]
+    manager.unload(loaded.unique_id)
+    return {"live": live, "health": health, "final": final}
+
+
+def test_a_stall_longer_than_the_cache_fills_the_reserve_and_loses_nothing(manager: ComponentManager,
+                                                                          tmp_path: Path) -> None:
+    result = record_through_a_stall(manager, tmp_path / "bag", reserve=64 * 1024 * 1024)
+    live, final = result["live"], result["final"]
+    assert live["backlog_bytes"] > CACHE and live["reserve_in_use_bytes"] == live["backlog_bytes"] - CACHE
+    assert live["backlog_s"] > 0
+    assert result["health"].level == WARN and "writer behind" in result["health"].message
+    topic = final["topics"]["/camera/image_raw"]
+    assert topic["dropped"] == 0 and topic["written"] == topic["received"], final
+    assert final["peak_backlog_bytes"] >= live["backlog_bytes"]
+    recorded = sequences(tmp_path / "bag")
+    assert recorded == list(range(recorded[0], recorded[0] + len(recorded)))  # none missing, none twice
+    assert len(recorded) == topic["written"]
+
+
+def test_without_a_reserve_the_same_stall_drops_frames(manager: ComponentManager, tmp_path: Path) -> None:
+    result = record_through_a_stall(manager, tmp_path / "bag", reserve=0)
+    final = result["final"]
+    assert final["drop_reasons"]["/camera/image_raw"]["cache_full"] > 0
+    assert final["topics"]["/camera/image_raw"]["written"] + final["topics"]["/camera/image_raw"]["dropped"] \
+        == final["topics"]["/camera/image_raw"]["received"]
+
+
+def test_the_cache_fills_its_reserve_before_it_drops() -> None:
+    cache = MessageCache(max_bytes=1000, reserve=500)
+    accepted = [cache.push(CachedMessage("/t", b"", 100, n, n)) for n in range(16)]
+    assert accepted == [True] * 15 + [False]
+    assert cache.dropped == {"/t": 1} and cache.peak_bytes == 1500
+    assert cache.backlog() == (1500, 0)  # bytes held, log time of the oldest queued message
+    taken = cache.take_all(timeout=0)
+    assert cache.backlog() == (1500, None)  # taken by the writer, not yet written: still held
+    cache.release(sum(message.size for message in taken))
+    assert cache.backlog() == (0, None)
+
+
+def test_a_snapshot_ring_has_no_reserve() -> None:
+    ring = MessageCache(max_bytes=1000, ring=True, reserve=500)
+    for n in range(15):
+        ring.push(CachedMessage("/t", b"", 100, n, n))
+    assert ring.bytes == 1000 and ring.evicted == {"/t": 5}
