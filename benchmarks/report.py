@@ -200,6 +200,18 @@ def replay_table(replay: dict[str, Any]) -> list[str]:
             "", f"Target ({target['target']}): {target['result']}; {target['detail']}."]
 
 
+def recover_table(recover: dict[str, Any]) -> list[str]:
+    if "in_place" not in recover:
+        raise Missing("no recover run measured")
+    rows = [[mode.replace("_", " "), f"{recover[mode]['mb_per_s']:.0f}", f"{recover[mode]['disk_read_mb_per_s']:.0f}",
+             f"{recover[mode]['share_of_read_speed']:.0%}", f"{recover[mode]['extra_bytes'] / 1e6:.1f}",
+             str(recover[mode]["messages"])] for mode in ("in_place", "copy")]
+    target = recover["target"]
+    return [*markdown(["mode", "recover MB/s", "cold read MB/s", "share", "extra space MB", "messages kept"], rows),
+            "", f"A {recover['bag_bytes'] / 1e9:.1f} GB bag cut inside its last chunk. Target ({target['target']}): "
+                f"{target['result']}; {target['detail']}."]
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -216,6 +228,7 @@ TABLES: dict[str, Table] = {
     "s3": Table("record", "S3", "python benchmarks/record_bench.py --scenarios s3", s3_table, "S3 IMU storm"),
     "targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
+    "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
 }
 
 

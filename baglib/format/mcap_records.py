@@ -175,6 +175,7 @@ def scan(file: BinaryIO, size: int, check_chunks: bool = False) -> Scan:
         return result
     position = result.start = 17 + _RECORD_START.unpack(start)[1]
     chunk: Unit | None = None  # the latest chunk, while the message indexes after it are read
+    buffer = _Buffer()
     while True:
         file.seek(position)
         head = file.read(9)
@@ -209,11 +210,11 @@ def scan(file: BinaryIO, size: int, check_chunks: bool = False) -> Scan:
             result.data_end = position
             break
         try:
-            body = file.read(length)
+            body = buffer.read(file, length)
             if opcode == Opcode.CHUNK:
                 chunk = _chunk_unit(body, position, end)
                 if check_chunks:
-                    _read_chunk(file, chunk, result, check_chunks)
+                    _read_chunk(file, chunk, result, check_chunks, _chunk_content(body, chunk))
             elif opcode == Opcode.MESSAGE_INDEX:
                 raise InvalidRecord("message index without a chunk")
             else:
@@ -249,7 +250,7 @@ def _cut_record(file: BinaryIO, opcode: int, position: int, size: int) -> Damage
     return Damage(position, where)
 
 
-def _top_level_unit(opcode: int, body: bytes, position: int, end: int, result: Scan) -> Unit:
+def _top_level_unit(opcode: int, body: bytes | memoryview, position: int, end: int, result: Scan) -> Unit:
     unit = Unit(position, end, end)
     if opcode == Opcode.SCHEMA:
         schema = _parse(Schema, body)
@@ -280,10 +281,10 @@ def _top_level_unit(opcode: int, body: bytes, position: int, end: int, result: S
     return unit
 
 
-def _chunk_unit(body: bytes, position: int, end: int) -> Unit:
+def _chunk_unit(body: bytes | memoryview, position: int, end: int) -> Unit:
     try:
         start_ns, end_ns, uncompressed_size, crc, name_length = struct.unpack_from("<QQQII", body)
-        compression = body[32:32 + name_length].decode()
+        compression = bytes(body[32:32 + name_length]).decode()
         (compressed_size,) = struct.unpack_from("<Q", body, 32 + name_length)
     except (struct.error, UnicodeDecodeError) as error:
         raise InvalidRecord(f"unreadable chunk header ({error})") from error
@@ -297,17 +298,44 @@ def _chunk_unit(body: bytes, position: int, end: int) -> Unit:
     return Unit(position, end, end, crc=crc, first_ns=start_ns, last_ns=end_ns, chunk_index=index)
 
 
-def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: bool) -> None:
+class _Buffer:
+    """One reusable buffer for the records a scan reads: a chunk of camera frames is read into memory the
+    process already has, not into a fresh allocation (page faults) per chunk."""
+
+    def __init__(self) -> None:
+        self._data = bytearray()
+
+    def read(self, file: BinaryIO, length: int) -> memoryview:
+        """The next ``length`` bytes of ``file`` (fewer at its end), valid until the next read."""
+        if len(self._data) < length:
+            self._data = bytearray(length)
+        view = memoryview(self._data)[:length]
+        got = file.readinto(view)  # type: ignore[attr-defined]
+        return view[:got]
+
+
+def _chunk_content(body: memoryview, chunk: Unit) -> memoryview:
+    """The (compressed) records of a chunk record whose body (after opcode and length) is ``body``."""
+    index = chunk.chunk_index
+    assert index is not None
+    start = 32 + len(index.compression.encode()) + 8
+    return body[start:start + index.compressed_size]
+
+
+def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: bool,
+                content: bytes | memoryview | None = None) -> None:
     """Read the chunk's content: its counts, times and rebuilt message indexes; raises ``InvalidRecord``.
 
     ``check_references``: messages must name a channel defined before them (in this chunk or the
-    records read before it); off when earlier chunks were not read.
+    records read before it); off when earlier chunks were not read. ``content``: the chunk's records as
+    already read (else they are read from ``file``).
     """
     index = chunk.chunk_index
     assert index is not None
-    header_length = 9 + 32 + len(index.compression.encode()) + 8
-    file.seek(chunk.start + header_length)
-    data = decompress(index.compression, file.read(index.compressed_size), index.uncompressed_size)
+    if content is None:
+        file.seek(chunk.start + 9 + 32 + len(index.compression.encode()) + 8)
+        content = file.read(index.compressed_size)
+    data = decompress(index.compression, content, index.uncompressed_size)
     if len(data) != index.uncompressed_size:
         raise InvalidRecord("chunk content of the wrong size")
     if chunk.crc and zlib.crc32(data) != chunk.crc:
@@ -329,7 +357,7 @@ def _read_chunk(file: BinaryIO, chunk: Unit, result: Scan, check_references: boo
 
 
 def _chunk_records(
-    data: bytes, result: Scan, check_references: bool, time_range: tuple[int, int]
+    data: bytes | memoryview, result: Scan, check_references: bool, time_range: tuple[int, int]
 ) -> tuple[dict[int, list[tuple[int, int]]], dict[int, Schema], dict[int, Channel]]:
     """Message index entries per channel, and the schemas and channels, of a chunk's content.
 
@@ -399,7 +427,7 @@ def _partial_chunk_messages(file: BinaryIO, position: int, size: int) -> int | N
     return count
 
 
-def decompress(compression: str, data: bytes, size: int) -> bytes:
+def decompress(compression: str, data: bytes | memoryview, size: int) -> bytes | memoryview:
     """A chunk's content; any failure (unknown compression, damaged frame) raises ``InvalidRecord``."""
     try:
         if compression == "":
