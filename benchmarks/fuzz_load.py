@@ -24,6 +24,7 @@ import tempfile  # noqa: E402
 import rclpy  # noqa: E402
 
 from container_process import listing  # noqa: E402
+from fuzz_pipeline import LATE  # noqa: E402
 from fuzz_scene import RATES, FuzzScene, environment_seed, file_listing, rss_bytes  # noqa: E402
 
 TMP = pathlib.Path("/tmp")
@@ -65,7 +66,11 @@ def main() -> int:
         escaped_cwd = file_listing(scene.cwd) - cwd_before
         escaped_tmp = scene.escaped(TMP) - tmp_before
         print(f"written outside the bag root: cwd {sorted(escaped_cwd)[:10]}, /tmp {sorted(escaped_tmp)[:10]}")
-        healthy = alive and status == 0 and not escaped_cwd and not escaped_tmp and not report.internal_errors
+        unanswered = {kind: (report.counts.abandoned.get(kind, 0), report.counts.late.get(kind, 0))
+                      for kind in report.counts.sent if report.counts.abandoned.get(kind) or report.counts.late.get(kind)}
+        print(f"requests without a reply, or answered after {LATE:g} s (no reply, late): {unanswered or 'none'}")
+        healthy = alive and status == 0 and not escaped_cwd and not escaped_tmp and not report.internal_errors \
+            and not unanswered
     fuzz_node.destroy_node()
     probe.destroy_node()
     rclpy.try_shutdown()

@@ -17,6 +17,10 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 
+#: A reply later than this (s) is counted as late: every request must be answered within it.
+LATE = 5.0
+
+
 @dataclass
 class _Pending:
     client: Client
@@ -24,15 +28,19 @@ class _Pending:
     deadline: float
     kind: str
     on_reply: Callable[[Any], None]
+    sent_at: float
 
 
 @dataclass
 class PipelineCounts:
-    """Per request kind: sent, answered and abandoned (no reply within the timeout)."""
+    """Per request kind: sent, answered, answered later than :data:`LATE`, abandoned (no reply within the
+    timeout), and the slowest reply (s)."""
 
     sent: dict[str, int] = field(default_factory=dict)
     answered: dict[str, int] = field(default_factory=dict)
+    late: dict[str, int] = field(default_factory=dict)
     abandoned: dict[str, int] = field(default_factory=dict)
+    slowest: dict[str, float] = field(default_factory=dict)
 
 
 class Pipeline:
@@ -52,7 +60,8 @@ class Pipeline:
         while len(self._pending) >= self.max_in_flight:
             self.pump()
         future = client.call_async(request)
-        self._pending.append(_Pending(client, future, time.monotonic() + (timeout or self.timeout), kind, on_reply))
+        now = time.monotonic()
+        self._pending.append(_Pending(client, future, now + (timeout or self.timeout), kind, on_reply, now))
         self.counts.sent[kind] = self.counts.sent.get(kind, 0) + 1
 
     def pump(self) -> None:
@@ -63,6 +72,10 @@ class Pipeline:
         for call in self._pending:
             if call.future.done():
                 self.counts.answered[call.kind] = self.counts.answered.get(call.kind, 0) + 1
+                waited = now - call.sent_at
+                self.counts.slowest[call.kind] = max(waited, self.counts.slowest.get(call.kind, 0.0))
+                if waited > LATE:
+                    self.counts.late[call.kind] = self.counts.late.get(call.kind, 0) + 1
                 call.on_reply(call.future.result())
             elif now > call.deadline:
                 call.future.cancel()

@@ -29,7 +29,7 @@ from baglib.format.metadata import TopicInfo
 from baglib.write.writer import BagWriter
 
 from container_process import ContainerClient, ContainerProcess, listing, proc_status, wait_until
-from fuzz_pipeline import Pipeline, PipelineCounts
+from fuzz_pipeline import LATE, Pipeline, PipelineCounts
 from fuzz_requests import MARKER, RECORDER_SERVICES, REPLAY_BAG, RequestGenerator
 
 CAMERA = ("components::CameraDriver", "fuzz_cam", {"width": 160, "height": 120, "fps": 30.0})
@@ -83,7 +83,9 @@ class FuzzReport:
         errors = "\n".join(f"    {count:6d}  {message}" for message, count in self.load_errors.most_common(12))
         return (f"seed {self.seed}: {self.requests} requests in {self.seconds:.1f} s "
                 f"({self.requests / max(self.seconds, 1e-9):.0f}/s); sent {self.counts.sent}, "
-                f"answered {self.counts.answered}, no reply {self.counts.abandoned}; {self.loaded} loads "
+                f"answered {self.counts.answered}, later than {LATE:g} s {self.counts.late}, no reply "
+                f"{self.counts.abandoned}, slowest reply (s) "
+                f"{ {kind: round(seconds, 2) for kind, seconds in self.counts.slowest.items()} }; {self.loaded} loads "
                 f"succeeded; recorder services answering failure: {dict(self.recorder_failures)}; internal "
                 f"errors {len(self.internal_errors)}\n  most frequent load errors:\n{errors}")
 

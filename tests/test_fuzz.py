@@ -74,6 +74,10 @@ def run_fuzz(probe: Node, fuzz_node: Node, workdir: pathlib.Path, seed: int, req
             assert growth < rss_growth_limit, f"seed {seed}: RSS grew by {growth / 2**20:.1f} MiB in the last third"
         internal_errors = [error for report in reports for error in report.internal_errors]
         assert not internal_errors, (seed, internal_errors[:5])
+        for report in reports:  # the container's own services answer every request, within LATE
+            unanswered = {kind: (report.counts.abandoned.get(kind, 0), report.counts.late.get(kind, 0))
+                          for kind in ("load", "unload")}
+            assert unanswered == {"load": (0, 0), "unload": (0, 0)}, (seed, "(no reply, late)", unanswered)
         assert sum(report.loaded for report in reports) > 0, "no fuzz request loaded a component"
 
         scene.finish_recorder()
