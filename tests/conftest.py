@@ -25,7 +25,7 @@ os.environ.pop("ROS_STATIC_PEERS", None)
 import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from container_process import Containers  # noqa: E402
+from container_process import Containers, SharedContainer  # noqa: E402
 from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env  # noqa: E402
 
 
@@ -73,3 +73,12 @@ def installed_env(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> I
             env.install(wheel)
             (root / "ready").write_text(wheel.name)
     return InstalledEnv(root / "env")
+
+
+@pytest.fixture
+def shared(shared_container: SharedContainer, probe: Node) -> Iterator[SharedContainer]:
+    """The module's ``shared_container`` (each module defines that fixture, with its configurations), checked
+    alive before the test and alive and empty after it."""
+    assert shared_container.process.alive(), shared_container.process.output[-3000:]
+    yield shared_container
+    shared_container.check()

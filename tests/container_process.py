@@ -52,6 +52,11 @@ class Received:
 
 
 
+def unload_all(client: ContainerClient) -> None:
+    for unique_id, _name in listing(client):
+        assert client.unload(unique_id).success, unique_id
+
+
 def listing(client: ContainerClient) -> list[tuple[int, str]]:
     response = client.list()
     return list(zip(response.unique_ids, response.full_node_names))

@@ -38,6 +38,7 @@ from container_process import (
     node_names,
     pid_alive,
     proc_status,
+    unload_all,
     wait_until,
 )
 
@@ -99,17 +100,6 @@ def shared_container(request: pytest.FixtureRequest, ros: None) -> Iterator[Shar
     container.close()
 
 
-@pytest.fixture
-def shared(shared_container: SharedContainer, probe: Node) -> Iterator[SharedContainer]:
-    """The shared container the test is parametrized with; alive and empty after the test."""
-    assert shared_container.process.alive(), shared_container.process.output[-3000:]
-    yield shared_container
-    shared_container.check()
-
-
-def unload_all(client: ContainerClient) -> None:
-    for unique_id, _name in listing(client):
-        assert client.unload(unique_id).success, unique_id
 
 
 # --- load / list / unload -----------------------------------------------------------------------------------

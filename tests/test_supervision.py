@@ -27,7 +27,8 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from component_container.component_executors import EXECUTOR_KINDS
-from container_process import Containers, Received, SharedContainer, listing, node_names, wait_until, written
+from container_process import (Containers, Received, SharedContainer, listing, node_names, unload_all, wait_until,
+                               written)
 
 PLUGINS = "tests.container_test_plugins"
 TALKER = "components::Talker"
@@ -49,17 +50,6 @@ def shared_container(request: pytest.FixtureRequest, ros: None) -> Iterator[Shar
     container.close()
 
 
-@pytest.fixture
-def shared(shared_container: SharedContainer, probe: Node) -> Iterator[SharedContainer]:
-    """The module's container of the executor model the test is parametrized with; alive and empty after it."""
-    assert shared_container.process.alive(), shared_container.process.output[-3000:]
-    yield shared_container
-    shared_container.check()
-
-
-def unload_all(client: Any) -> None:
-    for unique_id, _name in listing(client):
-        assert client.unload(unique_id).success, unique_id
 
 
 def talker(client: Any, topic: str) -> int:

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from baglib.format.durable import fsync_directory
+
 if TYPE_CHECKING:
     from rclpy.qos import QoSProfile
 
@@ -332,16 +334,8 @@ class BagMetadata:
                 file.flush()
                 os.fsync(file.fileno())
             os.replace(temporary, path)
-            _fsync_directory(path.parent)  # the rename itself must survive a power loss
+            fsync_directory(path.parent)  # the rename itself must survive a power loss
         except BaseException:
             temporary.unlink(missing_ok=True)
             raise
         return path
-
-
-def _fsync_directory(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

@@ -22,6 +22,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+from baglib.format.durable import fsync_directory
+
 __all__ = ["JOURNAL_SUFFIX", "Patch", "apply_all", "finish_journals"]
 
 JOURNAL_SUFFIX = ".recover-journal"
@@ -83,7 +85,7 @@ class Patch:
         except BaseException:
             temporary.unlink(missing_ok=True)
             raise
-        _fsync_directory(self.path.parent)
+        fsync_directory(self.path.parent)
 
     def write_tail(self) -> None:
         """Write the tail at the cut (durable when this returns); the only step that may need new space."""
@@ -104,7 +106,7 @@ class Patch:
 
     def forget(self) -> None:
         self.journal.unlink(missing_ok=True)
-        _fsync_directory(self.path.parent)
+        fsync_directory(self.path.parent)
 
 
 def apply_all(patches: list[Patch]) -> None:
@@ -142,7 +144,7 @@ def finish_journals(directory: Path) -> list[str]:
             finished.append(target.name)
         journal.unlink()
     if finished:
-        _fsync_directory(directory)
+        fsync_directory(directory)
     return finished
 
 
@@ -160,14 +162,6 @@ def _write(path: Path, offset: int, data: bytes, size: int | None) -> None:
             view, offset = view[written:], offset + written
         if size is not None:
             os.ftruncate(descriptor, size)
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
-
-
-def _fsync_directory(directory: Path) -> None:
-    descriptor = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
         os.fsync(descriptor)
     finally:
         os.close(descriptor)

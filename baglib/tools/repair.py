@@ -31,13 +31,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from baglib.format.bag_files import RECOVER_COMMAND, STORAGE_EXTENSIONS, storage_files
+from baglib.format.durable import fsync_directory, fsync_file
 from baglib.format.mcap_records import MAGIC
 from baglib.format.metadata import METADATA_FILENAME, BagMetadata, TopicInfo
 from baglib.tools.patch_journal import apply_all, finish_journals
 from baglib.tools.recovered import FileReport, Recovered, custom_data_of, load_yaml
 from baglib.tools.repair_mcap import recover_mcap
 from baglib.tools.repair_sqlite import SQLITE_MAGIC, SQLITE_SIDE_FILES, recover_sqlite
-
 
 __all__ = ["RECOVER_COMMAND", "FileReport", "RecoveryReport", "recover_bag", "storage_files"]
 
@@ -92,9 +92,9 @@ def recover_bag(bag: str | os.PathLike[str], output: str | os.PathLike[str] | No
         try:
             _recover_into(bag, target, report)
             if report.readable and target != bag:
-                _fsync_directory(target)
+                fsync_directory(target)
                 target.rename(out)
-                _fsync_directory(out.parent)
+                fsync_directory(out.parent)
         finally:
             if target != bag:
                 shutil.rmtree(target, ignore_errors=True)
@@ -139,11 +139,11 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         elif result.write is not None:
             temporary = target / f".{result.info.path}{_TEMP}"
             result.write(temporary, serialized)
-            _fsync_file(temporary)
+            fsync_file(temporary)
             written.append((temporary, destination))
         elif target != bag:
             shutil.copyfile(bag / result.info.path, destination)
-            _fsync_file(destination)
+            fsync_file(destination)
     apply_all(patches)
     for temporary, destination in written:
         _replace(temporary, destination)
@@ -195,7 +195,7 @@ def _replace(temporary: Path, destination: Path) -> None:
         if side.exists():
             side.rename(destination.with_name(f".{destination.name}{suffix}{_ASIDE}"))
     os.replace(temporary, destination)
-    _fsync_directory(destination.parent)
+    fsync_directory(destination.parent)
     for suffix in SQLITE_SIDE_FILES:
         destination.with_name(f".{destination.name}{suffix}{_ASIDE}").unlink(missing_ok=True)
 
@@ -217,15 +217,3 @@ def _finish_interrupted(bag: Path) -> None:
             shutil.rmtree(leftover, ignore_errors=True)
         else:
             leftover.unlink(missing_ok=True)
-
-
-def _fsync_file(path: Path) -> None:
-    descriptor = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
-
-
-def _fsync_directory(path: Path) -> None:
-    _fsync_file(path)
