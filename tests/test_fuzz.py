@@ -52,11 +52,9 @@ def run_fuzz(probe: Node, fuzz_node: Node, workdir: pathlib.Path, seed: int, req
             reports = [scene.fuzz(seed, requests, fuzz_node)]
         else:
             # The first two thirds warm up what a long-running container keeps (allocator arenas, DDS endpoint
-            # pools, the recorder's bag machinery): RSS rises by 30-45 MiB and then levels off (+5 MiB over
-            # another 10 000 requests). After 2500 requests it had not yet: the next 2500 grew by 2.7 to 14.7 MiB,
-            # on the code before and after one change alike; after 5000, the next 2500 grew by 1.7-2.3 MiB. A
-            # leak keeps growing: the last third must stay under the limit (rclpy's type description service,
-            # switched back on, grew by 13.4 MiB there: see README Known limitations).
+            # pools, the recorder's bag machinery): RSS rises for the first few thousand requests and then levels
+            # off. A leak keeps growing: the last third must stay under the limit (rclpy's type description
+            # service, switched back on, exceeds it: see docs/limitations.md).
             reports = [scene.fuzz(seed, requests - requests // 3, fuzz_node)]
             rss_before = rss_bytes(scene.process.pid)
             reports.append(scene.fuzz(seed + 1, requests // 3, fuzz_node))
