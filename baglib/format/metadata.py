@@ -26,6 +26,7 @@ __all__ = [
     "BagMetadata",
     "FileInfo",
     "TopicInfo",
+    "fsync_directory",
     "normalize_type",
     "parse_qos_profiles",
     "qos_profile_dict",
@@ -332,14 +333,16 @@ class BagMetadata:
                 file.flush()
                 os.fsync(file.fileno())
             os.replace(temporary, path)
-            _fsync_directory(path.parent)  # the rename itself must survive a power loss
+            fsync_directory(path.parent)  # the rename itself must survive a power loss
         except BaseException:
             temporary.unlink(missing_ok=True)
             raise
         return path
 
 
-def _fsync_directory(directory: Path) -> None:
+def fsync_directory(directory: Path) -> None:
+    """Make the directory's entries (files created, renamed or removed in it) survive a power loss: an fsync of a
+    file does not, by POSIX, make the file's name durable (docs/design/power-cut.md)."""
     fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(fd)

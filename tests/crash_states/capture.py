@@ -22,7 +22,7 @@ from pathlib import Path
 
 import yaml
 
-__all__ = ["CONFIGS", "Capture", "Config", "capture", "strace_usable"]
+__all__ = ["CONFIGS", "Capture", "Config", "capture", "strace_command", "strace_usable", "trace_script"]
 
 REPO = Path(__file__).resolve().parents[2]
 TOPICS = ["/camera/image_raw", "/imu/imu"]
@@ -80,6 +80,21 @@ def strace_usable() -> str | None:
     return None
 
 
+def strace_command(log: Path) -> list[str]:
+    """The strace command line of a capture (followed by the program to trace)."""
+    return ["strace", "-f", "--seccomp-bpf", "-qq", "--absolute-timestamps=format:unix,precision:ns", "-xx",
+            "-s", str(STRING_LIMIT), "-e", f"trace={STRACE_CALLS}", "-e", "signal=none", "-o", str(log)]
+
+
+def trace_script(workdir: Path, code: str, *args: str, timeout: float = 120.0) -> Path:
+    """Run ``python -c code args...`` under the capture's strace in ``workdir``; return the log."""
+    log = workdir / "strace.log"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    subprocess.run([*strace_command(log), sys.executable, "-c", code, *args], cwd=workdir, env=env, check=True,
+                   timeout=timeout, capture_output=True)
+    return log
+
+
 def _startup(configs: list[Config], root: Path, camera: tuple[int, int], imu_rate: float) -> dict:
     components = [
         {"package": "components", "plugin": "components::CameraDriver", "name": "camera",
@@ -133,10 +148,8 @@ def capture(workdir: Path, configs: list[Config], seconds: float = 4.0, camera: 
     env.setdefault("ROS_DOMAIN_ID", str(random.randint(150, 230)))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONUNBUFFERED"] = "1"
-    command = ["strace", "-f", "--seccomp-bpf", "-qq", "--absolute-timestamps=format:unix,precision:ns", "-xx",
-               "-s", str(STRING_LIMIT), "-e", f"trace={STRACE_CALLS}", "-e", "signal=none", "-o", str(log),
-               sys.executable, "-m", "component_container", "--use-intra-process-comms", "--shutdown-timeout",
-               "20", "--load", str(startup)]
+    command = [*strace_command(log), sys.executable, "-m", "component_container", "--use-intra-process-comms",
+               "--shutdown-timeout", "20", "--load", str(startup)]
     started = time.monotonic()
     output = open(workdir / "container.log", "wb")
     tracer = subprocess.Popen(command, cwd=workdir, env=env, stdout=output, stderr=subprocess.STDOUT,

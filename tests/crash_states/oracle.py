@@ -134,6 +134,7 @@ class Visibility:
     the time of the operation that completed it."""
 
     position: dict[Key, int]
+    entered: dict[Key, int]  # entry line of the operation that completed it (it may show from a cut after it)
     inode: dict[Key, int]
     time: dict[Key, float]
     evaluations: int
@@ -174,8 +175,10 @@ def visibility(model: BagModel, reference: Reference, storage: str, scratch: Pat
     for key, index in found.items():
         inode[key] = names_to_inode.get(seen(index)[key], -1)
     times = {key: model.trace.line_times[pos - 1] for key, pos in position.items()}
+    entry_of_exit = {op.seq_out: op.seq_in for op in model.ops}
+    entered = {key: entry_of_exit.get(pos - 1, pos - 1) for key, pos in position.items()}
     never = sorted(set(reference.messages) - set(found))
-    return Visibility(position, inode, times, len(cache), non_monotonic, never)
+    return Visibility(position, entered, inode, times, len(cache), non_monotonic, never)
 
 
 def _names_at_end(model: BagModel) -> dict[str, int]:
@@ -268,6 +271,7 @@ def check_state(model: BagModel, state: CrashState, reference: Reference, seen: 
             reads, errors = _readers(bag, storage)
             failures += errors
             counts: dict[str, collections.Counter[Key]] = {}
+            future: set[Key] = set()
             for reader, messages in reads.items():
                 counted: collections.Counter[Key] = collections.Counter()
                 for topic, data in messages:
@@ -276,12 +280,15 @@ def check_state(model: BagModel, state: CrashState, reference: Reference, seen: 
                         failures.append(f"{reader}: corrupted message {reference.describe(topic, data)}")
                         continue
                     counted[key] += 1
-                    if key in seen.position and seen.position[key] > state.cut:
-                        failures.append(f"{reader}: {key} was written after the cut (a model error)")
+                    if key in seen.entered and seen.entered[key] >= state.cut:
+                        future.add(key)
                 twice = sorted(key for key, count in counted.items() if count > 1)
                 if twice:
                     failures.append(f"{reader}: {len(twice)} messages twice, e.g. {twice[:3]}")
                 counts[reader] = counted
+            if future:
+                failures.append(f"{len(future)} messages whose write had not begun at the cut are there (uncommitted "
+                                f"data, or a model error): {_keys(sorted(future))}")
             if len({frozenset(c.items()) for c in counts.values()}) > 1:
                 failures.append("the readers disagree: " + ", ".join(f"{r} {sum(c.values())}"
                                                                        for r, c in counts.items()))

@@ -178,7 +178,7 @@ def explore(prepared: Prepared, seeds: list[int], scratch: Path, log=print, keep
 def _kind(failure: str) -> str:
     for marker, kind in (("sync_interval", "sync bound"), ("completed fsync", "fsync durability"),
                          ("corrupted", "corrupted"), ("twice", "duplicate"), ("disagree", "readers disagree"),
-                         ("bag info", "bag info"), ("raised", "recover raised"), ("model error", "model error")):
+                         ("bag info", "bag info"), ("raised", "recover raised"), ("had not begun", "from the future")):
         if marker in failure:
             return kind
     return failure.split(":")[0][:40]
