@@ -195,8 +195,8 @@ class Outcome:
     present: int
     required_sync: int
     required_fsync: int
-    lost: int  # recorded messages written before the cut and not in the recovered bag
-    oldest_lost_age: float  # receive age at the cut of the oldest message lost (0: none)
+    lost: int  # recorded messages received before the cut and not in the recovered bag
+    oldest_lost_age: float  # how long before the cut the oldest of them was received (0: none lost)
     recovered: str  # the recover report, for failures
 
 
@@ -316,8 +316,8 @@ def check_state(model: BagModel, state: CrashState, reference: Reference, seen: 
     if missing_fsync:
         failures.append(f"{len(missing_fsync)} of {len(required_fsync)} messages covered by a completed fsync of "
                         f"their file are missing: {_keys(missing_fsync)}")
-    written = {key for key, pos in seen.position.items() if pos <= state.cut}
-    lost = written - set(present)
+    received = {key for key, (_, t) in reference.messages.items() if t <= state.t_cut}
+    lost = received - set(present)  # what the user loses: received before the cut, not in the recovered bag
     oldest_lost = max((state.t_cut - reference.messages[key][1] for key in lost), default=0.0)
     return Outcome(failures, sum(present.values()), len(required_sync), len(required_fsync), len(lost),
                    oldest_lost, recovered)
