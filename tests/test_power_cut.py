@@ -206,3 +206,17 @@ def test_crash_states_of_a_real_recording_recover_every_synced_message(
     print(summary.line())
     assert summary.states == STATES
     assert summary.failures == 0, summary.line()
+
+
+@pytest.mark.sweep
+@needs_strace
+@pytest.mark.parametrize("config", list(CONFIGS))
+def test_crash_states_of_a_real_recording_sweep(recording, tmp_path: Path, config: str) -> None:
+    """``make sweep``: 1000 crash states per configuration from a fresh seed (printed; IPC_POWER_CUT_SEED replays)."""
+    made, trace = recording
+    prepared = prepare(made, trace, CONFIGS[config], "strict", tmp_path)
+    first = int(os.environ.get("IPC_POWER_CUT_SEED") or random.randrange(1_000_000))
+    print(f"IPC_POWER_CUT_SEED={first}: 1000 states of {config}")
+    summary = explore(prepared, list(range(first, first + 1000)), tmp_path)
+    print(summary.line())
+    assert summary.failures == 0, summary.line()
