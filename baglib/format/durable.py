@@ -17,6 +17,8 @@ def fsync_file(path: Path) -> None:
 
 
 def fsync_directory(directory: Path) -> None:
+    """Make the directory's entries (files created, renamed or removed in it) survive a power loss: an fsync of a
+    file does not, by POSIX, make the file's name durable (docs/design/power-cut.md)."""
     descriptor = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(descriptor)

@@ -43,6 +43,7 @@ __all__ = ["RECOVER_COMMAND", "FileReport", "RecoveryReport", "recover_bag", "st
 
 _TEMP = ".recover-tmp"  # suffix of a file or directory being written by a recover
 _ASIDE = ".recover-aside"     # suffix of a SQLite journal moved aside while its database is replaced
+LEFT_OUT = ".left-out"  # suffix of a storage file a recovered bag leaves out, renamed out of the way
 
 
 @dataclass
@@ -117,6 +118,7 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         return
     report.storage = kinds.pop()
     recovered = []
+    left_out = []
     for path in paths:
         if report.storage == "mcap":
             result = recover_mcap(path)
@@ -125,6 +127,8 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         report.files.append(result.report)
         if result.report.action != "left out":
             recovered.append(result)
+        else:
+            left_out.append((path, result.report))
     if not recovered:
         report.error = "no file holds anything recoverable"
         return
@@ -149,6 +153,20 @@ def _recover_into(bag: Path, target: Path, report: RecoveryReport) -> None:
         _replace(temporary, destination)
     metadata.write(target)
     report.metadata = metadata
+    if target == bag:
+        for path, file_report in left_out:
+            _set_aside(path, file_report)
+
+
+def _set_aside(path: Path, file_report: FileReport) -> None:
+    """Rename a storage file the recovered bag leaves out (nothing readable in it: a split file prepared just
+    before the crash, whose header never reached the file) to ``.<name>.left-out``, its SQLite side files too:
+    its bytes are kept, and ``bag info`` no longer takes it for a file that still needs recovering."""
+    for source in [path, *(path.with_name(path.name + suffix) for suffix in SQLITE_SIDE_FILES)]:
+        if source.exists():
+            source.rename(source.with_name(f".{source.name}{LEFT_OUT}"))
+    fsync_directory(path.parent)
+    file_report.reasons.append(f"renamed to .{path.name}{LEFT_OUT}")
 
 
 def _bag_metadata(bag: Path, storage: str, recovered: list[Recovered]) -> BagMetadata:

@@ -48,6 +48,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 from baglib.write.direct_file import BLOCK, DirectFile, open_exclusive
 
 from baglib.format.mcap_records import MAGIC, Totals, scan, summary_tail
+from baglib.format.durable import fsync_directory
 from baglib.format.metadata import ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
 __all__ = ["DEFAULT_CHUNK_SIZE", "LIBRARY", "MCAP_PRESETS", "METADATA_KEY", "METADATA_NAME", "PADDING_OPCODE",
@@ -300,7 +301,7 @@ class McapStorage:
                     {METADATA_NAME: {METADATA_KEY: serialized_metadata}} if serialized_metadata else None,
                     Totals(counts, self._first_ns, self._last_ns), self._chunk_indexes, self._metadata_indexes,
                 ))
-                _close_synced(self._file)  # before metadata.yaml can name this file
+                _close_synced(self._file, self.path.parent)  # before metadata.yaml can name this file
             except OSError as error:
                 self._fail(error)
         if self.error is None:
@@ -443,7 +444,9 @@ class McapStorage:
         return FileInfo.from_log_times(self.path.name, result.first_ns, result.last_ns, counts)
 
 
-def _close_synced(file: BinaryIO | DirectFile) -> None:
+def _close_synced(file: BinaryIO | DirectFile, directory: Path) -> None:
+    """Finish and fsync a file, its directory first: when the file's fsync returns, its name is durable too."""
+    fsync_directory(directory)
     if isinstance(file, DirectFile):
         file.close(sync=True)
         return

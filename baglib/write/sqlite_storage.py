@@ -16,6 +16,7 @@ from pathlib import Path
 
 from baglib.format.cdr_fast import CdrData
 from baglib.format.message_definitions import MessageDefinitionNotFoundError, type_hash
+from baglib.format.durable import fsync_directory
 from baglib.format.metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
 __all__ = ["SQLITE_PRESETS", "SqliteStorage", "create_tables"]
@@ -225,7 +226,11 @@ class SqliteStorage:
             with contextlib.suppress(sqlite3.Error):
                 self._db.close()
             with contextlib.suppress(OSError):
-                _fsync_files(self.path)  # before metadata.yaml can name this file
+                # before metadata.yaml can name this file; the directory first: the file's name, and the removal of
+                # the rollback journal by the last commit, are durable once the file's fsync returns (a journal
+                # that came back after a power loss would roll that committed transaction back)
+                fsync_directory(self.path.parent)
+                _fsync_files(self.path)
         self._info = FileInfo.from_log_times(self.path.name, self._first_ns, self._last_ns, self._counts)
         return self._info
 

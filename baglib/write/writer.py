@@ -25,6 +25,7 @@ from typing import NoReturn, Protocol
 from baglib.write.mcap_storage import McapStorage
 from baglib.format.cdr_fast import CdrData
 from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
+from baglib.format.durable import fsync_directory
 from baglib.format.metadata import BagMetadata, FileInfo, TopicInfo
 from baglib.write.sqlite_storage import SqliteStorage
 
@@ -174,6 +175,7 @@ class BagWriter:
         self._closed = False
 
         try:
+            created = [self._path, *(parent for parent in self._path.parents if not parent.exists())]
             self._path.mkdir(parents=True)
         except FileExistsError:
             raise BagExistsError(
@@ -185,6 +187,9 @@ class BagWriter:
             raise BagWriteError(
                 error.errno, f"cannot create bag directory: {error.strerror}", str(self._path),
             ) from error
+        for directory in created:  # its name (and a new parent's) must survive a power loss too
+            with contextlib.suppress(OSError):  # best effort: a parent we may not read still takes the bag
+                fsync_directory(directory.parent)
         try:
             self._storage: _Storage | None = self._open_storage()
         except BagWriteError:
@@ -353,7 +358,11 @@ class BagWriter:
         self._syncing.start()
 
     def _fsync(self, fd: int) -> None:
+        """The directory first, then the file: once the file's fsync returns, its name is durable too (it was
+        created before this sync began), and so is the removal of a SQLite3 rollback journal by a commit before
+        it; otherwise a power loss can take the whole file with it, or roll a committed transaction back."""
         try:
+            fsync_directory(self._path)
             os.fsync(fd)
         except OSError as error:
             self._sync_error = error
