@@ -102,11 +102,14 @@ def s2_table(record: dict[str, Any]) -> list[str]:
     rows = []
     for step in s2["steps"]:
         if not measured(step):
-            rows.append([step["mode"], str(step["cameras"]), f"failed: {step['error'][:80]}", "", "", "no"])
+            rows.append([step["mode"], str(step["cameras"]), f"failed: {step['error'][:80]}", "", "", "", "", "no"])
             continue
+        direct = step.get("direct_write_pct")
         rows.append([step["mode"], str(step["cameras"]), lost_text(step), fmt(step["mb_per_s"]),
+                     "" if direct is None else f"{direct:.0f} %", fmt(step.get("recorder_rss_mb"), ".0f"),
                      fmt(step["total_cpu_s"], ".2f"), "yes" if step["lossless"] else "no"])
-    return markdown(["mode", "cameras", "lost", "MB/s", f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
+    return markdown(["mode", "cameras", "lost", "MB/s", "of direct-write limit", "recorder peak RSS MiB",
+                     f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
 
 
 def micro(value: Optional[float]) -> str:
