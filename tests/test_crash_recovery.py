@@ -105,9 +105,14 @@ def crash_round(containers: Containers, probe: Node, tmp_path: pathlib.Path, rou
     for topic in RATES:
         seqs = [seq for seq, _ in found[topic]]
         assert seqs, f"{topic}: nothing recovered"
-        assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"{topic}: a gap or a duplicate"
-        assert seqs[-1] >= older[topic], (
-            f"{topic}: the newest recovered message is number {seqs[-1]}; the test had received number "
+        assert len(seqs) == len(set(seqs)) and seqs == sorted(seqs), f"{topic}: a duplicate or out of order"
+        # The bound: every message up to the one the test had more than the flush interval before the kill. What
+        # is younger may be partly lost, also between files: a split file still being closed in the background
+        # loses its last transaction while the next file has some messages.
+        kept = set(seqs)
+        missing = [seq for seq in range(seqs[0], older[topic] + 1) if seq not in kept]
+        assert not missing, (
+            f"{topic}: numbers {missing[:10]}... ({len(missing)}) missing; the test had received number "
             f"{older[topic]} more than the flush interval ({FLUSH_INTERVAL} s) before the kill")
 
 
