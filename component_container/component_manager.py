@@ -85,11 +85,19 @@ class ComponentManager(Node):
         self.exit_request = exit_request or ExitRequest()
         self.supervisor = Supervisor(on_component_error, self.get_logger(), self._unload_failed,
                                      self.exit_request)
-        thread_num = self.declare_parameter(
-            "thread_num", os.cpu_count() or 1,
-            ParameterDescriptor(read_only=True, description="threads of the multi-threaded executor")).value
-        if not 1 <= thread_num <= (os.cpu_count() or 1) * 64:
-            raise ValueError(f"thread_num must be a positive number of threads, got {thread_num}")
+        try:
+            thread_num = self.declare_parameter(
+                "thread_num", os.cpu_count() or 1,
+                ParameterDescriptor(read_only=True, description="threads of the multi-threaded executor")).value
+            if not 1 <= thread_num <= (os.cpu_count() or 1) * 64:
+                raise ValueError(f"thread_num must be a positive number of threads, got {thread_num}")
+        except BaseException:
+            # Refused: destroy the node now, before the caller shuts rclpy down. Left to the garbage collector,
+            # the half-built node's handles were finalized after rcl's shutdown and the process could crash
+            # (SIGSEGV) on its way out instead of exiting with the refusal's status.
+            self.supervisor.stop()
+            self.destroy_node()
+            raise
         self.executor_kind = executor_kind
         self._executor: ComponentExecutor = make_component_executor(
             executor_kind, self.context, thread_num, self._component_raised, self.supervisor.thread_died)
