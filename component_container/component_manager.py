@@ -6,7 +6,9 @@ This module is the load path: a request is validated (component_options), its pl
 """
 from __future__ import annotations
 
+import json
 import os
+import socket
 import threading
 import time
 import traceback
@@ -24,6 +26,7 @@ from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
+from std_srvs.srv import Trigger
 
 from component_container.callback_supervision import COMPONENT_ERRORS
 from component_container.component_executors import ComponentExecutor, make_component_executor
@@ -38,6 +41,8 @@ from component_container.supervisor import ComponentFailure, ExitRequest, Superv
 TYPE_DESCRIPTION_SERVICE_PARAMETER = "start_type_description_service"
 # rclcpp_components gives load and unload a deep queue so that bursts of launch requests are not lost.
 LOAD_UNLOAD_QOS = QoSProfile(depth=200)
+#: The container's clock service (std_srvs/Trigger), see ComponentManager._on_clock.
+CLOCK_SERVICE = "~/_container/clock"
 
 
 @dataclass(eq=False)
@@ -115,6 +120,10 @@ class ComponentManager(Node):
         self.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node,
                             qos_profile=LOAD_UNLOAD_QOS, callback_group=group)
         self.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes, callback_group=group)
+        # Not in rclcpp_components: this computer's clock and name, for fleet recording (its own group, so that
+        # a slow load never delays the answer and spoils the round trip the offset is measured from).
+        self.create_service(Trigger, CLOCK_SERVICE, self._on_clock,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self._diagnostics = DiagnosticsPublisher(self, self._diagnostic_statuses)
 
     # --- service callbacks (each answers, whatever a component did) --------------------------------------
@@ -154,6 +163,14 @@ class ComponentManager(Node):
         for component in self.components():
             response.unique_ids.append(component.unique_id)
             response.full_node_names.append(component.full_name)
+        return response
+
+    def _on_clock(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """``message``: JSON of this computer's clock (``time_ns``, read last), host name and bag root."""
+        response.success = True
+        response.message = json.dumps({"host": socket.gethostname(),
+                                       "bag_root": str(self.bag_root) if self.bag_root else "",
+                                       "time_ns": time.time_ns()})
         return response
 
     # --- the load path -----------------------------------------------------------------------------------

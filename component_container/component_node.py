@@ -73,6 +73,10 @@ class ComponentNode(Node):
         """
         return pathlib.Path(value) if self.bag_root is None else confine(self.bag_root, parameter, value)
 
+    def has_local_publisher(self, topic: str) -> bool:
+        """Whether a component of this container publishes ``topic`` (resolved name) through intra-process."""
+        return self._ipm is not None and self._ipm.has_publication(topic)
+
     def health(self) -> Health | None:
         """This component's status for ``/diagnostics``; None means "running" with no details.
 
@@ -91,18 +95,25 @@ class ComponentNode(Node):
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
                             qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,
-                            **kwargs: Any) -> Subscription:
+                            intra_process_only: bool = False, **kwargs: Any) -> Subscription:
         """rclpy's create_subscription, taking part in intra-process delivery when the component does.
 
         ``intra_process_inline=True`` runs the callback for in-process messages directly in the publisher's
         thread, inside ``publish()``, instead of queueing it for the executor: no queue, no executor wake-up.
         Only for callbacks that are thread-safe, never block and never raise — the recorder's intake, which
         just hands the message to its writer thread, is the case it exists for.
+
+        ``intra_process_only=True`` takes messages from publishers of this container only: no DDS reader is
+        created, so nothing published on other computers is sent here over the network (a fleet recorder
+        records what its own computer publishes). The subscription is then not on the ROS graph.
         """
         if self._ipm is None:
+            if intra_process_only:
+                raise ValueError(f"a subscription to {topic} limited to this container's publishers needs "
+                                 "intra-process comms (load with use_intra_process_comms:=true)")
             return super().create_subscription(msg_type, topic, callback, qos_profile, **kwargs)
         subscriber = IntraProcessSubscriber(self, self._ipm, msg_type, topic, callback, qos_profile,
-                                            inline=intra_process_inline, **kwargs)
+                                            inline=intra_process_inline, dds=not intra_process_only, **kwargs)
         self._ipc_subscriptions.append(subscriber)
         return subscriber  # type: ignore[return-value]  # duck-types Subscription
 
@@ -118,6 +129,8 @@ class ComponentNode(Node):
             self._ipc_subscriptions.remove(subscription)
             subscription.unregister()
             subscription = subscription.dds_subscription
+            if subscription is None:  # intra-process only
+                return True
         return super().destroy_subscription(subscription)
 
     def destroy_node(self) -> None:
@@ -225,22 +238,26 @@ class IntraProcessPublisher:
 
 
 class IntraProcessSubscriber:
-    """An in-process subscription plus a DDS reader for publishers outside the container."""
+    """An in-process subscription plus (unless ``dds=False``) a DDS reader for publishers outside the container."""
 
     def __init__(self, node: Node, manager: IntraProcessManager, msg_type: Any, topic: str,
                  callback: Callable[..., None], qos_profile: QoSProfile | int, *, inline: bool = False,
-                 **kwargs: Any) -> None:
+                 dds: bool = True, **kwargs: Any) -> None:
         self._manager = manager
         self._callback = callback
         self._with_info = _takes_message_info(callback)
-        # Node's own method, not ComponentNode's override: this is the plain DDS reader.
-        self.dds_subscription = Node.create_subscription(
-            node, msg_type, topic, self._on_dds_message, qos_profile, **kwargs)
-        self.topic_name = self.dds_subscription.topic_name
+        self.dds_subscription: Subscription | None = None
+        if dds:  # Node's own method, not ComponentNode's override: this is the plain DDS reader.
+            self.dds_subscription = Node.create_subscription(
+                node, msg_type, topic, self._on_dds_message, qos_profile, **kwargs)
+            self.topic_name, qos = self.dds_subscription.topic_name, self.dds_subscription.qos_profile
+        else:
+            self.topic_name = node.resolve_topic_name(topic)
+            qos = qos_profile if isinstance(qos_profile, QoSProfile) else QoSProfile(depth=qos_profile)
         self._wakeup = manager.make_wakeup(node, self._drain, kwargs.get("callback_group"))
         on_error = (functools.partial(manager.on_callback_error, node)
                     if manager.on_callback_error is not None else None)
-        self.queue = IntraProcessSubscription(self.topic_name, self.dds_subscription.qos_profile,
+        self.queue = IntraProcessSubscription(self.topic_name, qos,
                                               self._wakeup.trigger, self._deliver if inline else None, on_error)
         manager.add_subscription(self.queue)
 

@@ -303,6 +303,11 @@ class IntraProcessManager:
             subscription.offer(message, stamps)
         return len(targets)
 
+    def has_publication(self, topic: str) -> bool:
+        """Whether any publisher of this container is registered on ``topic``."""
+        with self._lock:
+            return bool(self._publications.get(topic))
+
     def is_local_publication(self, topic: str, sequence: int | None, source_timestamp: int) -> bool:
         """Whether a DDS sample on ``topic`` was written by a publisher in this container."""
         if sequence is None:

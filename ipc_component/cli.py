@@ -422,6 +422,10 @@ def build_parser() -> argparse.ArgumentParser:
     create.add_arguments(p)
     p.set_defaults(handler=create.run_create)
 
+    from ipc_component import record_fleet  # fleet recording: its own modules
+
+    record_fleet.add_record_parser(verbs)
+
     p = add("bag", help="Inspect and play rosbag2 bags (what `ros2 bag` offers)",
             description="Inspect and play rosbag2 bags.")
     bag_verbs = p.add_subparsers(dest="bag_verb", title="commands")

@@ -6,7 +6,7 @@ import signal
 import subprocess
 import sys
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -35,12 +35,13 @@ class ContainerProcess:
     * ``fsize_limit``: start it under RLIMIT_FSIZE (SIGXFSZ ignored), so that writes beyond that size fail with
       EFBIG: a full disk for this process only;
     * ``code``: a source checkout whose packages it imports instead of the installed ones (PYTHONPATH);
-    * ``env``: variables added to this process's environment.
+    * ``env``: variables added to this process's environment;
+    * ``prefix``: a command that execs the rest (``ip netns exec NS ...``), so the pid stays the container's.
     """
 
     def __init__(self, *args: str, name: str = "ComponentManager", cwd: str | Path | None = None,
                  log_path: Path | None = None, fsize_limit: int | None = None, code: Path | None = None,
-                 env: Mapping[str, str] | None = None) -> None:
+                 env: Mapping[str, str] | None = None, prefix: Sequence[str] = ()) -> None:
         self.name = name if name.startswith("/") else f"/{name}"
         argv = ["component_container", *args]
         if self.name != "/ComponentManager":
@@ -51,7 +52,7 @@ class ContainerProcess:
         environment = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
         if code is not None:
             environment["PYTHONPATH"] = os.pathsep.join(filter(None, (str(code), environment.get("PYTHONPATH"))))
-        self.process = subprocess.Popen(_command(argv, fsize_limit), stdout=self._log, stderr=subprocess.STDOUT,
+        self.process = subprocess.Popen([*prefix, *_command(argv, fsize_limit)], stdout=self._log, stderr=subprocess.STDOUT,
                                         text=True, cwd=None if cwd is None else str(cwd), env=environment)
 
     @property

@@ -252,6 +252,13 @@ class BagWriter:
     def closed(self) -> bool:
         return self._closed
 
+    def update_custom_data(self, pairs: dict[str, str]) -> None:
+        """Add or replace ``custom_data`` pairs; they are in ``metadata.yaml`` from its next write (a split or
+        the close) on. Never waits for the writer: the map is replaced as a whole, which readers see at once."""
+        if not all(isinstance(key, str) and isinstance(value, str) for key, value in pairs.items()):
+            raise ValueError("custom_data keys and values must be strings")
+        self._metadata.custom_data = {**(self._metadata.custom_data or {}), **pairs}
+
     def add_topic(self, info: TopicInfo) -> None:
         """Make a topic known; it is listed in the bag even if no message is ever written.
 

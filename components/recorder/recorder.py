@@ -8,6 +8,11 @@ Services (private): ``~/pause``, ``~/resume``, ``~/toggle_paused``, ``~/is_pause
 ``~/snapshot`` (rosbag2_interfaces), ``~/start_recording``, ``~/stop_recording`` and ``~/get_stats``
 (std_srvs/Trigger; get_stats answers the live counts as JSON in ``message``). Events: ``events/write_split``.
 
+Fleet recording (components/recorder/schedule.py): ``record.start_at`` / ``record.stop_at`` bound the
+recording to the messages received within a window, ``record.max_duration`` ends it even if no stop comes,
+``record.split_at`` schedules a split; ``record.stop_at``, ``record.split_at`` and ``storage.custom_data`` may be
+set while recording (``ros2 param set``). ``record.local_only`` records only what this container publishes.
+
 Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
 ``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM, within the
 container's shutdown timeout. A loaded recorder is a working one or says why not: a bad message, a type that
@@ -26,6 +31,8 @@ from typing import Any
 
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from rclpy.type_support import check_is_valid_msg_type
 from rosbag2_interfaces.msg import WriteSplitEvent
@@ -39,9 +46,10 @@ from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
 from components.recorder.recorder_health import HealthMonitor
-from components.recorder.recorder_options import declare_options
+from components.recorder.recorder_options import custom_data_pairs, declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
 from components.recorder.recording_session import RecordingSession
+from components.recorder.schedule import Schedule, instant_ns
 from components.recorder.topic_selection import TopicFilter, adapt_qos, load_qos_overrides
 
 SPLIT_EVENT_TOPIC = "events/write_split"
@@ -51,6 +59,8 @@ QOS_OVERRIDES_PARAMETER = "record.qos_profile_overrides_path"
 #: (its endpoints, the split event acknowledgement) within the rest.
 FINISH_SHARE = 0.8
 ACK_SHARE = 0.1
+#: s: how often the schedule (a split or the end of the window) is looked at
+SCHEDULE_PERIOD = 0.05
 
 
 class Recorder(ComponentNode):
@@ -67,6 +77,13 @@ class Recorder(ComponentNode):
         super().__init__("recorder", **kwargs)
         try:
             self._options = declare_options(self, overrides)
+            if self._options.local_only and not self.uses_intra_process:
+                raise ValueError("parameter 'record.local_only' records what this container publishes in-process: "
+                                 "load the recorder with use_intra_process_comms:=true")
+            options = self._options
+            self._schedule = Schedule(options.start_ns or time.time_ns(), options.stop_ns, options.max_duration_ns,
+                                      options.split_ns)
+            self._finalizer: threading.Thread | None = None
             self._qos_overrides = self._load_qos_overrides()
             self._split_events = self.create_publisher(WriteSplitEvent, SPLIT_EVENT_TOPIC, 10)
             self._loss_events = LossEvents(self, self._drops_of_current_bag)
@@ -95,8 +112,10 @@ class Recorder(ComponentNode):
             self.create_service(Trigger, "~/get_stats", self._on_get_stats),
         ]
         self.context.on_shutdown(self.stop_recording)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self._discover_topics()
         self._poll_timer = self.create_timer(self._options.polling_interval, self._discover_topics)
+        self._schedule_timer = self.create_timer(SCHEDULE_PERIOD, self._run_schedule)
 
     def _load_qos_overrides(self) -> dict[str, QoSProfile]:
         """The override file, if any, read only after its path passed the container's bag root."""
@@ -161,6 +180,8 @@ class Recorder(ComponentNode):
             if len(types) != 1:
                 self._ignore(topic, f"it has more than one type ({', '.join(types)})")
                 continue
+            if self._options.local_only and not self.has_local_publisher(topic):
+                continue  # not (yet) published here; a local publisher may still come
             publishers = self.get_publishers_info_by_topic(topic)
             if self._filter.selects(topic, types[0], len(publishers)):
                 self._subscribe(topic, types[0], publishers)
@@ -196,6 +217,7 @@ class Recorder(ComponentNode):
             self._topic_subscriptions[topic] = self.create_subscription(
                 msg_type, topic, functools.partial(self._intake, topic), qos, raw=True,
                 intra_process_inline=True,  # the intake only hands over to the writer thread: no executor hop
+                intra_process_only=self._options.local_only,
                 event_callbacks=SubscriptionEventCallbacks(
                     message_lost=functools.partial(self._loss_events.dds_lost, topic)))
         except Exception as exc:  # noqa: BLE001 - as above; the bag may list the topic, without messages
@@ -215,7 +237,42 @@ class Recorder(ComponentNode):
         if session is None or self._paused:
             return
         received = info.get("received_timestamp") or time.time_ns()
+        if not self._schedule.admits(received):
+            return
         session.offer(topic, message, received, info.get("source_timestamp") or received)
+
+    # --- the schedule ---------------------------------------------------------------------------------------
+    def _run_schedule(self) -> None:
+        """A scheduled split, and the end of the window: the bag is finalized off the executor."""
+        now = time.time_ns()
+        session = self._session
+        if session is not None and self._schedule.split_due(now):
+            session.split()
+        if session is not None and self._schedule.finalize_due(now) and self._finalizer is None:
+            self.get_logger().info(f"Recording window ended at {self._schedule.end_ns / 1e9:.3f}: finalizing")
+            self._finalizer = threading.Thread(target=self.stop_recording, name="recorder-finalize", daemon=True)
+            self._finalizer.start()
+
+    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        """The parameters that may change while recording; a bad value is refused with the reason."""
+        try:
+            for parameter in parameters:
+                if parameter.name == "record.stop_at":
+                    self._schedule.set_stop(instant_ns(parameter.name, float(parameter.value)))
+                elif parameter.name == "record.split_at":
+                    self._schedule.set_split(instant_ns(parameter.name, float(parameter.value)))
+                elif parameter.name == "storage.custom_data":
+                    self._update_custom_data(list(parameter.value or []))
+        except (TypeError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _update_custom_data(self, items: list[str]) -> None:
+        pairs = custom_data_pairs(items)
+        self._options.custom_data.update(pairs)
+        session = self._session
+        if session is not None:
+            session.writer.update_custom_data(pairs)
 
     # --- statistics ---------------------------------------------------------------------------------------
     def _queue_drops(self, baseline: dict[str, int]) -> dict[str, int]:
@@ -231,6 +288,8 @@ class Recorder(ComponentNode):
         """Live counts of the current bag plus the final counts of bags already closed."""
         session = self._session
         return {"recording": session is not None, "paused": self._paused,
+                "window_ns": [self._schedule.start_ns, self._schedule.end_ns],
+                "custom_data": dict(self._options.custom_data),
                 "current": session.stats() if session else None,
                 "finished": list(self._finished_stats)}
 
@@ -284,6 +343,9 @@ class Recorder(ComponentNode):
             if self._session is not None:
                 response.success, response.message = False, f"already recording to {self._session.writer.path}"
                 return response
+            if self._schedule.end_ns and self._schedule.end_ns <= time.time_ns():
+                self._schedule = Schedule(time.time_ns())  # an explicit start after the window: record from now
+                self._finalizer = None
             try:
                 session = self._start_session()
             except (OSError, ValueError) as exc:

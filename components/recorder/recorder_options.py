@@ -28,6 +28,7 @@ from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
 from components.node_parameters import clean, declare_defaults, given_values, typed, warn_unknown
+from components.recorder.schedule import duration_ns, instant_ns
 
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
@@ -47,6 +48,12 @@ RECORD_DEFAULTS: dict[str, Any] = {
     "start_paused": False,
     "qos_profile_overrides_path": "",
     "rmw_serialization_format": "cdr",
+    # Not in rosbag2: fleet recording (components/recorder/schedule.py). Instants in seconds since the epoch.
+    "start_at": 0.0,
+    "stop_at": 0.0,
+    "split_at": 0.0,
+    "max_duration": 0.0,
+    "local_only": False,
 }
 STORAGE_DEFAULTS: dict[str, Any] = {
     "uri": "",
@@ -177,6 +184,13 @@ class RecordOptions:
     min_free_space: int = 256 * 1024 * 1024
     #: keep only the newest N split files (0: all)
     max_bag_files: int = 0
+    #: the scheduled window (ns since the epoch, 0: none; see components/recorder/schedule.py)
+    start_ns: int = 0
+    stop_ns: int = 0
+    split_ns: int = 0
+    max_duration_ns: int = 0
+    #: record only what publishers of this container publish (in-process), never the same topic from elsewhere
+    local_only: bool = False
 
 
 def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOptions:
@@ -207,6 +221,17 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
     return _validate(values, {name: _label(name, source) for name, source in sources.items()})
 
 
+def custom_data_pairs(items: list[str]) -> dict[str, str]:
+    """``storage.custom_data``'s ``key=value`` strings as a map (rosbag2's format); ValueError on a bad entry."""
+    pairs: dict[str, str] = {}
+    for item in clean(items):
+        key, separator, value = item.partition("=")
+        if not separator or not key:
+            raise ValueError(f"parameter 'storage.custom_data' entries must be 'key=value', got '{item}'")
+        pairs[key] = value
+    return pairs
+
+
 def _label(name: str, source: str) -> str:
     """How an error names a parameter: as the user gave it."""
     return f"'{name}'" if source == name else f"'{source}' (alias of '{name}')"
@@ -232,12 +257,7 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
                          "storage.max_bagfile_size or storage.max_bagfile_duration too")
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
-    custom: dict[str, str] = {}
-    for item in clean(values["storage.custom_data"]):
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"parameter 'storage.custom_data' entries must be 'key=value', got '{item}'")
-        custom[key] = value
+    custom = custom_data_pairs(values["storage.custom_data"])
     for name in ("record.regex", "record.exclude_regex"):
         try:
             re.compile(values[name])
@@ -274,4 +294,9 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         sync_interval=float(values["storage.sync_interval"]),
         min_free_space=int(values["storage.min_free_space"]),
         max_bag_files=int(values["storage.max_bag_files"]),
+        start_ns=instant_ns("record.start_at", float(values["record.start_at"])),
+        stop_ns=instant_ns("record.stop_at", float(values["record.stop_at"])),
+        split_ns=instant_ns("record.split_at", float(values["record.split_at"])),
+        max_duration_ns=duration_ns("record.max_duration", float(values["record.max_duration"])),
+        local_only=values["record.local_only"],
     )

@@ -1,0 +1,331 @@
+"""``ipc-component record start | stop | split``: one recording across every container of the domain.
+
+``start`` loads a recorder (``components::Recorder``, node ``record_<session>``) into every matching container,
+on every computer DDS discovery reaches, and gives all of them one start instant, corrected by each container's
+measured clock offset (see ipc_component.fleet_link). Each recorder subscribes at once but writes only the
+messages received from that instant on (components/recorder/schedule.py), into ``<session>/<host>_<container>``
+under its container's bag root, with the session's facts in ``custom_data`` (baglib.format.fleet_keys).
+``--local-only`` (the default) records in each container only what that container publishes in-process, so no
+topic crosses the network to be recorded. ``stop`` schedules the end the same way, waits for every bag to be
+finalized, prints what each recorder wrote and unloads them; ``split`` schedules a split.
+
+A container that does not answer is named and left out; the others record (``--all-or-nothing`` aborts instead).
+Recorders keep to their schedule without the command: a ``--max-duration`` given at start ends the recording
+even if the stop never reaches them (a network partition).
+"""
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import json
+import re
+import time
+from typing import Any, Sequence
+
+from baglib.format import fleet_keys
+from ipc_component.cli import BUDGET, CALL_TIMEOUT, CliError, RosSession, parameter_msgs
+from ipc_component.fleet_link import ContainerLink, Fleet
+
+RECORDER_PLUGIN = ("components", "components::Recorder")
+NODE_PREFIX = "record_"
+SESSION_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+#: s: how long discovery watches the graph for containers (other computers answer later than local ones)
+DISCOVERY = 1.5
+#: Offsets above this (ms) are reported at start.
+OFFSET_WARNING_MS = 5.0
+#: s: how long ``stop`` waits for the bags to be finalized after the stop instant
+FINALIZE_TIMEOUT = 30.0
+#: Parameters that select topics: when one is given, the recorder is not told to record all topics.
+SELECTION = ("record.all_topics", "record.topics", "record.topic_types", "record.regex", "record.services",
+             "record.all_services", "topics", "topic_names", "record_all")
+
+
+def recorder_node(session: str) -> str:
+    return f"{NODE_PREFIX}{session}"
+
+
+def recorder_full_name(container: str, session: str) -> str:
+    """The recorder's node lives in its container's name as namespace: service names stay unique in the domain
+    (containers must have distinct names anyway, or their own services would clash)."""
+    return f"{container.rstrip('/')}/{recorder_node(session)}"
+
+
+def bag_directory(session: str, link: ContainerLink) -> str:
+    """``<session>/<host>_<container>``, the container's name without its slashes."""
+    return f"{session}/{link.host}_{link.name.strip('/').replace('/', '_')}"
+
+
+def instant_ns(args: argparse.Namespace, default_in: float) -> int:
+    """The scheduled instant on this computer's clock: ``--at``, else now + ``--in``."""
+    if args.at is not None:
+        return round(args.at * 1e9)
+    return time.time_ns() + round((default_in if args.in_seconds is None else args.in_seconds) * 1e9)
+
+
+def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse.Namespace) -> list[Any]:
+    from rclpy.parameter import Parameter
+
+    given = parameter_msgs(args.parameters, "parameter")
+    names = {p.name for p in given}
+    offset = link.offset
+    assert offset is not None
+    custom = {fleet_keys.SESSION: session, fleet_keys.HOST: link.host, fleet_keys.CONTAINER: link.name,
+              fleet_keys.START_NS: str(start_ns), fleet_keys.CLOCK_OFFSET_NS: str(offset.offset_ns),
+              fleet_keys.CLOCK_OFFSET_UNCERTAINTY_NS: str(offset.uncertainty_ns)}
+    ours = {"storage.uri": bag_directory(session, link),
+            "record.start_at": (start_ns + offset.offset_ns) / 1e9,
+            "record.local_only": args.local_only,
+            "storage.custom_data": [f"{key}={value}" for key, value in custom.items()]}
+    if args.max_duration:
+        ours["record.max_duration"] = float(args.max_duration)
+    if not names & set(SELECTION):
+        ours["record.all_topics"] = True
+    clash = names & set(ours)
+    if clash:
+        raise CliError(f"-p {', '.join(sorted(clash))}: set by the fleet session itself")
+    return [Parameter(name, value=value).to_parameter_msg() for name, value in ours.items()] + given
+
+
+def _select(containers: Sequence[str], patterns: Sequence[str]) -> list[str]:
+    if not patterns:
+        return list(containers)
+    return [c for c in containers if any(fnmatch.fnmatchcase(c, p) for p in patterns)]
+
+
+def _discover(ros: RosSession, spin_time: float) -> dict[str, list[tuple[int, str]]]:
+    """Every container of the domain with its components (None for a container that did not list them)."""
+    from ipc_component.container_discovery import list_containers
+
+    start = time.monotonic()
+    listings = list_containers(ros.node, ros.executor, deadline=start + BUDGET + spin_time,
+                               discovery_until=start + spin_time)
+    return {listing.container: (None if listing.error else listing.components) for listing in listings}
+
+
+def _print_rows(header: Sequence[str], rows: list[Sequence[str]]) -> None:
+    widths = [max(len(str(row[i])) for row in [header, *rows]) for i in range(len(header))]
+    for row in [header, *rows]:
+        print("  ".join(str(cell).ljust(width) for cell, width in zip(row, widths)).rstrip())
+
+
+def _offset_text(link: ContainerLink) -> str:
+    offset = link.offset
+    return "?" if offset is None else f"{offset.offset_ns / 1e6:+.2f}±{offset.uncertainty_ns / 1e6:.2f} ms"
+
+
+# --- start ----------------------------------------------------------------------------------------------
+def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
+    from composition_interfaces.srv import LoadNode
+
+    session = args.session or time.strftime("fleet_%Y%m%d_%H%M%S")
+    if not SESSION_NAME.match(session):
+        raise CliError(f"Invalid --session '{session}': use letters, digits and '_'")
+    parameter_msgs(args.parameters, "parameter")  # a malformed -p is refused before any ROS traffic
+    with RosSession(ros_args) as ros:
+        found = _discover(ros, args.spin_time)
+        containers = _select(sorted(found), args.containers)
+        if not containers:
+            raise CliError("No container found" + (f" matching {' '.join(args.containers)}" if args.containers else ""))
+        busy = [c for c in containers
+                if any(name == recorder_full_name(c, session) for _id, name in found[c] or [])]
+        if busy:
+            raise CliError(f"Session '{session}' is already recording in {', '.join(busy)}")
+        fleet = Fleet(ros.node, ros.executor, containers)
+        fleet.connect(time.monotonic() + BUDGET)
+        fleet.measure_offsets(time.monotonic() + BUDGET)
+        if args.all_or_nothing and not all(link.ok for link in fleet.links):
+            _report_failures(fleet.links)
+            raise CliError("Not starting: --all-or-nothing and a container did not answer")
+        start_ns = instant_ns(args, default_in=2.0)
+        calls = {link.name: (link.load, LoadNode.Request(
+            package_name=RECORDER_PLUGIN[0], plugin_name=RECORDER_PLUGIN[1], node_name=recorder_node(session),
+            node_namespace=link.name,
+            parameters=_parameters(session, link, start_ns, args),
+            extra_arguments=parameter_msgs(["use_intra_process_comms:=true"], "extra argument")))
+            for link in fleet.answering}
+        replies = fleet.call_all(calls, time.monotonic() + CALL_TIMEOUT)
+        for link in fleet.answering:
+            reply = replies.get(link.name)
+            if reply is None:
+                link.error = "no reply to the load request"
+            elif not reply.success:
+                link.error = f"recorder not loaded: {reply.error_message}"
+        recording = fleet.answering
+        if args.all_or_nothing and len(recording) != len(fleet.links):
+            _unload(fleet, {link.name: replies[link.name].unique_id for link in recording})
+            _report_failures(fleet.links)
+            raise CliError("Aborted: --all-or-nothing and a recorder was not loaded everywhere (unloaded again)")
+    _report_start(session, start_ns, fleet.links)
+    return 0 if recording and len(recording) == len(fleet.links) else 2 if recording else 1
+
+
+def _unload(fleet: Fleet, unique_ids: dict[str, int]) -> dict[str, Any]:
+    from composition_interfaces.srv import UnloadNode
+
+    links = {link.name: link for link in fleet.links}
+    return fleet.call_all({name: (links[name].unload, UnloadNode.Request(unique_id=uid))
+                           for name, uid in unique_ids.items()}, time.monotonic() + CALL_TIMEOUT)
+
+
+def _report_failures(links: Sequence[ContainerLink]) -> None:
+    for link in links:
+        if link.error:
+            print(f"Not recording in {link.name}: {link.error}")
+
+
+def _report_start(session: str, start_ns: int, links: Sequence[ContainerLink]) -> None:
+    wait = (start_ns - time.time_ns()) / 1e9
+    print(f"Session {session}: recording from {time.strftime('%H:%M:%S', time.localtime(start_ns / 1e9))}"
+          f".{start_ns % 1_000_000_000 // 1_000_000:03d} ({'in' if wait >= 0 else 'since'} {abs(wait):.1f} s)")
+    rows = [(link.host, link.name, _offset_text(link), _bag_path(link, bag_directory(session, link)))
+            for link in links if link.ok]
+    _print_rows(("HOST", "CONTAINER", "CLOCK OFFSET", "BAG"), rows)
+    for link in links:
+        offset = link.offset
+        if link.ok and offset is not None and abs(offset.offset_ns) / 1e6 > OFFSET_WARNING_MS:
+            print(f"Warning: the clock of {link.host} ({link.name}) is {offset.offset_ns / 1e6:+.1f} ms off this "
+                  f"computer's (more than {OFFSET_WARNING_MS:g} ms); the start is corrected for it")
+    _report_failures(links)
+
+
+def _bag_path(link: ContainerLink, relative: str) -> str:
+    return f"{link.bag_root.rstrip('/')}/{relative}" if link.bag_root else relative
+
+
+# --- stop and split -------------------------------------------------------------------------------------
+def _session_recorders(ros: RosSession, args: argparse.Namespace) -> tuple[Fleet, dict[str, tuple[int, str]]]:
+    """The containers holding recorders of ``--session`` (any fleet session without it), connected, with
+    their clock offsets; and per container its recorder (unique id, node name)."""
+    found = _discover(ros, args.spin_time)
+    recorders: dict[str, tuple[int, str]] = {}
+    for container, components in found.items():
+        wanted = recorder_full_name(container, args.session or "*")
+        for unique_id, name in components or []:
+            if fnmatch.fnmatchcase(name, wanted):
+                recorders[container] = (unique_id, name)
+    if not recorders:
+        raise CliError("No recorder of " + (f"session '{args.session}'" if args.session else "a fleet session")
+                       + " found")
+    fleet = Fleet(ros.node, ros.executor, sorted(recorders))
+    fleet.connect(time.monotonic() + BUDGET)
+    fleet.measure_offsets(time.monotonic() + BUDGET)
+    return fleet, recorders
+
+
+def _set_on_all(fleet: Fleet, recorders: dict[str, tuple[int, str]], values: dict[str, Any],
+                instant: int) -> None:
+    """Set parameters on every recorder; ``values`` with ``@`` stands for the instant on that container's clock."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    calls = {}
+    for link in fleet.answering:
+        local = (instant + link.offset.offset_ns) / 1e9 if link.offset else instant / 1e9
+        parameters = [Parameter(name, value=local if value == "@" else value).to_parameter_msg()
+                      for name, value in values.items()]
+        calls[link.name] = (fleet.parameter_client(link, recorders[link.name][1]),
+                            SetParameters.Request(parameters=parameters))
+    replies = fleet.repeat_all(calls, time.monotonic() + BUDGET)
+    for link in fleet.answering:
+        reply = replies.get(link.name)
+        if reply is None:
+            link.error = "the recorder did not answer"
+        elif not all(result.successful for result in reply.results):
+            link.error = "; ".join(result.reason for result in reply.results if not result.successful)
+
+
+def run_stop(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
+    with RosSession(ros_args) as ros:
+        fleet, recorders = _session_recorders(ros, args)
+        stop_ns = instant_ns(args, default_in=0.0)
+        _set_on_all(fleet, recorders, {"record.stop_at": "@",
+                                       "storage.custom_data": [f"{fleet_keys.STOP_NS}={stop_ns}"]}, stop_ns)
+        finals = _wait_finalized(fleet, recorders, stop_ns)
+        _unload(fleet, {link.name: recorders[link.name][0] for link in fleet.answering if link.name in finals})
+    rows = []
+    for link in fleet.links:
+        final = finals.get(link.name)
+        if final is None:
+            continue
+        topics = final["topics"].values()
+        rows.append((link.host, link.name, str(sum(t["written"] for t in topics)),
+                     f"{final['bytes_written'] / 1e6:.1f} MB", str(sum(t["dropped"] for t in topics)),
+                     final["bag"] + (f" (error: {final['error']})" if final["error"] else "")))
+    _print_rows(("HOST", "CONTAINER", "MESSAGES", "BYTES", "DROPS", "BAG"), rows)
+    _report_failures(fleet.links)
+    return 0 if all(link.ok for link in fleet.links) else 1
+
+
+def _wait_finalized(fleet: Fleet, recorders: dict[str, tuple[int, str]], stop_ns: int) -> dict[str, dict]:
+    """Poll every recorder's ~/get_stats until its bag is finalized; the final counts per container."""
+    from std_srvs.srv import Trigger
+
+    deadline = time.monotonic() + max(0.0, (stop_ns - time.time_ns()) / 1e9) + FINALIZE_TIMEOUT
+    finals: dict[str, dict] = {}
+    while time.monotonic() < deadline:
+        pending = [link for link in fleet.answering if link.name not in finals]
+        if not pending:
+            break
+        calls = {link.name: (fleet.component_client(link, Trigger, f"{recorders[link.name][1]}/get_stats"),
+                             Trigger.Request()) for link in pending}
+        for name, reply in fleet.repeat_all(calls, min(deadline, time.monotonic() + BUDGET)).items():
+            stats = json.loads(reply.message)
+            if not stats["recording"] and stats["finished"]:
+                finals[name] = stats["finished"][-1]
+        fleet.spin_until(lambda: False, min(deadline, time.monotonic() + 0.2))
+    for link in fleet.answering:
+        if link.name not in finals:
+            link.error = "the bag was not finalized in time"
+    return finals
+
+
+def run_split(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
+    with RosSession(ros_args) as ros:
+        fleet, recorders = _session_recorders(ros, args)
+        split_ns = instant_ns(args, default_in=0.0)
+        _set_on_all(fleet, recorders, {"record.split_at": "@"}, split_ns)
+    for link in fleet.answering:
+        print(f"Split scheduled in {link.name} ({link.host})")
+    _report_failures(fleet.links)
+    return 0 if all(link.ok for link in fleet.links) else 1
+
+
+# --- the command line -----------------------------------------------------------------------------------
+def _add_timing(p: argparse.ArgumentParser, default_in: float) -> None:
+    when = p.add_mutually_exclusive_group()
+    when.add_argument("--in", dest="in_seconds", type=float, default=None, metavar="SECONDS",
+                      help=f"the instant, in seconds from now (default {default_in:g})")
+    when.add_argument("--at", type=float, default=None, metavar="EPOCH_SECONDS",
+                      help="the instant, in seconds since the epoch on this computer's clock")
+
+
+def add_record_parser(verbs: Any) -> None:
+    from ipc_component import record_status
+
+    p = verbs.add_parser("record", help="Record every container of the domain as one (fleet recording)",
+                         description=__doc__.split("\n\n")[1])
+    record_verbs = p.add_subparsers(dest="record_verb", title="commands")
+    record_verbs.required = True
+    p = record_verbs.add_parser("start", help="Load a recorder into every container; all start at one instant")
+    p.add_argument("containers", nargs="*", metavar="CONTAINER_PATTERN",
+                   help="full container names or fnmatch patterns (default: every container)")
+    p.add_argument("--session", help="session name (default: fleet_<date>_<time>)")
+    _add_timing(p, 2.0)
+    p.add_argument("--local-only", action=argparse.BooleanOptionalAction, default=True,
+                   help="record in each container only what it publishes in-process (default: yes)")
+    p.add_argument("--max-duration", type=float, default=0.0, metavar="SECONDS",
+                   help="every recorder stops this long after the start even if no stop reaches it")
+    p.add_argument("--all-or-nothing", action="store_true",
+                   help="abort (and unload what was loaded) unless every container records")
+    p.add_argument("-p", "--parameter", action="append", dest="parameters",
+                   help="a recorder parameter, in the 'name:=value' form")
+    p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")
+    p.set_defaults(handler=run_start)
+    for verb, handler, what in (("stop", run_stop, "Stop the session's recorders at one instant and unload them"),
+                                ("split", run_split, "Split every bag of the session at one instant")):
+        p = record_verbs.add_parser(verb, help=what)
+        p.add_argument("--session", help="session name (default: every fleet session)")
+        _add_timing(p, 0.0)
+        p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")
+        p.set_defaults(handler=handler)
+    record_status.add_arguments(record_verbs)
