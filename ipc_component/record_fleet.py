@@ -33,6 +33,9 @@ SESSION_NAME = re.compile(r"^[A-Za-z0-9_]+$")
 DISCOVERY = 1.5
 #: Offsets above this (ms) are reported at start.
 OFFSET_WARNING_MS = 5.0
+#: s: how far ahead ``stop`` and ``split`` schedule their instant by default: time for the request to reach every
+#: recorder before the instant, so that each cuts exactly there
+STOP_AHEAD = 1.0
 #: s: how long ``stop`` waits for the bags to be finalized after the stop instant
 FINALIZE_TIMEOUT = 30.0
 #: Parameters that select topics: when one is given, the recorder is not told to record all topics.
@@ -212,20 +215,26 @@ def _session_recorders(ros: RosSession, args: argparse.Namespace) -> tuple[Fleet
     return fleet, recorders
 
 
-def _set_on_all(fleet: Fleet, recorders: dict[str, tuple[int, str]], values: dict[str, Any],
-                instant: int) -> None:
-    """Set parameters on every recorder; ``values`` with ``@`` stands for the instant on that container's clock."""
+def _set_on_all(fleet: Fleet, recorders: dict[str, tuple[int, str]], instant_parameter: str, instant: int,
+                custom_data: dict[str, str] | None = None) -> None:
+    """Set ``instant_parameter`` on every recorder to ``instant`` on that container's clock (this computer's clock
+    plus the offset just measured); with ``custom_data``, add those pairs and the offset used to the bag."""
     from rcl_interfaces.srv import SetParameters
     from rclpy.parameter import Parameter
 
     calls = {}
     for link in fleet.answering:
-        local = (instant + link.offset.offset_ns) / 1e9 if link.offset else instant / 1e9
-        parameters = [Parameter(name, value=local if value == "@" else value).to_parameter_msg()
-                      for name, value in values.items()]
+        offset = link.offset.offset_ns if link.offset else 0
+        parameters = [Parameter(instant_parameter, value=(instant + offset) / 1e9)]
+        if custom_data is not None:
+            pairs = {**custom_data, fleet_keys.STOP_CLOCK_OFFSET_NS: str(offset)}
+            parameters.append(Parameter("storage.custom_data", value=[f"{k}={v}" for k, v in pairs.items()]))
         calls[link.name] = (fleet.parameter_client(link, recorders[link.name][1]),
-                            SetParameters.Request(parameters=parameters))
+                            SetParameters.Request(parameters=[p.to_parameter_msg() for p in parameters]))
     replies = fleet.repeat_all(calls, time.monotonic() + BUDGET)
+    if time.time_ns() > instant:
+        print(f"Warning: the instant passed {(time.time_ns() - instant) / 1e6:.0f} ms before every recorder had it: "
+              "a recorder writes what it received until then (schedule it ahead with --in)")
     for link in fleet.answering:
         reply = replies.get(link.name)
         if reply is None:
@@ -237,9 +246,8 @@ def _set_on_all(fleet: Fleet, recorders: dict[str, tuple[int, str]], values: dic
 def run_stop(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     with RosSession(ros_args) as ros:
         fleet, recorders = _session_recorders(ros, args)
-        stop_ns = instant_ns(args, default_in=0.0)
-        _set_on_all(fleet, recorders, {"record.stop_at": "@",
-                                       "storage.custom_data": [f"{fleet_keys.STOP_NS}={stop_ns}"]}, stop_ns)
+        stop_ns = instant_ns(args, default_in=STOP_AHEAD)
+        _set_on_all(fleet, recorders, "record.stop_at", stop_ns, {fleet_keys.STOP_NS: str(stop_ns)})
         finals = _wait_finalized(fleet, recorders, stop_ns)
         _unload(fleet, {link.name: recorders[link.name][0] for link in fleet.answering if link.name in finals})
     rows = []
@@ -282,8 +290,8 @@ def _wait_finalized(fleet: Fleet, recorders: dict[str, tuple[int, str]], stop_ns
 def run_split(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     with RosSession(ros_args) as ros:
         fleet, recorders = _session_recorders(ros, args)
-        split_ns = instant_ns(args, default_in=0.0)
-        _set_on_all(fleet, recorders, {"record.split_at": "@"}, split_ns)
+        split_ns = instant_ns(args, default_in=STOP_AHEAD)
+        _set_on_all(fleet, recorders, "record.split_at", split_ns)
     for link in fleet.answering:
         print(f"Split scheduled in {link.name} ({link.host})")
     _report_failures(fleet.links)
@@ -325,7 +333,7 @@ def add_record_parser(verbs: Any) -> None:
                                 ("split", run_split, "Split every bag of the session at one instant")):
         p = record_verbs.add_parser(verb, help=what)
         p.add_argument("--session", help="session name (default: every fleet session)")
-        _add_timing(p, 0.0)
+        _add_timing(p, STOP_AHEAD)
         p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")
         p.set_defaults(handler=handler)
     record_status.add_arguments(record_verbs)

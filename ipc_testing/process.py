@@ -44,8 +44,11 @@ class ContainerProcess:
                  env: Mapping[str, str] | None = None, prefix: Sequence[str] = ()) -> None:
         self.name = name if name.startswith("/") else f"/{name}"
         argv = ["component_container", *args]
+        namespace, _, node = self.name.rpartition("/")
         if self.name != "/ComponentManager":
-            argv += ["--ros-args", "-r", f"__node:={self.name.rsplit('/', 1)[1]}"]  # rcl takes several sections
+            argv += ["--ros-args", "-r", f"__node:={node}"]  # rcl takes several sections
+        if namespace:
+            argv += ["--ros-args", "-r", f"__ns:={namespace}"]
         self.log_path = log_path
         self._log: IO[str] = (open(log_path, "w+", encoding="utf-8") if log_path is not None  # noqa: SIM115
                               else tempfile.TemporaryFile(mode="w+", prefix="container_", suffix=".log"))

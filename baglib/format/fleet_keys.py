@@ -18,7 +18,9 @@ START_NS = "ipc.start_ns"
 STOP_NS = "ipc.stop_ns"
 #: The container's clock minus the clock of the computer that ran ``record start`` (NTP-style estimate).
 CLOCK_OFFSET_NS = "ipc.clock_offset_ns"
+#: The offset measured again by ``record stop``, which the stop instant was corrected by (clocks drift).
+STOP_CLOCK_OFFSET_NS = "ipc.stop_clock_offset_ns"
 #: Half the round trip of the exchange the offset came from: the offset's error bound.
 CLOCK_OFFSET_UNCERTAINTY_NS = "ipc.clock_offset_uncertainty_ns"
 
-ALL = (SESSION, HOST, CONTAINER, START_NS, STOP_NS, CLOCK_OFFSET_NS, CLOCK_OFFSET_UNCERTAINTY_NS)
+ALL = (SESSION, HOST, CONTAINER, START_NS, STOP_NS, CLOCK_OFFSET_NS, STOP_CLOCK_OFFSET_NS, CLOCK_OFFSET_UNCERTAINTY_NS)
