@@ -84,7 +84,7 @@ class Fleet:
     def connect(self, deadline: float) -> None:
         """Ask every container for its clock until each answered (which makes all its clients ready); a
         container that does not answer by ``deadline`` gets an error and is left out of what follows."""
-        calls = {link.name: RepeatedCall(link.clock, Trigger.Request) for link in self.links}
+        calls = {link.name: RepeatedCall(link.clock, Trigger.Request) for link in self.answering}
 
         def all_answered() -> bool:
             now = time.monotonic()
@@ -93,7 +93,7 @@ class Fleet:
             return all(call.reply is not None for call in calls.values())
 
         self.spin_until(all_answered, deadline)
-        for link in self.links:
+        for link in self.answering:
             reply = calls[link.name].reply
             calls[link.name].close()
             if reply is None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
+import glob
 import json
 import re
 import time
@@ -89,10 +90,12 @@ def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse
     return [Parameter(name, value=value).to_parameter_msg() for name, value in ours.items()] + given
 
 
-def _select(containers: Sequence[str], patterns: Sequence[str]) -> list[str]:
+def _select(containers: Sequence[str], patterns: Sequence[str]) -> tuple[list[str], list[str]]:
+    """The containers matching ``patterns`` (all without), and the names given exactly that are not there."""
     if not patterns:
-        return list(containers)
-    return [c for c in containers if any(fnmatch.fnmatchcase(c, p) for p in patterns)]
+        return list(containers), []
+    missing = [p for p in patterns if not glob.has_magic(p) and p not in containers]
+    return [c for c in containers if any(fnmatch.fnmatchcase(c, p) for p in patterns)], missing
 
 
 def _discover(ros: RosSession, spin_time: float) -> dict[str, list[tuple[int, str]]]:
@@ -126,14 +129,16 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     parameter_msgs(args.parameters, "parameter")  # a malformed -p is refused before any ROS traffic
     with RosSession(ros_args) as ros:
         found = _discover(ros, args.spin_time)
-        containers = _select(sorted(found), args.containers)
+        containers, missing = _select(sorted(found), args.containers)
         if not containers:
             raise CliError("No container found" + (f" matching {' '.join(args.containers)}" if args.containers else ""))
         busy = [c for c in containers
                 if any(name == recorder_full_name(c, session) for _id, name in found[c] or [])]
         if busy:
             raise CliError(f"Session '{session}' is already recording in {', '.join(busy)}")
-        fleet = Fleet(ros.node, ros.executor, containers)
+        fleet = Fleet(ros.node, ros.executor, [*containers, *missing])
+        for link in fleet.links[len(containers):]:
+            link.error = "not found on the ROS graph"
         fleet.connect(time.monotonic() + BUDGET)
         fleet.measure_offsets(time.monotonic() + BUDGET)
         if args.all_or_nothing and not all(link.ok for link in fleet.links):

@@ -1,0 +1,111 @@
+"""Fleet recording when things go wrong, on containers of this machine (the faults need no second computer):
+a container that does not answer at start, a recording whose stop never comes, a container killed mid-session.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from rosbags.rosbag2 import Reader
+
+from baglib.format import fleet_keys
+from ipc_testing import ContainerProcess
+
+REPO = Path(__file__).resolve().parents[1]
+RIG = [{"package": "components", "plugin": "components::ImuDriver", "name": "imu", "parameters": {"rate": 100.0},
+        "extra_arguments": {"use_intra_process_comms": True}}]
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ipc_component.cli", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=90)
+
+
+@pytest.fixture
+def rig(tmp_path: Path):
+    """Two containers (/fa/container, /fb/container) with an IMU each, on this test's domain."""
+    load = tmp_path / "rig.yaml"
+    load.write_text(yaml.safe_dump({"components": RIG}))
+    processes = {}
+    try:
+        for host in ("fa", "fb"):
+            (tmp_path / host).mkdir()
+            processes[host] = ContainerProcess("--use-intra-process-comms", "--bag-root", str(tmp_path / host),
+                                               "--load", str(load), name=f"/{host}/container", cwd=REPO,
+                                               log_path=tmp_path / f"{host}.log")
+        deadline = time.monotonic() + 60
+        while not all(f"/{h}/container\n  1  /imu" in cli("list").stdout for h in processes):
+            assert time.monotonic() < deadline, "containers not listed"
+        yield processes
+    finally:
+        for process in processes.values():
+            if process.alive():
+                os.kill(process.pid, signal.SIGCONT)
+            process.kill()
+
+
+def sequences(bag: Path) -> list[tuple[int, int]]:
+    """(receive time, IMU sequence number) of every message, read with rosbags."""
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(bag) as reader:
+        return [(t, int(typestore.deserialize_cdr(data, c.msgtype).orientation_covariance[1]))
+                for c, t, data in reader.messages()]
+
+
+def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tmp_path: Path) -> None:
+    os.kill(rig["fb"].pid, signal.SIGSTOP)  # a hung computer: it answers nothing, not even discovery
+    both = ("/fa/container", "/fb/container")
+    aborted = cli("record", "start", *both, "--session", "strict", "--in", "1", "--all-or-nothing")
+    assert aborted.returncode == 1 and "/fb/container: not found" in aborted.stdout, aborted.stdout
+    assert "record_strict" not in cli("list", "/fa/container").stdout, "--all-or-nothing left a recorder"
+
+    started = cli("record", "start", *both, "--session", "partial", "--in", "1", "--max-duration", "2")
+    assert started.returncode == 2, started.stdout + started.stderr
+    assert "Not recording in /fb/container: not found" in started.stdout, started.stdout
+    assert "/fa/container" in started.stdout.split("Not recording")[0]
+    os.kill(rig["fb"].pid, signal.SIGCONT)
+    # --max-duration: no stop is ever sent; the recorder finalizes by itself 2 s after the start.
+    metadata = tmp_path / "fa" / "partial" / f"{os.uname().nodename}_fa_container" / "metadata.yaml"
+    deadline = time.monotonic() + 30
+    while not metadata.exists():
+        assert time.monotonic() < deadline, "the recording did not end at its max duration"
+        time.sleep(0.1)
+    custom = yaml.safe_load(metadata.read_text())["rosbag2_bagfile_information"]["custom_data"]
+    start = int(custom[fleet_keys.START_NS]) + int(custom[fleet_keys.CLOCK_OFFSET_NS])
+    received = sequences(metadata.parent)
+    assert received and all(start <= t < start + 2_000_000_000 for t, _ in received)
+    assert received[-1][0] > start + 1_900_000_000, "the window ended early"
+    seqs = [s for _, s in received]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    assert not (tmp_path / "fb" / "partial").exists(), "a recorder was loaded into the stopped container"
+
+
+def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Path) -> None:
+    started = cli("record", "start", "--session", "crash", "--in", "0.5", "-p", "storage.flush_interval:=0.5")
+    assert started.returncode == 0, started.stdout + started.stderr
+    time.sleep(3.5)
+    killed_ns = time.time_ns()
+    rig["fa"].process.send_signal(signal.SIGKILL)
+    rig["fa"].process.wait()
+    stopped = cli("record", "stop", "--session", "crash")
+    assert stopped.returncode == 0 and "/fb/container" in stopped.stdout, stopped.stdout + stopped.stderr
+
+    bag = tmp_path / "fa" / "crash" / f"{os.uname().nodename}_fa_container"
+    recovered = subprocess.run([sys.executable, "-m", "ipc_component.cli", "bag", "recover", str(bag)], cwd=REPO,
+                               capture_output=True, text=True, timeout=60)
+    assert recovered.returncode == 0, recovered.stdout + recovered.stderr
+    custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
+    assert custom[fleet_keys.SESSION] == "crash", "recover dropped the session's custom_data"
+    received = sequences(bag)
+    seqs = [s for _, s in received]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "a gap in the recovered bag"
+    # the loss is bounded by the flush interval (0.5 s) plus the IMU period and scheduling slack
+    assert received[-1][0] >= killed_ns - 1_000_000_000, (killed_ns - received[-1][0]) / 1e9
