@@ -29,8 +29,8 @@ import urllib.parse
 from collections.abc import Collection, Iterator
 from pathlib import Path
 
-from baglib.format.metadata import parse_qos_profiles
 from baglib.format.bag_files import RECOVER_COMMAND
+from baglib.format.metadata import parse_qos_profiles
 from baglib.read.storage_reader import BagReadError, FileTopic, RawMessage
 
 __all__ = ["SqliteReader"]
