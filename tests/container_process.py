@@ -165,5 +165,33 @@ def small_filesystem(directory: pathlib.Path, size: int) -> Iterator[bool]:
         yield mounted
     finally:
         if mounted:
-            if subprocess.run(["umount", str(directory)], capture_output=True).returncode != 0:
-                subprocess.run(["umount", "-l", str(directory)], capture_output=True)
+            _unmount(directory)
+
+
+@contextlib.contextmanager
+def read_only_view(source: pathlib.Path, directory: pathlib.Path) -> Iterator[tuple[pathlib.Path | None, str]]:
+    """``source`` seen through a read-only bind mount at ``directory``: yields (``directory``, "") if this
+    process may mount one, else (None, why not)."""
+    directory.mkdir()
+    if os.geteuid() != 0:
+        yield None, "a bind mount needs root (the tests run as root in CI)"
+        return
+    bind = subprocess.run(["mount", "--bind", str(source), str(directory)], capture_output=True, text=True)
+    if bind.returncode != 0:
+        yield None, f"mount --bind failed: {bind.stderr.strip()}"
+        return
+    try:
+        remount = subprocess.run(["mount", "-o", "remount,bind,ro", str(directory)], capture_output=True, text=True)
+        if remount.returncode != 0:
+            yield None, f"mount -o remount,bind,ro failed: {remount.stderr.strip()}"
+            return
+        assert os.statvfs(directory).f_flag & os.ST_RDONLY, f"{directory} is not read-only"
+        yield directory, ""
+    finally:
+        _unmount(directory)
+
+
+def _unmount(directory: pathlib.Path) -> None:
+    """Unmount ``directory``, lazily if it is still busy."""
+    if subprocess.run(["umount", str(directory)], capture_output=True).returncode != 0:
+        subprocess.run(["umount", "-l", str(directory)], capture_output=True)

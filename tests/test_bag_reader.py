@@ -376,9 +376,10 @@ def test_closed_reader_refuses_to_read(writer_bags: dict) -> None:
         next(reader.messages())
 
 
-def test_sqlite_rows_in_a_write_ahead_log_are_read(tmp_path: Path) -> None:
+def test_sqlite_rows_in_a_write_ahead_log_are_read_once_recovered(tmp_path: Path) -> None:
     """A database copied while a writer in WAL mode held it (a crash): its committed rows are partly only in
-    the ``-wal`` file. sqlite replays the log for this reader (``rosbags`` opens it immutable and misses them)."""
+    the ``-wal`` file. Replaying the log would write a ``-shm`` file next to it, and ``rosbags`` (which opens it
+    immutable) misses them: the reader refuses it with the ``bag recover`` hint, and recovered it reads them."""
     bag = tmp_path / "bag"
     write_bag(bag, "sqlite3", "", [("/chatter", T0 + i, payload(i, 100)) for i in range(10)])
     (path,) = bag.glob("*.db3")
@@ -393,5 +394,9 @@ def test_sqlite_rows_in_a_write_ahead_log_are_read(tmp_path: Path) -> None:
     for name in (path.name, path.name + "-wal"):
         shutil.copyfile(path.with_name(name), crashed / name)
     db.close()
-    messages = read(crashed / path.name)
+    with pytest.raises(BagReadError, match="write-ahead log .* run `ipc-component bag recover` on the bag"):
+        read(crashed / path.name)
+    assert sorted(os.listdir(crashed)) == [path.name, path.name + "-wal"]
+    assert recover_bag(crashed).readable
+    messages = read(crashed)
     assert len(messages) == 15 and messages[-1] == ("/chatter", T0 + 104, payload(104, 100))

@@ -9,6 +9,17 @@ time; there is no publish time.
 
 Messages come out ordered by (timestamp, id): the order of ``timestamp_idx`` (sqlite keys every index
 by the row id last), so a start time is a seek in that index and the order needs no sort.
+
+Reading never writes next to the file, so bags on read-only media read as well as any. A database in
+rollback-journal mode (what this project and ``rosbags`` write, and rosbag2 by default) is opened
+``mode=ro``: that creates no file, keeps sqlite's locking (a writer may still be at work on the file) and
+refuses a hot journal (``SQLITE_READONLY_ROLLBACK``). A database in WAL mode (rosbag2's ``resilient``
+preset) cannot be opened that way without sqlite creating ``-wal`` and ``-shm`` files, which a read-only
+connection then leaves behind, and where it may not create them it cannot open the file at all. Such a
+database is opened ``immutable=1`` (no locks, no side files, the database file is taken as the whole
+database), which is right only when its log holds nothing: a log with frames (a writer killed, or still at
+work) is refused with the ``bag recover`` hint rather than read without its rows or replayed through a
+``-shm`` file.
 """
 from __future__ import annotations
 
@@ -18,14 +29,19 @@ import urllib.parse
 from collections.abc import Collection, Iterator
 from pathlib import Path
 
-from baglib.format.metadata import parse_qos_profiles
 from baglib.format.bag_files import RECOVER_COMMAND
+from baglib.format.metadata import parse_qos_profiles
 from baglib.read.storage_reader import BagReadError, FileTopic, RawMessage
 
 __all__ = ["SqliteReader"]
 
 _log = logging.getLogger(__name__)
 _MAGIC = b"SQLite format 3\0"
+#: The database header's file format write and read versions in WAL mode (1, 1 in rollback-journal mode).
+_WAL_VERSIONS = b"\x02\x02"
+_WAL_VERSIONS_OFFSET = 18
+#: A write-ahead log's header; frames follow it.
+_WAL_HEADER_SIZE = 32
 
 
 class SqliteReader:
@@ -37,12 +53,12 @@ class SqliteReader:
         self.path = path
         try:
             with open(path, "rb") as file:
-                magic = file.read(len(_MAGIC))
+                header = file.read(_WAL_VERSIONS_OFFSET + len(_WAL_VERSIONS))
         except OSError as error:
             raise BagReadError(f"cannot open {path}: {error.strerror}") from error
-        if magic != _MAGIC:
+        if not header.startswith(_MAGIC):
             raise BagReadError(f"{path} is not an SQLite3 database")
-        self._db = self._connect()
+        self._db = self._connect(wal_mode=header[_WAL_VERSIONS_OFFSET:] == _WAL_VERSIONS)
         try:
             self._read_schema()
         except sqlite3.Error as error:
@@ -52,22 +68,27 @@ class SqliteReader:
             self.close()
             raise
 
-    def _connect(self) -> sqlite3.Connection:
-        """A read-only connection that sees what a write-ahead log holds; where sqlite may not create the
-        log's index file (a read-only directory) the database is read as it is, without the log."""
-        uri = f"file:{urllib.parse.quote(str(self.path.resolve()))}"
+    def _connect(self, wal_mode: bool) -> sqlite3.Connection:
+        """A read-only connection that creates no file next to the database (see the module's docstring)."""
+        log = self._side_file("wal")
+        if wal_mode and log.is_file() and log.stat().st_size > _WAL_HEADER_SIZE:
+            raise BagReadError(f"cannot read {self.path}: its write-ahead log {log.name} holds changes the "
+                               f"database file does not (a writer was killed, or still writes it); if no writer "
+                               f"has it open, run `{RECOVER_COMMAND}` on the bag")
+        uri = f"file:{urllib.parse.quote(str(self.path.resolve()))}?mode=ro{'&immutable=1' if wal_mode else ''}"
         try:
-            db = sqlite3.connect(f"{uri}?mode=ro", uri=True, check_same_thread=False)
+            db = sqlite3.connect(uri, uri=True, check_same_thread=False)
             db.execute("SELECT count(*) FROM sqlite_master").fetchone()
             return db
         except sqlite3.Error as error:
             hint = ""
-            if self.path.with_name(self.path.name + "-journal").exists():
+            if self._side_file("journal").exists():
                 hint = f" (a crash left its journal: run `{RECOVER_COMMAND}` on the bag)"
-            elif self.path.with_name(self.path.name + "-wal").exists():
-                _log.warning("%s: %s; reading it without its write-ahead log", self.path, error)
-                return sqlite3.connect(f"{uri}?immutable=1", uri=True, check_same_thread=False)
             raise BagReadError(f"cannot read {self.path}: {error}{hint}") from error
+
+    def _side_file(self, kind: str) -> Path:
+        """The ``-wal`` or ``-journal`` file sqlite keeps next to the database."""
+        return self.path.with_name(f"{self.path.name}-{kind}")
 
     def _read_schema(self) -> None:
         tables = {name for (name,) in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
