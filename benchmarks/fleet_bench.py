@@ -34,7 +34,10 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from sensor_msgs.msg import Image  # noqa: E402
+
 from baglib.format import fleet_keys  # noqa: E402
+from baglib.format.cdr_read import deserialize  # noqa: E402
 from baglib.read.reader import BagReader  # noqa: E402
 from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
 from ipc_testing import ContainerProcess  # noqa: E402
@@ -120,8 +123,9 @@ def bag_figures(bag: Path) -> dict[str, Any]:
     with BagReader(bag) as reader:
         for message in reader.messages():
             if message.connection.topic.endswith("image_raw"):
+                image = deserialize(message.data, Image)
                 per_topic.setdefault(message.connection.topic, []).append(
-                    (message.log_time_ns, int.from_bytes(bytes(message.data[:8]), "little")))
+                    (message.log_time_ns, int.from_bytes(bytes(image.data[:8]), "little")))
     topics = {}
     for topic, frames in per_topic.items():
         seqs = sorted(seq for _t, seq in frames)

@@ -215,6 +215,24 @@ def recover_table(recover: dict[str, Any]) -> list[str]:
                 f"{target['result']}; {target['detail']}."]
 
 
+def fleet_table(fleet: dict[str, Any]) -> list[str]:
+    if "central" not in fleet:
+        raise Missing("no fleet run measured")
+    rows = []
+    for mode in ("fleet", "central"):
+        topics = [t for bag in fleet[mode]["bags"] for t in bag["topics"].values()]
+        rows.append([mode, f"{fleet[mode]['cpu_total_per_s']:.2f}", str(sum(t["frames"] for t in topics)),
+                     str(sum(t["gaps"] for t in topics)),
+                     f"{max(t['start_cut_ms'] for t in topics):.1f}", f"{max(t['stop_cut_ms'] for t in topics):.1f}"])
+    return [*markdown(["mode", "CPU s/s (all containers)", "frames", "lost (gaps)", "max start cut ms",
+                       "max stop cut ms"], rows),
+            "", f"{fleet['hosts']} hosts (network namespaces) x {fleet['cameras_per_host']} cameras "
+                f"({fleet['camera']}, {fleet['mb_per_s_per_camera']:.0f} MB/s each), {fleet['seconds']:g} s measured. "
+                f"fleet: a local-only recorder per host; central: one recorder on another host, over DDS. "
+                f"Fleet CPU / central CPU: {fleet['cpu_ratio_fleet_to_central']:.2f}. A cut is the time from the "
+                f"scheduled start to the first frame received (from the last frame to the stop)."]
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -232,6 +250,7 @@ TABLES: dict[str, Table] = {
     "targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
     "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
+    "fleet": Table("fleet", "central", "python benchmarks/fleet_bench.py", fleet_table, "Fleet"),
 }
 
 
