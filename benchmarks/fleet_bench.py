@@ -153,7 +153,7 @@ def main() -> int:
         print(f"fleet benchmark not run: {reason}")
         return 1
     hosts = [f"h{i + 1}" for i in range(args.hosts)]
-    report: dict[str, Any] = {**run_header("benchmarks/fleet_bench.py", sys.argv[1:]), "hosts": args.hosts,
+    report: dict[str, Any] = {**run_header("fleet_bench.py", sys.argv[1:]), "hosts": args.hosts,
                               "cameras_per_host": 2, "camera": f"{args.width}x{args.height}@{args.fps:g}",
                               "mb_per_s_per_camera": args.width * args.height * 3 * args.fps / 1e6,
                               "seconds": args.seconds, "load_before": os.getloadavg()[0]}
