@@ -84,18 +84,9 @@ class Fleet:
     def connect(self, deadline: float) -> None:
         """Ask every container for its clock until each answered (which makes all its clients ready); a
         container that does not answer by ``deadline`` gets an error and is left out of what follows."""
-        calls = {link.name: RepeatedCall(link.clock, Trigger.Request) for link in self.answering}
-
-        def all_answered() -> bool:
-            now = time.monotonic()
-            for call in calls.values():
-                call.step(now)
-            return all(call.reply is not None for call in calls.values())
-
-        self.spin_until(all_answered, deadline)
+        replies = self.repeat_all({link.name: (link.clock, Trigger.Request()) for link in self.answering}, deadline)
         for link in self.answering:
-            reply = calls[link.name].reply
-            calls[link.name].close()
+            reply = replies.get(link.name)
             if reply is None:
                 link.error = "did not answer"
                 continue
