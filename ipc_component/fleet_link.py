@@ -92,6 +92,11 @@ class Fleet:
                 continue
             facts = json.loads(reply.message)
             link.host, link.bag_root = facts["host"], facts["bag_root"]
+            servers = len(self.node.get_subscriptions_info_by_topic(f"rq{link.name}/_container/clockRequest",
+                                                                     no_mangle=True))
+            if servers > 1:
+                link.error = (f"{servers} containers have this name: a request would reach all of them; give each "
+                              "container a name of its own (-r __ns:=/<computer>)")
 
     def measure_offsets(self, deadline: float) -> None:
         """The clock offset of every answering container (one after the other: a round trip is short)."""

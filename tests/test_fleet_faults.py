@@ -109,3 +109,22 @@ def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Pat
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "a gap in the recovered bag"
     # the loss is bounded by the flush interval (0.5 s) plus the IMU period and scheduling slack
     assert received[-1][0] >= killed_ns - 1_000_000_000, (killed_ns - received[-1][0]) / 1e9
+
+
+def test_containers_sharing_a_name_are_refused(tmp_path: Path) -> None:
+    """Two containers named alike (every computer's default /ComponentManager) would both take every request."""
+    load = tmp_path / "rig.yaml"
+    load.write_text(yaml.safe_dump({"components": RIG}))
+    twins = [ContainerProcess("--use-intra-process-comms", "--load", str(load), name="/twin/container", cwd=tmp_path,
+                              log_path=tmp_path / f"twin{i}.log") for i in range(2)]
+    try:
+        deadline = time.monotonic() + 60
+        while cli("list", "/twin/container").stdout.count("/imu") < 1:
+            assert time.monotonic() < deadline, "twins not listed"
+        started = cli("record", "start", "/twin/container", "--session", "twins", "--in", "1")
+        assert started.returncode == 1, started.stdout + started.stderr
+        assert "2 containers have this name" in started.stdout, started.stdout
+        assert not list(tmp_path.glob("twins")), "a recorder was loaded"
+    finally:
+        for process in twins:
+            process.kill()
