@@ -163,6 +163,59 @@ def test_every_crash_state_after_a_sync_holds_every_message(tmp_path: Path, stor
         assert _chatter(state, storage, scratch) == expected, f"seed {seed}:\n{state.describe()}"
 
 
+FULL_DISK_SCRIPT = textwrap.dedent("""
+    import os, resource, signal, sys
+    from pathlib import Path
+    from baglib.format.metadata import TopicInfo
+    from baglib.write.writer import BagWriteError, BagWriter
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))  # the disk fills at 64 KiB
+    writer = BagWriter(Path(sys.argv[1]))
+    writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String"))
+    try:
+        for i in range(10_000):
+            text = b"message %04d" % i + bytes(200)
+            writer.write("/chatter", bytes(4) + len(text).to_bytes(4, "little") + text, 10**9 + i, 10**9 + i)
+    except BagWriteError:
+        pass
+    try:
+        writer.close()  # the file was repaired (cut after its last record, summary appended); metadata.yaml
+    except BagWriteError:
+        pass
+    os._exit(0)
+""")
+
+
+@needs_strace
+def test_a_file_repaired_after_a_full_disk_is_durable_before_metadata_names_it(tmp_path: Path) -> None:
+    """When a write fails (a full disk), the MCAP storage repairs its file and the writer then lists it in
+    ``metadata.yaml``. Every crash state in which that ``metadata.yaml`` exists must hold the file as repaired:
+    readable, with the messages ``metadata.yaml`` counts."""
+    import yaml
+    from mcap.reader import make_reader
+
+    root = _root(tmp_path)
+    trace = parse_trace(trace_script(tmp_path, FULL_DISK_SCRIPT, str(root / "bag")), root, tmp_path)
+    model = BagModel(trace, "bag", "strict")
+    checked = 0
+    for seed in range(200):
+        state = model.draw(random.Random(seed), cut=model.last_line + 1)
+        if "metadata.yaml" not in state.files:
+            continue
+        checked += 1
+        listed = yaml.safe_load(state.files["metadata.yaml"])["rosbag2_bagfile_information"]["files"]
+        for entry in listed:
+            content = state.files.get(entry["path"])
+            assert content is not None, f"seed {seed}: metadata.yaml names a missing file\n{state.describe()}"
+            try:
+                summary = make_reader(io.BytesIO(content)).get_summary()
+            except Exception as exc:  # noqa: BLE001 - any unreadable file is the failure
+                raise AssertionError(f"seed {seed}: {entry['path']} unreadable ({exc})\n{state.describe()}") from None
+            assert summary is not None and summary.statistics.message_count == entry["message_count"], (
+                f"seed {seed}\n{state.describe()}")
+    assert checked > 50, "metadata.yaml was (almost) never durable: the script did not finish as intended"
+
+
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_recover_sets_aside_a_file_it_leaves_out(tmp_path: Path, storage: str) -> None:
     """A split file prepared just before a crash may hold nothing (its header was still in the writer's buffer):

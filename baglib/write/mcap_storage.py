@@ -498,6 +498,8 @@ def _repair_file(
                     file.truncate(base)
                     file.seek(base)
                     _write_all(file, tail)
+                    fsync_directory(path.parent)
+                    os.fsync(file.fileno())  # durable before metadata.yaml can name the file
                     return totals
                 except OSError:
                     file.truncate(base)
