@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbag2_interfaces.srv import Resume
@@ -97,3 +98,51 @@ def test_a_bag_that_cannot_be_played_is_named(tmp_path: Path) -> None:
     assert f"Cannot play {tmp_path / 'missing'}" in result.stderr
     assert "missing" in result.stderr.splitlines()[-1]
 
+
+
+def interleaved_bag(path: Path, index: int, count: int) -> Path:
+    """Bag ``index`` of three: its /chatter messages every 30 ms, 10 ms after the previous bag's."""
+    with BagWriter(path) as writer:
+        writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String",
+                                   offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+        for n in range(count):
+            t = T0 + (n * 30 + index * 10) * 1_000_000
+            writer.write("/chatter", bytes(serialize(String(data=f"bag {index} message {n}"))), t, t)
+    return path
+
+
+@pytest.mark.parametrize("form", ["positional", "-i"])
+def test_three_bags_play_as_one_timeline(probe: Node, tmp_path: Path, form: str) -> None:
+    """What a subscriber of all three bags' topic receives is their merged order: bag 0, 1, 2, 0, 1, 2 ..."""
+    bags = [str(interleaved_bag(tmp_path / f"bag{index}", index, 10)) for index in range(3)]
+    named = bags if form == "positional" else ["-i", bags[0], "-i", bags[1], "mcap", "-i", bags[2]]
+    got: list[String] = []
+    subscription = probe.create_subscription(String, "/chatter", got.append, RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    try:
+        process = subprocess.Popen([CLI, "bag", "play", *named, "--start-paused"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert wait_until(lambda: subscription.get_publisher_count() > 0, 30.0, probe), "never matched"
+            call(probe, resume, Resume.Request(), 30.0, again=True)
+            wait_until(lambda: process.poll() is not None, 60.0, probe)
+        finally:
+            if process.poll() is None:
+                process.kill()
+        stdout, stderr = process.communicate(timeout=10)
+        assert process.returncode == 0, stderr
+        assert [m.data for m in got] == [f"bag {index} message {n}" for n in range(10) for index in range(3)]
+        assert stdout.splitlines()[-1].startswith("[FINISHED]  0.290 / 0.290 s  rate 1.00  30 msgs")
+    finally:
+        probe.destroy_client(resume)
+        probe.destroy_subscription(subscription)
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["a", "-i", "b"], "do not mix"),
+    ([], "name the bag to play"),
+    (["-i", "a", "rosbag1"], "-i takes a bag and optionally its storage id"),
+])
+def test_bag_arguments_that_name_no_clear_set_of_bags_are_refused(arguments: list[str], message: str) -> None:
+    result = subprocess.run([CLI, "bag", "play", *arguments], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1 and message in result.stderr, result.stderr
