@@ -24,6 +24,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
+from rclpy.node import Node
 from std_msgs.msg import Int32, String
 
 from baglib.format import fleet_keys
@@ -31,9 +32,11 @@ from baglib.format.cdr_fast import serialize
 from baglib.format.message_definitions import message_definition, type_hash
 from baglib.format.metadata import TopicInfo
 from baglib.write.writer import BagWriter
+from ipc_testing import ContainerClient, ContainerProcess, wait_until
 from legacy_bags import LegacyTopic, metadata_document, write_mcap, write_metadata
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
+REPO = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 TIE = T0 + 10_000 * MS  # every input has a message at this time: the merge keeps input order
@@ -185,6 +188,46 @@ def test_merges_bags_of_every_writer_in_log_time_order(tmp_path: Path, storage: 
     counts = {entry["topic_metadata"]["name"]: entry["message_count"] for entry in info["topics_with_message_count"]}
     assert counts == {"/chatter": 4 * 41, **{f"/count{index}": 8 for index in range(4)}}
     assert info["starting_time"]["nanoseconds_since_epoch"] == T0 and info["message_count"] == len(expected)
+
+
+def record_fleet_bag(probe: Node, session: Path, host: str, count: int) -> Path:
+    """One computer of a fleet session: a container with a talker on /<host>/chatter and a recorder of that topic
+    next to it (intra-process), recording into ``session/<host>_main`` with the fleet keys, until ``count``
+    messages went out; the recorder is unloaded (the bag finalized) and the container stopped."""
+    bag = session / f"{host}_main"
+    heard: list[String] = []
+    subscription = probe.create_subscription(String, f"/{host}/chatter", heard.append, 100)
+    with ContainerProcess("--use-intra-process-comms", name=f"fleet_{host}", cwd=REPO,
+                          log_path=session.parent / f"{host}.log") as container:
+        client = ContainerClient(probe, f"/fleet_{host}")
+        try:
+            client.wait()
+            custom = [f"{key}={value}" for key, value in fleet(host).items() if value]
+            recorder = client.load("components::Recorder", name=f"recorder_{host}", parameters={
+                "record.topics": [f"/{host}/chatter"], "storage.uri": str(bag), "storage.custom_data": custom})
+            assert recorder.success, recorder.error_message
+            talker = client.load("components::Talker", namespace=f"/{host}", parameters={"rate": 100.0})
+            assert talker.success, talker.error_message
+            assert wait_until(lambda: len(heard) >= count, 30.0, probe), f"{len(heard)} of {count} heard"
+            assert client.unload(recorder.unique_id).success
+        finally:
+            client.destroy()
+            probe.destroy_subscription(subscription)
+    return bag
+
+
+def test_merges_what_the_recorder_recorded_on_two_computers(probe: Node, tmp_path: Path) -> None:
+    session = tmp_path / "session"
+    bags = [record_fleet_bag(probe, session, host, 40) for host in ("alpha", "beta")]
+    inputs = [rosbags_messages(bag) for bag in bags]
+    assert all(len(messages) >= 20 for messages in inputs), [len(messages) for messages in inputs]
+    done = merge(tmp_path / "merged", *bags, "--align-clocks")
+    assert done.returncode == 0, done.stderr
+    expected = sorted((message for messages in inputs for message in messages), key=lambda message: message[1])
+    assert rosbags_messages(tmp_path / "merged") == expected
+    assert mcap_messages(tmp_path / "merged") == expected
+    custom = metadata(tmp_path / "merged")["custom_data"]
+    assert custom["input.1.ipc.host"] == "beta" and custom["input.0.ipc.session"] == "s1"
 
 
 def test_custom_data_of_every_input_is_kept(tmp_path: Path) -> None:
