@@ -6,19 +6,20 @@ IMU-sized one (300 B) every 5 ms, where the bytes dominate; ``small``, 512-byte 
 per message does. For each, with the inputs' cached pages dropped before every pass (fsync, then
 ``posix_fadvise(DONTNEED)``: no root needed):
 
-* ``read``: each input read alone with the bag reader, one after the other: what the merge cannot beat;
+* ``read``: each input read alone with the bag reader, one after the other;
 * ``merge``: ``merge_bags`` of the three into a new MCAP bag (the timeline's k-way merge plus the writer).
 
-MB/s counts the messages' payload bytes. Also reported: messages per second, and the merge's share of the read
-speed.
+The two take turns, ``--rounds`` times; the medians are reported. MB/s counts the messages' payload bytes. Also
+reported: messages per second, and the merge's speed as a share of reading alone.
 
-    python benchmarks/merge_bench.py [--gb 1] [--dir DIR] [--quick]
+    python benchmarks/merge_bench.py [--gb 1] [--rounds 3] [--dir DIR] [--quick]
 """
 from __future__ import annotations
 
 import argparse
 import os
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -82,26 +83,37 @@ def read_alone(bags: list[Path]) -> tuple[int, int, float]:
     return messages, payload, time.perf_counter() - started
 
 
-def measure(workdir: Path, workload: str, total_bytes: int) -> dict[str, Any]:
+def merge_cold(bags: list[Path], output: Path) -> tuple[int, int, float]:
+    """Messages, bytes written and seconds of merging ``bags`` into ``output`` (removed after)."""
+    cold(bags)
+    started = time.perf_counter()
+    report = merge_bags(output, bags)
+    seconds = time.perf_counter() - started
+    shutil.rmtree(output)
+    return report.messages, report.bytes_written, seconds
+
+
+def measure(workdir: Path, workload: str, total_bytes: int, rounds: int) -> dict[str, Any]:
+    """Read alone, then merge, ``rounds`` times in turn; the median of each. (The virtual disk's host may cache
+    what the guest dropped: taking turns gives both passes the same chance of it.)"""
     bags = [workdir / f"{workload}_{index}" for index in range(INPUTS)]
     for index, bag in enumerate(bags):
         write_input(bag, index, workload, total_bytes // INPUTS)
-    messages, payload, read_s = read_alone(bags)
-    cold(bags)
-    output = workdir / f"{workload}_merged"
-    started = time.perf_counter()
-    report = merge_bags(output, bags)
-    merge_s = time.perf_counter() - started
-    assert report.messages == messages, (report.messages, messages)
-    shutil.rmtree(output)
+    read_s, merge_s = [], []
+    for _ in range(rounds):
+        messages, payload, seconds = read_alone(bags)
+        read_s.append(seconds)
+        merged, written, seconds = merge_cold(bags, workdir / f"{workload}_merged")
+        assert merged == messages, (merged, messages)
+        merge_s.append(seconds)
     for bag in bags:
         shutil.rmtree(bag)
-    read_mb_s, merge_mb_s = payload / read_s / 1e6, payload / merge_s / 1e6
-    return {"inputs": INPUTS, "messages": messages, "payload_bytes": payload,
-            "read": {"seconds": read_s, "mb_per_s": read_mb_s, "messages_per_s": messages / read_s},
-            "merge": {"seconds": merge_s, "mb_per_s": merge_mb_s, "messages_per_s": messages / merge_s,
-                      "bytes_written": report.bytes_written},
-            "share_of_read": merge_mb_s / read_mb_s}
+    read, merge = statistics.median(read_s), statistics.median(merge_s)
+    return {"inputs": INPUTS, "messages": messages, "payload_bytes": payload, "rounds": rounds,
+            "read": {"seconds": read_s, "mb_per_s": payload / read / 1e6, "messages_per_s": messages / read},
+            "merge": {"seconds": merge_s, "mb_per_s": payload / merge / 1e6, "messages_per_s": messages / merge,
+                      "bytes_written": written},
+            "share_of_read": read / merge}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -109,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gb", type=float, default=1.0, help="payload of the frames workload, all inputs together "
                                                                "(default 1 GB; small: a tenth of it)")
     parser.add_argument("--quick", action="store_true", help="0.3 GB")
+    parser.add_argument("--rounds", type=int, default=3, help="read-alone and merge passes, in turn (default 3)")
     parser.add_argument("--dir", default="", help="where to write the bags (default: a temporary directory under "
                                                   "the repository, on the disk the results describe)")
     parser.add_argument("--results", default=str(RESULTS), help="the result folder goes under this directory ('': none)")
@@ -119,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     base = Path(args.dir) if args.dir else Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory(prefix="merge_bench_", dir=base) as workdir:
-        report["workloads"] = {workload: measure(Path(workdir), workload, int(args.gb * 1e9 * share))
+        report["workloads"] = {workload: measure(Path(workdir), workload, int(args.gb * 1e9 * share), args.rounds)
                                for workload, share in (("frames", 1.0), ("small", 0.1))}
     report["elapsed_s"] = time.monotonic() - started
     for workload, entry in report["workloads"].items():
