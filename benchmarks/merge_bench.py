@@ -21,7 +21,6 @@ import os
 import shutil
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ from baglib.read.reader import BagReader  # noqa: E402
 from baglib.tools.merge import merge_bags  # noqa: E402
 from baglib.write.writer import BagWriter  # noqa: E402
 from benchmarks.recover_bench import drop_cache  # noqa: E402
-from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
+from benchmarks.result_folder import add_location_arguments, run_header, save, work_directory  # noqa: E402
 
 INPUTS = 3
 FRAME = 1920 * 1080 * 3
@@ -122,16 +121,13 @@ def main(argv: list[str] | None = None) -> int:
                                                                "(default 1 GB; small: a tenth of it)")
     parser.add_argument("--quick", action="store_true", help="0.3 GB")
     parser.add_argument("--rounds", type=int, default=3, help="read-alone and merge passes, in turn (default 3)")
-    parser.add_argument("--dir", default="", help="where to write the bags (default: a temporary directory under "
-                                                  "the repository, on the disk the results describe)")
-    parser.add_argument("--results", default=str(RESULTS), help="the result folder goes under this directory ('': none)")
+    add_location_arguments(parser)
     args = parser.parse_args(argv)
     if args.quick:
         args.gb = 0.3
     report = run_header("merge_bench.py", list(argv if argv is not None else sys.argv[1:]))
     started = time.monotonic()
-    base = Path(args.dir) if args.dir else Path(__file__).resolve().parents[1]
-    with tempfile.TemporaryDirectory(prefix="merge_bench_", dir=base) as workdir:
+    with work_directory(args, "merge_bench_") as workdir:
         report["workloads"] = {workload: measure(Path(workdir), workload, int(args.gb * 1e9 * share), args.rounds)
                                for workload, share in (("frames", 1.0), ("small", 0.1))}
     report["elapsed_s"] = time.monotonic() - started
