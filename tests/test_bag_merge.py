@@ -22,8 +22,9 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rclpy.node import Node
 from std_msgs.msg import Int32, String
 
@@ -33,7 +34,7 @@ from baglib.format.message_definitions import message_definition, type_hash
 from baglib.format.metadata import TopicInfo
 from baglib.write.writer import BagWriter
 from ipc_testing import ContainerClient, ContainerProcess, wait_until
-from legacy_bags import LegacyTopic, metadata_document, write_mcap, write_metadata
+from legacy_bags import LegacyTopic, metadata_document, write_mcap, write_metadata, write_sqlite
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
 REPO = Path(__file__).resolve().parents[1]
@@ -394,3 +395,35 @@ def test_a_full_disk_leaves_no_half_merged_bag(tmp_path: Path) -> None:
     assert done.returncode == 1, done.stdout + done.stderr
     assert "nothing kept" in done.stderr and "No space left" in done.stderr
     assert done.stdout == ""  # the listing of the tmpfs after the merge: empty
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_type_not_installed_here_is_copied_with_its_recorded_definition(tmp_path: Path, storage: str) -> None:
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg("int32 x\nstring note", "not_installed_msgs/msg/Thing"))
+    things = [store.serialize_cdr(store.types["not_installed_msgs/msg/Thing"](x=n, note=f"n{n}"),
+                                  "not_installed_msgs/msg/Thing") for n in range(5)]
+    with Writer(tmp_path / "things", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection("/thing", "not_installed_msgs/msg/Thing", typestore=store)
+        for n, data in enumerate(things):
+            writer.write(connection, T0 + n * MS, data)
+    other = recorder_bag(tmp_path / "other", plan_of(0, "/count0"))
+    done = merge(tmp_path / "merged", tmp_path / "things", other, "-s", storage)
+    assert done.returncode == 0, done.stderr
+    with AnyReader([tmp_path / "merged"]) as reader:  # types from the bag's own definitions
+        decoded = [reader.deserialize(data, connection.msgtype) for connection, _, data in reader.messages()
+                   if connection.topic == "/thing"]
+    assert [(thing.x, thing.note) for thing in decoded] == [(n, f"n{n}") for n in range(5)]
+
+
+def test_a_type_nobody_describes_is_refused(tmp_path: Path) -> None:
+    """A Humble-era SQLite3 bag keeps no message definitions; a type not installed here cannot be described."""
+    topics = [LegacyTopic("/thing", "not_installed_msgs/msg/Thing")]
+    messages = [("/thing", T0, T0, b"\0\1\0\0\7\0\0\0")]
+    bag = tmp_path / "humble"
+    bag.mkdir()
+    write_sqlite(bag / "humble_0.db3", 3, topics, messages, 5)
+    write_metadata(bag, metadata_document(5, "sqlite3", ["humble_0.db3"], topics, [messages]))
+    done = merge(tmp_path / "merged", bag)
+    assert done.returncode == 1 and "not_installed_msgs/msg/Thing" in done.stderr, done.stderr
+    assert not (tmp_path / "merged").exists()
