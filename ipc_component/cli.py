@@ -440,8 +440,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Write the recovered bag to this new directory instead of in place")
     p.set_defaults(handler=run_bag_recover)
     bag_merge.register(bag_verbs)
-    p = bag_verbs.add_parser("play", help="Play back a bag (like `ros2 bag play`)",
-                             description="Play back a bag with components::Player, like `ros2 bag play`.")
+    p = bag_verbs.add_parser("play", help="Play back bags (like `ros2 bag play`)",
+                             description="Play back bags (several: one timeline) like `ros2 bag play`.")
     bag_play.add_arguments(p)
     p.set_defaults(handler=bag_play.run_bag_play)
     return parser
