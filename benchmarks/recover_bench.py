@@ -18,7 +18,6 @@ import argparse
 import os
 import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -28,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from baglib.format.metadata import TopicInfo  # noqa: E402
 from baglib.tools.repair import recover_bag  # noqa: E402
 from baglib.write.writer import BagWriter  # noqa: E402
-from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
+from benchmarks.result_folder import add_location_arguments, run_header, save, work_directory  # noqa: E402
 
 FRAME = 1920 * 1080 * 3
 TARGET_SHARE = 0.8
@@ -115,15 +114,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--gb", type=float, default=2.0, help="size of the bag (default 2 GB)")
     parser.add_argument("--quick", action="store_true", help="a 0.5 GB bag")
-    parser.add_argument("--dir", default="", help="where to write the bags (default: a temporary directory under "
-                                                  "the repository, on the disk the results describe)")
-    parser.add_argument("--results", default=str(RESULTS), help="the result folder goes under this directory ('': none)")
+    add_location_arguments(parser)
     args = parser.parse_args(argv)
     if args.quick:
         args.gb = 0.5
     report = run_header("recover_bench.py", list(argv if argv is not None else sys.argv[1:]))
-    base = Path(args.dir) if args.dir else Path(__file__).resolve().parents[1]
-    with tempfile.TemporaryDirectory(prefix="recover_bench_", dir=base) as workdir:
+    with work_directory(args, "recover_bench_") as workdir:
         report.update(run(args, Path(workdir)))
     for mode in ("in_place", "copy"):
         entry = report[mode]

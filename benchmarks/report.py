@@ -233,6 +233,15 @@ def fleet_table(fleet: dict[str, Any]) -> list[str]:
                 f"scheduled start to the first frame received (from the last frame to the stop)."]
 
 
+def merge_table(merge: dict[str, Any]) -> list[str]:
+    workloads = part(merge, "workloads")
+    rows = [[name, str(entry["inputs"]), f"{entry['payload_bytes'] / 1e6:.0f}", str(entry["messages"]),
+             f"{entry['read']['mb_per_s']:.0f}", f"{entry['merge']['mb_per_s']:.0f}", f"{entry['share_of_read']:.0%}",
+             f"{entry['merge']['messages_per_s']:.0f}"] for name, entry in workloads.items()]
+    return markdown(["workload", "inputs", "payload MB", "messages", "read alone MB/s", "merge MB/s",
+                     "merge / read", "merge messages/s"], rows)
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -251,6 +260,7 @@ TABLES: dict[str, Table] = {
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
     "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
     "fleet": Table("fleet", "central", "python benchmarks/fleet_bench.py", fleet_table, "Fleet"),
+    "merge": Table("merge", "workloads", "python benchmarks/merge_bench.py", merge_table, "Merge"),
 }
 
 

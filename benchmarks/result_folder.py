@@ -5,9 +5,11 @@ same day and commit gets a folder of its own (``...-2``, ``-3``, ...).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import shlex
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,18 @@ def git_state() -> dict[str, Any]:
             return ""
     return {"commit": git("rev-parse", "--short", "HEAD").strip(),
             "modified": [line[3:] for line in git("status", "--porcelain", "--untracked-files=no").splitlines()]}
+
+
+def add_location_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--dir`` (where a benchmark writes its bags) and ``--results`` (where its result folder goes)."""
+    parser.add_argument("--dir", default="", help="where to write the bags (default: a temporary directory under "
+                                                  "the repository, on the disk the results describe)")
+    parser.add_argument("--results", default=str(RESULTS), help="the result folder goes under this directory ('': none)")
+
+
+def work_directory(args: argparse.Namespace, prefix: str) -> tempfile.TemporaryDirectory:
+    """A temporary directory for the bags, under ``--dir`` or the repository."""
+    return tempfile.TemporaryDirectory(prefix=prefix, dir=Path(args.dir) if args.dir else REPO)
 
 
 def run_header(script: str, argv: list[str]) -> dict[str, Any]:

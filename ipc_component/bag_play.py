@@ -1,4 +1,6 @@
-"""``ipc-component bag play BAG``: what ``ros2 bag play`` does, as a container of one ``components::Player``.
+"""``ipc-component bag play BAG [BAG ...]``: what ``ros2 bag play`` does, as a container of one ``components::Player``.
+
+Several bags (positional, or rosbag2 Kilted's ``-i BAG [STORAGE_ID]`` repeated; not both) play as one timeline.
 
 The command runs a container in its own process (no separate container to start) and loads the player by
 plugin name, with the command's options as the player's rosbag2 parameters; while it plays, a terminal shows
@@ -23,9 +25,13 @@ _NS_PER_S = 1_000_000_000
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``ros2 bag play`` options this player supports, with its names."""
-    parser.add_argument("bag_path", help="Bag directory, or a single .mcap / .db3 file")
+    parser.add_argument("bag_paths", nargs="*", metavar="bag_path",
+                        help="Bag directory, or a single .mcap / .db3 file; several play as one timeline")
+    parser.add_argument("-i", "--input", action="append", nargs="+", default=[], metavar=("URI", "STORAGE_ID"),
+                        dest="inputs", help="A bag to play, with its storage id (default: detect); repeat it to "
+                                            "play several bags as one timeline (instead of positional bags)")
     parser.add_argument("-s", "--storage", default="", choices=("", "mcap", "sqlite3"),
-                        help="Storage identifier (default: detect)")
+                        help="Storage identifier of the positional bags (default: detect)")
     parser.add_argument("-r", "--rate", type=float, default=1.0, help="Rate at which to play back messages")
     parser.add_argument("-l", "--loop", action="store_true", help="Enables loop playback")
     parser.add_argument("--topics", nargs="+", default=[], help="Topics to replay, separated by space")
@@ -64,11 +70,31 @@ def _duration(name: str, seconds: float) -> dict[str, int]:
     return {f"{name}.sec": sign * (abs(nanoseconds) // _NS_PER_S), f"{name}.nsec": sign * (abs(nanoseconds) % _NS_PER_S)}
 
 
+def input_bags(args: argparse.Namespace) -> list[tuple[str, str]]:
+    """(path, storage id) of every bag to play; ValueError for a command line that names none, or mixes
+    positional bags and ``-i`` (as rosbag2 refuses to)."""
+    if args.bag_paths and args.inputs:
+        raise ValueError("do not mix positional bags and the -i,--input option; for several input bags, name them "
+                         "all one way")
+    if not args.bag_paths and not args.inputs:
+        raise ValueError("name the bag to play (bag_path, or -i URI)")
+    for given in args.inputs:
+        if len(given) > 2 or given[1:] not in ([], ["mcap"], ["sqlite3"], [""]):
+            raise ValueError(f"-i takes a bag and optionally its storage id (mcap or sqlite3), got {' '.join(given)}")
+    return [(path, args.storage) for path in args.bag_paths] + [(given[0], given[1] if given[1:] else "")
+                                                               for given in args.inputs]
+
+
+def _storage_parameters(bags: list[tuple[str, str]]) -> dict[str, Any]:
+    if len(bags) == 1:
+        return {"storage.uri": bags[0][0], "storage.storage_id": bags[0][1]}
+    return {"storage.uris": [path for path, _ in bags], "storage.storage_ids": [storage for _, storage in bags]}
+
+
 def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
-    """The player's parameters for the command's options."""
+    """The player's parameters for the command's options (ValueError: see :func:`input_bags`)."""
     parameters: dict[str, Any] = {
-        "storage.uri": args.bag_path,
-        "storage.storage_id": args.storage,
+        **_storage_parameters(input_bags(args)),
         "play.rate": args.rate,
         "play.loop": args.loop,
         "play.topics_to_filter": args.topics or [""],
@@ -117,6 +143,12 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     from component_container.process_tuning import apply_low_latency
     from component_container.startup_file import load_request
 
+    try:
+        parameters = player_parameters(args)
+    except ValueError as exc:
+        print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
+        return 1
+    bags = [path for path, _ in input_bags(args)]
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     apply_low_latency()  # this process is a player's own container: tune it for replay timing
@@ -125,14 +157,14 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     rclpy.init(args=["ipc-component", *ros_args], context=context)
     manager = None
     try:
-        manager = ComponentManager("single", node_name=container_name(args.bag_path), context=context)
+        manager = ComponentManager("single", node_name=container_name(bags[0]), context=context)
         request = load_request({"package": "components", "plugin": PLAYER_PLUGIN,
-                                "parameters": player_parameters(args),
+                                "parameters": parameters,
                                 "remaps": args.remap}, 1, "bag play")
         try:
             player = manager.load(request).node
         except Exception as exc:  # noqa: BLE001 - the player's own message names what is wrong
-            print(f"Cannot play {args.bag_path}: {exc}", file=sys.stderr, flush=True)
+            print(f"Cannot play {', '.join(bags)}: {exc}", file=sys.stderr, flush=True)
             return 1
         show = out.isatty() and not args.no_progress
         while not stop.wait(PROGRESS_PERIOD):

@@ -22,7 +22,7 @@ import sys
 import time
 from typing import Any, Callable, Sequence
 
-from ipc_component import bag_play
+from ipc_component import bag_merge, bag_play
 
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
 # s: how long ``list`` without a container watches the graph. This project's containers re-announce every
@@ -443,8 +443,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default=None,
                    help="Write the recovered bag to this new directory instead of in place")
     p.set_defaults(handler=run_bag_recover)
-    p = bag_verbs.add_parser("play", help="Play back a bag (like `ros2 bag play`)",
-                             description="Play back a bag with components::Player, like `ros2 bag play`.")
+    bag_merge.register(bag_verbs)
+    p = bag_verbs.add_parser("play", help="Play back bags (like `ros2 bag play`)",
+                             description="Play back bags (several: one timeline) like `ros2 bag play`.")
     bag_play.add_arguments(p)
     p.set_defaults(handler=bag_play.run_bag_play)
     return parser

@@ -68,6 +68,18 @@ def test_a_directory_without_metadata_names_the_repair(tmp_path: Path, capsys: p
     assert f"'{bag}' is an unfinished bag" in err and f"ipc-component bag recover {bag}" in err
 
 
+@pytest.mark.parametrize("leftover, named", [("-journal", "rollback journal"), ("-wal", "write-ahead log")])
+def test_an_sqlite3_file_a_crash_left_with_its_journal_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                 leftover: str, named: str) -> None:
+    bag = rosbags_bag(tmp_path / "bag", "sqlite3")
+    (file,) = bag.glob("*.db3")
+    file.with_name(file.name + leftover).write_bytes(b"\0" * 512)
+    code, out, err = info(capsys, bag)
+    assert code == 0, err
+    assert f"Warning: {file.name} is unfinished: a crash left its {named}" in out
+    assert f"Run `ipc-component bag recover {bag}`" in out
+
+
 @pytest.mark.parametrize("case", ["missing", "empty directory", "not a bag file", "under a file"])
 def test_errors_name_the_path_and_the_problem(tmp_path: Path, case: str,
                                               capsys: pytest.CaptureFixture[str]) -> None:

@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbag2_interfaces.srv import Resume
@@ -39,15 +40,14 @@ def chatter_bag(path: Path, count: int, period_ms: int) -> Path:
     return path
 
 
-def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
-    bag = chatter_bag(tmp_path / "bag", 20, 50)
+def play_to_the_end(probe: Node, *arguments: str) -> tuple[list[str], str]:
+    """Run ``bag play ARGUMENTS --start-paused`` and resume it once this process's /chatter subscription has matched
+    the player's publisher (instead of a delay long enough for discovery); the strings received, and stdout."""
     got: list[String] = []
     subscription = probe.create_subscription(String, "/chatter", got.append, RELIABLE)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
     try:
-        # Started paused, resumed once this subscription has matched the player's publisher (instead of a
-        # delay long enough for discovery); --delay (applied before the paused start) is exercised on the way.
-        process = subprocess.Popen([CLI, "bag", "play", str(bag), "--start-paused", "--delay", "0.2", "--rate", "2"],
+        process = subprocess.Popen([CLI, "bag", "play", *arguments, "--start-paused"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             assert wait_until(lambda: subscription.get_publisher_count() > 0, 30.0, probe), "never matched"
@@ -59,12 +59,19 @@ def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
                 process.kill()
         stdout, stderr = process.communicate(timeout=10)
         assert process.returncode == 0, stderr
-        assert [m.data for m in got] == [f"message {n}" for n in range(20)]
-        assert stdout.splitlines()[-1].startswith("[FINISHED]  0.950 / 0.950 s  rate 2.00  20 msgs")
-        assert "\r" not in stdout  # no progress line when stdout is not a terminal
+        return [m.data for m in got], stdout
     finally:
         probe.destroy_client(resume)
         probe.destroy_subscription(subscription)
+
+
+def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
+    bag = chatter_bag(tmp_path / "bag", 20, 50)
+    # --delay (applied before the paused start) is exercised on the way
+    got, stdout = play_to_the_end(probe, str(bag), "--delay", "0.2", "--rate", "2")
+    assert got == [f"message {n}" for n in range(20)]
+    assert stdout.splitlines()[-1].startswith("[FINISHED]  0.950 / 0.950 s  rate 2.00  20 msgs")
+    assert "\r" not in stdout  # no progress line when stdout is not a terminal
 
 
 def test_progress_line_on_a_terminal_and_ctrl_c(tmp_path: Path) -> None:
@@ -97,3 +104,34 @@ def test_a_bag_that_cannot_be_played_is_named(tmp_path: Path) -> None:
     assert f"Cannot play {tmp_path / 'missing'}" in result.stderr
     assert "missing" in result.stderr.splitlines()[-1]
 
+
+
+def interleaved_bag(path: Path, index: int, count: int) -> Path:
+    """Bag ``index`` of three: its /chatter messages every 30 ms, 10 ms after the previous bag's."""
+    with BagWriter(path) as writer:
+        writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String",
+                                   offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+        for n in range(count):
+            t = T0 + (n * 30 + index * 10) * 1_000_000
+            writer.write("/chatter", bytes(serialize(String(data=f"bag {index} message {n}"))), t, t)
+    return path
+
+
+@pytest.mark.parametrize("form", ["positional", "-i"])
+def test_three_bags_play_as_one_timeline(probe: Node, tmp_path: Path, form: str) -> None:
+    """What a subscriber of all three bags' topic receives is their merged order: bag 0, 1, 2, 0, 1, 2 ..."""
+    bags = [str(interleaved_bag(tmp_path / f"bag{index}", index, 10)) for index in range(3)]
+    named = bags if form == "positional" else ["-i", bags[0], "-i", bags[1], "mcap", "-i", bags[2]]
+    got, stdout = play_to_the_end(probe, *named)
+    assert got == [f"bag {index} message {n}" for n in range(10) for index in range(3)]
+    assert stdout.splitlines()[-1].startswith("[FINISHED]  0.290 / 0.290 s  rate 1.00  30 msgs")
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["a", "-i", "b"], "do not mix"),
+    ([], "name the bag to play"),
+    (["-i", "a", "rosbag1"], "-i takes a bag and optionally its storage id"),
+])
+def test_bag_arguments_that_name_no_clear_set_of_bags_are_refused(arguments: list[str], message: str) -> None:
+    result = subprocess.run([CLI, "bag", "play", *arguments], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1 and message in result.stderr, result.stderr

@@ -448,6 +448,53 @@ def test_a_truncated_bag_plays_what_is_intact(container: Any, tmp_path: Path) ->
     assert process.alive()
 
 
+# --- several bags as one timeline ---------------------------------------------------------------------------
+def test_several_bags_play_as_one_timeline(container: Any, tmp_path: Path) -> None:
+    """rosbag2 Kilted's ``play -i A -i B -i C``: one clock from the earliest start, the messages of all three in
+    log-time order (a tie in the order the bags were named), the topics of every bag advertised; each split bag
+    sends its own read_split events, none for moving between bags."""
+    node, client, process = container
+    plans = [[("/chatter", n * 15 * MS + index * 5 * MS, chatter(100 * index + n)) for n in range(12)]
+             + [("/chatter", 400 * MS, chatter(100 * index + 99))] for index in range(3)]
+    plans[1] = sorted(plans[1] + [("/image", n * 45 * MS, image(n, height=100)) for n in range(4)],
+                      key=lambda entry: entry[1])  # only this bag has /image
+    bags = [write_bag(tmp_path / f"bag{index}", plan, max_bagfile_size=12000 if index == 1 else 0)
+            for index, plan in enumerate(plans)]
+    split = sorted(str(path) for path in bags[1].glob("*.mcap"))
+    assert len(split) >= 2
+    events: list[ReadSplitEvent] = []
+    subscription = node.create_subscription(ReadSplitEvent, "/events/read_split", events.append, 10)
+    try:
+        handle = PlayerHandle(node, client, bags[0], {"storage.uri": "", "storage.uris": [str(b) for b in bags],
+                                                      "play.start_paused": True})
+        assert wait_until(lambda: subscription.get_publisher_count() > 0, 10.0, node), "no read_split publisher"
+        handle.player(Resume, "resume")
+        stats = handle.wait_finished()
+        merged = sorted((entry for plan in plans for entry in plan), key=lambda entry: entry[1])  # stable: bag order
+        report = handle.report()
+        assert received(report, "/chatter") == [digest(data) for topic, _, data in merged if topic == "/chatter"]
+        assert received(report, "/image") == expected(plans[1], "/image")
+        assert stats["duration_ns"] == 400 * MS and stats["bag"] == ", ".join(str(b) for b in bags)
+        wait_until(lambda: len(events) >= len(split) - 1, 5.0, node)
+        assert [(e.closed_file, e.opened_file) for e in events] == list(zip(split, split[1:]))
+        handle.unload()
+    finally:
+        node.destroy_subscription(subscription)
+
+
+def test_bags_with_one_topic_of_two_types_are_refused(container: Any, tmp_path: Path) -> None:
+    node, client, process = container
+    strings = write_bag(tmp_path / "strings", [("/chatter", 0, chatter(0))])
+    images = tmp_path / "images"
+    with BagWriter(images) as writer:
+        writer.add_topic(TopicInfo("/chatter", "sensor_msgs/msg/Image"))
+        writer.write("/chatter", image(0), T0, T0)
+    response = client.load(PLAYER, name="mixed_player", extra=IPC,
+                           parameters={"storage.uris": [str(strings), str(images)]})
+    assert not response.success
+    assert all(text in response.error_message for text in ("storage.uris", "/chatter", str(strings), str(images)))
+
+
 # --- bags of other writers ----------------------------------------------------------------------------------
 def chatter_messages(count: int) -> list[tuple[str, int, int, bytes]]:
     return [("/chatter", T0 + n * 20 * MS, T0 + n * 20 * MS, chatter(n)) for n in range(count)]
@@ -581,6 +628,8 @@ def test_service_events_are_published_and_filtered(container: Any, tmp_path: Pat
     ({}, "storage.uri"),
     ({"storage.uri": "/nonexistent/bag"}, "/nonexistent/bag"),
     ({"storage.storage_id": "rosbag1"}, "storage.storage_id"),
+    ({"storage.uris": ["/elsewhere/bag"]}, "'storage.uri' and 'storage.uris' are both set"),
+    ({"storage.storage_ids": ["mcap", "mcap"]}, "storage.storage_ids"),
     ({"play.rate": 0.0}, "play.rate"),
     ({"play.regex_to_filter": "("}, "play.regex_to_filter"),
     ({"play.read_ahead_queue_size": 0}, "play.read_ahead_queue_size"),

@@ -14,11 +14,9 @@ import datetime
 from dataclasses import dataclass
 from pathlib import Path
 
-from baglib.format.mcap_records import MAGIC
-from baglib.format.metadata import METADATA_FILENAME
 from baglib.read.metadata_read import StoredTopic, load_metadata
 from baglib.read.reader import BagReader
-from baglib.format.bag_files import RECOVER_COMMAND, storage_files
+from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
 from baglib.format.service_events import is_service_event_topic, service_name, service_type
 from baglib.read.storage_reader import BagReadError
 
@@ -97,16 +95,8 @@ def _block(label: str, lines: list[str], width: int = _LABEL_WIDTH) -> list[str]
 
 
 def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
-    """Warnings about storage files a crash left behind: unlisted ones, MCAP files without footer."""
-    notes = []
-    for path in storage_files(bag_dir) if bag_dir.is_dir() else []:
-        if path.name not in listed:
-            notes.append(f"{path.name} is not listed in {METADATA_FILENAME} (recording interrupted?)")
-        elif path.suffix == ".mcap":
-            with open(path, "rb") as file:
-                file.seek(max(0, path.stat().st_size - len(MAGIC)))
-                if file.read() != MAGIC:
-                    notes.append(f"{path.name} is unfinished: no MCAP footer")
+    """Warnings about storage files a crash left behind: unlisted ones, unfinished ones."""
+    notes = unfinished_files(bag_dir, listed) if bag_dir.is_dir() else []
     if notes:
         notes.append(f"Run `{RECOVER_COMMAND} {bag_dir}` to make the whole bag readable.")
     return [f"Warning: {note}" for note in notes]

@@ -15,7 +15,7 @@ import sqlite3
 from pathlib import Path
 
 from baglib.format.cdr_fast import CdrData
-from baglib.format.message_definitions import MessageDefinitionNotFoundError, type_hash
+from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
 from baglib.format.durable import fsync_directory
 from baglib.format.metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
@@ -150,15 +150,17 @@ class SqliteStorage:
     def add_topic(self, topic: TopicInfo, definition: tuple[str, str]) -> None:
         """Insert the topic row and, once per type, its message definition row.
 
-        The definition row carries the hash of its own text (the locally installed type's hash),
-        so it is correct even when a publisher announced a different version of the type.
+        The definition row carries the hash of its own text: the locally installed type's hash when the
+        text is the installed type's (correct even when a publisher announced a different version of the
+        type), else the topic's (a definition copied from another bag, with the hash recorded with it).
         """
         self._require_open()
         if topic.name in self._topic_ids:
             return
         encoding, text = definition
         try:
-            definition_hash = type_hash(topic.type)
+            installed = message_definition(topic.type) == definition
+            definition_hash = type_hash(topic.type) if installed else topic.type_description_hash
         except MessageDefinitionNotFoundError:
             definition_hash = topic.type_description_hash
         try:

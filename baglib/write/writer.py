@@ -259,15 +259,17 @@ class BagWriter:
             raise ValueError("custom_data keys and values must be strings")
         self._metadata.custom_data = {**(self._metadata.custom_data or {}), **pairs}
 
-    def add_topic(self, info: TopicInfo) -> None:
+    def add_topic(self, info: TopicInfo, definition: tuple[str, str] | None = None) -> None:
         """Make a topic known; it is listed in the bag even if no message is ever written.
 
         Adding a topic again is a no-op; adding its name with another type is an error. An empty
-        ``type_description_hash`` is filled in from the locally installed type.
+        ``type_description_hash`` is filled in from the locally installed type. ``definition`` is the
+        type's ``(encoding, text)`` as another bag recorded it (a merge copies its inputs'); without
+        it, the locally installed one. A type is described once, by its first topic's definition.
 
         Raises:
-            MessageDefinitionNotFoundError: the type's definition is not installed here, so the
-                bag could not describe it.
+            MessageDefinitionNotFoundError: no ``definition`` is given and the type's is not
+                installed here, so the bag could not describe it.
             ValueError: the name is already used by another type.
             BagWriteError: the storage failed (the bag is then closed, see class doc).
         """
@@ -283,7 +285,7 @@ class BagWriter:
             if not info.type_description_hash:
                 with contextlib.suppress(MessageDefinitionNotFoundError):
                     info = dataclasses.replace(info, type_description_hash=type_hash(info.type))
-            definition = self._definitions.get(info.type) or message_definition(info.type)
+            definition = self._definitions.get(info.type) or definition or message_definition(info.type)
             assert self._storage is not None
             try:
                 self._storage.add_topic(info, definition)

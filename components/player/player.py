@@ -1,7 +1,10 @@
 """``components::Player``: rosbag2 Jazzy's player component, replaying into the container without copies.
 
 Loaded with ``storage.uri`` (and rosbag2's ``play.*`` parameters, see player_options) it starts playing at
-once, as rosbag2's ``rosbag2_transport::Player`` component does. Remap its topics with the normal LoadNode
+once, as rosbag2's ``rosbag2_transport::Player`` component does. With ``storage.uris`` it plays several bags as one
+timeline, as rosbag2 Kilted's ``ros2 bag play -i A -i B`` does (baglib.read.timeline): one clock from the earliest
+start to the latest end, the messages of all bags in log-time order (a tie goes to the bag named first), the
+topics of all bags advertised (a topic of two bags with different types is refused, naming both). Remap its topics with the normal LoadNode
 remap rules. Services (private, rosbag2_interfaces): ``~/pause``, ``~/resume``, ``~/toggle_paused``,
 ``~/is_paused``, ``~/get_rate``, ``~/set_rate``, ``~/play``, ``~/play_next``, ``~/burst``, ``~/seek``,
 ``~/stop``, plus ``~/get_stats`` (std_srvs/Trigger, JSON: position, published, publish-time error
@@ -42,7 +45,8 @@ from rosbag2_interfaces.srv import (
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
-from baglib.read.reader import BagMessage, BagReader, BagReadError
+from baglib.read.reader import BagMessage, BagReadError
+from baglib.read.timeline import Timeline
 from baglib.format.message_definitions import message_class
 from baglib.format.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
@@ -57,7 +61,6 @@ from components.player.service_requests import ServiceRequestSender
 from components.qos_profiles import load_qos_overrides
 
 SPLIT_EVENT_TOPIC = "events/read_split"
-URI_PARAMETER = "storage.uri"
 QOS_OVERRIDES_PARAMETER = "play.qos_profile_overrides_path"
 #: rclcpp::ClockQoS: keep_last 1, best effort.
 CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -79,7 +82,7 @@ class Player(ComponentNode):
     def __init__(self, **kwargs: Any) -> None:
         overrides = {p.name: p for p in kwargs.get("parameter_overrides") or []}
         super().__init__("rosbag2_player", **kwargs)
-        self._reader: BagReader | None = None
+        self._reader: Timeline | None = None
         self._read_ahead: ReadAhead | None = None
         self._read_error: str | None = None
         try:
@@ -90,7 +93,7 @@ class Player(ComponentNode):
             if self._options.clock_publish_frequency > 0 or self._options.clock_publish_on_topic_publish:
                 self._clock_publisher = self.create_publisher(Clock, "/clock", CLOCK_QOS)
             self._split_events = self.create_publisher(ReadSplitEvent, SPLIT_EVENT_TOPIC, 1)
-            self._file_index = 0
+            self._file_index = [self._reader.file_range(bag).start for bag in range(len(self._reader.bags))]
             self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
                                          self._options.read_ahead_max_bytes, self._on_read_error)
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
@@ -126,15 +129,21 @@ class Player(ComponentNode):
                   self._options.playback_until_timestamp_ns)
 
     # --- set-up -------------------------------------------------------------------------------------------
-    def _open_bag(self, options: PlayOptions) -> BagReader:
-        path = self.resolve_path(URI_PARAMETER, options.uri)
+    def _open_bag(self, options: PlayOptions) -> Timeline:
+        paths = [self.resolve_path(options.uri_parameter, uri) for uri in options.uris]
         try:
-            reader = BagReader(path, options.storage_id)
+            timeline = Timeline(paths, options.storage_ids)
         except BagReadError as exc:
-            raise ValueError(f"parameter '{URI_PARAMETER}': {exc}") from exc
-        self.get_logger().info(f"Playing {reader.path} ({reader.storage_id}, {reader.message_count} messages, "
-                               f"{reader.duration_ns / 1e9:.3f} s)")
-        return reader
+            raise ValueError(f"parameter '{options.uri_parameter}': {exc}") from exc
+        try:
+            timeline.topics()  # refuses a topic with two types
+        except BagReadError as exc:
+            timeline.close()
+            raise ValueError(f"parameter '{options.uri_parameter}': {exc}") from exc
+        bags = ", ".join(f"{bag.path} ({bag.storage_id})" for bag in timeline.bags)
+        self.get_logger().info(f"Playing {bags}{' as one timeline' if len(paths) > 1 else ''}: "
+                               f"{timeline.message_count} messages, {timeline.duration_ns / 1e9:.3f} s")
+        return timeline
 
     def _make_publishers(self) -> dict[str, TopicPublisher | ServiceRequestSender]:
         assert self._reader is not None
@@ -177,7 +186,7 @@ class Player(ComponentNode):
 
     def _publish(self, item: Queued) -> bool:
         message = item.message
-        if message.file_index != self._file_index:
+        if message.file_index not in self._file_index:
             self._move_to_file(message.file_index)
         if self._clock_publisher is not None and self._options.clock_publish_on_topic_publish and (
                 not self._options.clock_trigger_topics
@@ -191,21 +200,26 @@ class Player(ComponentNode):
             return False
 
     def _move_to_file(self, file_index: int) -> None:
-        """``events/read_split`` as rosbag2's sequential reader sends them: one per file it moves on to, the
-        files whose messages the filters skipped included; one for a jump back (a loop, a seek)."""
+        """``events/read_split`` as rosbag2's sequential reader of the file's bag sends them (each bag has its
+        own): one per file it moves on to, the files whose messages the filters skipped included; one for a jump
+        back (a loop, a seek)."""
         assert self._reader is not None
-        files = self._reader.files
-        steps = range(self._file_index + 1, file_index + 1) if file_index > self._file_index else (file_index,)
-        for opened in steps:
+        files, bag = self._reader.files, self._reader.bag_of_file(file_index)
+        current = self._file_index[bag]
+        for opened in range(current + 1, file_index + 1) if file_index > current else (file_index,):
             self._split_events.publish(ReadSplitEvent(
-                closed_file=str(files[self._file_index]), opened_file=str(files[opened]),
+                closed_file=str(files[current]), opened_file=str(files[opened]),
                 node_name=self.get_fully_qualified_name()))
-            self._file_index = opened
+            current = self._file_index[bag] = opened
 
     def _finish_files(self) -> None:
-        """At the end of the bag the reader has gone through the last files too."""
+        """At the end of the bags their readers have gone through their last files too (a bag already there
+        sends nothing)."""
         assert self._reader is not None
-        self._move_to_file(len(self._reader.files) - 1)
+        for bag in range(len(self._reader.bags)):
+            files = self._reader.file_range(bag)
+            if files and self._file_index[bag] != files[-1]:
+                self._move_to_file(files[-1])
 
     def _wait_for_acks(self) -> None:
         """rosbag2's end of a run: with ``play.wait_acked_timeout`` >= 0 (0: no limit), wait until every
@@ -246,7 +260,7 @@ class Player(ComponentNode):
         until = -1
         if playback_duration_ns >= 0 or until_ns >= 0:
             until = max(0 if playback_duration_ns == 0 else start + playback_duration_ns, until_ns)
-        self._file_index = 0
+        self._file_index = [self._reader.file_range(bag).start for bag in range(len(self._reader.bags))]
         return self._playback.play(RunLimits(start, until))
 
     def pause(self) -> None:
@@ -330,7 +344,7 @@ class Player(ComponentNode):
         assert self._reader is not None and self._read_ahead is not None
         p50, p99, worst = self._playback.timing.percentiles(0.5, 0.99, 1.0)
         return {
-            "bag": str(self._reader.path),
+            "bag": ", ".join(str(path) for path in self._reader.paths),
             "position_ns": self._playback.position_ns - self._reader.starting_time_ns,
             "duration_ns": self._reader.duration_ns,
             "rate": self._playback.clock.rate,

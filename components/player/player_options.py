@@ -1,5 +1,9 @@
 """The player's parameters: rosbag2 Jazzy's ``storage.*`` / ``play.*`` names, defaults and ranges.
 
+Several bags play as one timeline (rosbag2 Kilted's ``ros2 bag play -i A -i B``) with ``storage.uris`` in place of
+``storage.uri``, and optionally ``storage.storage_ids``, one per bag; rosbag2's component has no parameter for
+that (only its command line does), so these two names are this player's.
+
 They are read the way rosbag2_transport's ``get_play_options_from_node_params`` reads them, durations included:
 ``play.delay``, ``play.start_offset``, ``play.playback_duration``, ``play.playback_until_timestamp`` and
 ``play.wait_acked_timeout`` are each a ``.sec`` / ``.nsec`` pair, negative when either part is negative.
@@ -28,7 +32,9 @@ _DURATIONS = {  # name -> (default sec, default nsec), from get_play_options_fro
 }
 DEFAULTS: dict[str, Any] = {
     "storage.uri": "",
+    "storage.uris": [""],
     "storage.storage_id": "",
+    "storage.storage_ids": [""],
     "play.read_ahead_queue_size": 1000,
     "play.read_ahead_max_bytes": 256 * 1024 * 1024,
     "play.node_prefix": "",
@@ -66,10 +72,11 @@ _MAX_SEC = (2**63 - 1) // _NS_PER_S - 1
 
 @dataclass(frozen=True)
 class PlayOptions:
-    """What one ``components::Player`` plays and how (rosbag2_transport::PlayOptions plus the storage uri)."""
+    """What one ``components::Player`` plays and how (rosbag2_transport::PlayOptions plus the storage uris)."""
 
-    uri: str
-    storage_id: str
+    uris: list[str]              # one bag, or several played as one timeline
+    uri_parameter: str           # the parameter that named them, for errors
+    storage_ids: list[str]       # one per bag ("": detect)
     read_ahead_queue_size: int
     read_ahead_max_bytes: int
     rate: float
@@ -116,12 +123,30 @@ def _duration_ns(values: dict[str, Any], name: str) -> int:
     return -total if sec < 0 or nsec < 0 else total
 
 
+def _bags(values: dict[str, Any]) -> tuple[list[str], str, list[str]]:
+    """The bags to play, the parameter that named them, and their storage ids."""
+    uri, uris = values["storage.uri"], clean(values["storage.uris"])
+    if uri and uris:
+        raise ValueError("parameters 'storage.uri' and 'storage.uris' are both set: name one bag with "
+                         "'storage.uri', or several with 'storage.uris'")
+    if not uri and not uris:
+        raise ValueError("parameter 'storage.uri' must name the bag to play (a bag directory or a storage file), "
+                         "or 'storage.uris' the bags to play as one timeline")
+    uris = uris or [uri]
+    ids, ids_parameter = values["storage.storage_ids"], "storage.storage_ids"
+    if ids == [""]:
+        ids, ids_parameter = [values["storage.storage_id"]] * len(uris), "storage.storage_id"
+    elif len(ids) != len(uris):
+        raise ValueError(f"parameter 'storage.storage_ids' needs one entry per bag ({len(uris)}), got {len(ids)}")
+    for storage_id in ids:
+        if storage_id not in STORAGE_IDS:
+            raise ValueError(f"parameter '{ids_parameter}' must be one of mcap, sqlite3 (or empty: detect), "
+                             f"got '{storage_id}'")
+    return uris, "storage.uri" if uri else "storage.uris", ids
+
+
 def _validate(values: dict[str, Any]) -> PlayOptions:
-    if not values["storage.uri"]:
-        raise ValueError("parameter 'storage.uri' must name the bag to play (a bag directory or a storage file)")
-    if values["storage.storage_id"] not in STORAGE_IDS:
-        raise ValueError(f"parameter 'storage.storage_id' must be one of mcap, sqlite3 (or empty: detect), "
-                         f"got '{values['storage.storage_id']}'")
+    uris, uri_parameter, storage_ids = _bags(values)
     READ_AHEAD_QUEUE.check("'play.read_ahead_queue_size'", values["play.read_ahead_queue_size"])
     READ_AHEAD_BYTES.check("'play.read_ahead_max_bytes'", values["play.read_ahead_max_bytes"])
     RATE.check("'play.rate'", values["play.rate"])
@@ -137,8 +162,9 @@ def _validate(values: dict[str, Any]) -> PlayOptions:
                          f"{', '.join(SERVICE_REQUEST_SOURCES)}, got '{values['play.service_requests_source']}'")
     durations = {name: _duration_ns(values, name) for name in _DURATIONS}
     return PlayOptions(
-        uri=values["storage.uri"],
-        storage_id=values["storage.storage_id"],
+        uris=uris,
+        uri_parameter=uri_parameter,
+        storage_ids=storage_ids,
         read_ahead_queue_size=int(values["play.read_ahead_queue_size"]),
         read_ahead_max_bytes=int(values["play.read_ahead_max_bytes"]),
         rate=float(values["play.rate"]),

@@ -15,7 +15,8 @@ from collections.abc import Callable, Collection
 from itertools import islice
 from typing import Any
 
-from baglib.read.reader import BagMessage, BagReader
+from baglib.read.reader import BagMessage
+from baglib.read.timeline import Timeline
 
 
 class Queued:
@@ -30,9 +31,9 @@ class Queued:
 
 
 class ReadAhead:
-    """A loader thread over one BagReader; the playback thread ``peek``s and ``pop``s."""
+    """A loader thread over the bags' timeline; the playback thread ``peek``s and ``pop``s."""
 
-    def __init__(self, reader: BagReader, topics: Collection[str], max_messages: int, max_bytes: int,
+    def __init__(self, reader: Timeline, topics: Collection[str], max_messages: int, max_bytes: int,
                  on_error: Callable[[BaseException], None]) -> None:
         self._reader = reader
         self._topics = list(topics)

@@ -1,0 +1,48 @@
+"""``ipc-component bag merge OUT BAG ...``: the bags of a fleet recording (or any bags) as one bag.
+
+Reads files only (no ROS session). The merge itself is :func:`baglib.tools.merge.merge_bags`; this module is
+its command line: the arguments, the summary line on stdout, a refusal on stderr with exit code 1.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+
+def register(bag_verbs: Any) -> None:
+    """Add the ``merge`` verb to ``ipc-component bag``'s sub-parsers."""
+    parser = bag_verbs.add_parser(
+        "merge", help="Merge several bags into one, every message in log-time order",
+        description="Merge bags (e.g. the per-container bags of a fleet recording) into one new bag, every "
+                    "message in log-time order, streamed.")
+    add_arguments(parser)
+    parser.set_defaults(handler=run_bag_merge)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("output", help="The bag directory to create (must not exist)")
+    parser.add_argument("bags", nargs="+", help="The bags to merge: directories, or single .mcap / .db3 files")
+    parser.add_argument("-s", "--storage", default="mcap", choices=("mcap", "sqlite3"),
+                        help="Storage of the merged bag (default: mcap)")
+    parser.add_argument("--align-clocks", action="store_true",
+                        help="Move each bag's times onto the commanding host's clock by its recorded "
+                             "ipc.clock_offset_ns (a bag without one is refused)")
+    parser.add_argument("--prefix-host", action="store_true",
+                        help="Keep each bag's topics apart under /<host> (its ipc.host, else its directory name) "
+                             "instead of merging topics of the same name and type")
+
+
+def run_bag_merge(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
+    """Merge, print what was written; exit status 1 (and nothing written) on a refusal."""
+    from baglib.tools.merge import MergeError, merge_bags
+
+    try:
+        report = merge_bags(args.output, args.bags, args.storage, args.align_clocks, args.prefix_host)
+    except MergeError as error:
+        sys.stdout.flush()
+        print(error, file=sys.stderr, flush=True)
+        return 1
+    print(report.text(), flush=True)
+    return 0
