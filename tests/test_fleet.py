@@ -53,15 +53,16 @@ def sequence_of(topic: str, message: Any) -> int:
     return int.from_bytes(bytes(message.data[:8]), "little")
 
 
-def received(bag: Path) -> dict[str, list[tuple[int, int]]]:
+def received(bag: Path, prefix: str = "") -> dict[str, list[tuple[int, int]]]:
     """Per sequenced topic: (receive time, sequence number) of every message, in the bag's order (read with
-    rosbags, an independent reader)."""
+    rosbags, an independent reader); ``prefix``: the topics are under it (a merged bag's ``--prefix-host``)."""
     found: dict[str, list[tuple[int, int]]] = {topic: [] for topic in SEQUENCED}
     with Reader(bag) as reader:
-        connections = [c for c in reader.connections if c.topic in SEQUENCED]
+        connections = [c for c in reader.connections if c.topic.removeprefix(prefix) in SEQUENCED]
         for connection, log_time, data in reader.messages(connections=connections):
             message = TYPESTORE.deserialize_cdr(data, connection.msgtype)
-            found[connection.topic].append((log_time, sequence_of(connection.topic, message)))
+            topic = connection.topic.removeprefix(prefix)
+            found[topic].append((log_time, sequence_of(topic, message)))
     return found
 
 
@@ -138,10 +139,13 @@ def test_three_hosts_record_one_window_exactly_through_a_partition(fleet: Fleet)
     assert stopped.returncode == 0, stopped.stdout + stopped.stderr
     fleet.stop_all()  # finalizes the reference bags
 
+    bags = [fleet.workdir / host / "drive" / f"{host}_{host}_container" for host in HOSTS]
+    merged = fleet.workdir / "merged"
+    merge = fleet.cli("bag", "merge", str(merged), *map(str, bags), "--prefix-host")
+    assert merge.returncode == 0, merge.stdout + merge.stderr
     cuts = []
-    for host in HOSTS:
+    for host, bag in zip(HOSTS, bags):
         root = fleet.workdir / host
-        bag = root / "drive" / f"{host}_{host}_container"
         custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
         assert custom[fleet_keys.SESSION] == "drive" and custom[fleet_keys.HOST] == host, custom
         offset = int(custom[fleet_keys.CLOCK_OFFSET_NS])
@@ -149,6 +153,7 @@ def test_three_hosts_record_one_window_exactly_through_a_partition(fleet: Fleet)
         stop = int(custom[fleet_keys.STOP_NS]) + int(custom[fleet_keys.STOP_CLOCK_OFFSET_NS])
         assert abs(offset) <= int(custom[fleet_keys.CLOCK_OFFSET_UNCERTAINTY_NS]) + 1_000_000, custom  # one clock
         recorded, reference = received(bag), received(root / "reference")
+        assert received(merged, prefix=f"/{host}") == recorded, f"{host}: the merged bag differs from its bag"
         for topic in SEQUENCED:
             expected = [(t, seq) for t, seq in reference[topic] if start <= t < stop]
             assert expected, (host, topic, "the reference has nothing in the window")

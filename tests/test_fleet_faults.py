@@ -56,8 +56,9 @@ def sequences(bag: Path) -> list[tuple[int, int]]:
 
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
+        imu = [c for c in reader.connections if c.topic.endswith("/imu/imu")]
         return [(t, int(typestore.deserialize_cdr(data, c.msgtype).orientation_covariance[1]))
-                for c, t, data in reader.messages()]
+                for c, t, data in reader.messages(connections=imu)]
 
 
 def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tmp_path: Path) -> None:
@@ -99,6 +100,10 @@ def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Pat
     assert stopped.returncode == 0 and "/fb/container" in stopped.stdout, stopped.stdout + stopped.stderr
 
     bag = tmp_path / "fa" / "crash" / f"{os.uname().nodename}_fa_container"
+    other = tmp_path / "fb" / "crash" / f"{os.uname().nodename}_fb_container"
+    merged = tmp_path / "merged"
+    refused = cli("bag", "merge", str(merged), str(bag), str(other))
+    assert refused.returncode == 1 and "bag recover" in refused.stderr and not merged.exists(), refused.stderr
     recovered = subprocess.run([sys.executable, "-m", "ipc_component.cli", "bag", "recover", str(bag)], cwd=REPO,
                                capture_output=True, text=True, timeout=60)
     assert recovered.returncode == 0, recovered.stdout + recovered.stderr
@@ -109,6 +114,12 @@ def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Pat
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "a gap in the recovered bag"
     # the loss is bounded by the flush interval (0.5 s) plus the IMU period and scheduling slack
     assert received[-1][0] >= killed_ns - 1_000_000_000, (killed_ns - received[-1][0]) / 1e9
+
+    # merge then takes the recovered bag with the other container's: every message of both, once
+    merge = cli("bag", "merge", str(merged), str(bag), str(other), "--align-clocks")
+    assert merge.returncode == 0, merge.stdout + merge.stderr
+    both = sorted(seq for _t, seq in received) + sorted(seq for _t, seq in sequences(other))
+    assert sorted(seq for _t, seq in sequences(merged)) == sorted(both)
 
 
 def test_containers_sharing_a_name_are_refused(tmp_path: Path) -> None:
