@@ -164,7 +164,10 @@ def test_writer_bug_is_a_storage_failure_with_a_finalized_bag(
         assert error == f"unexpected RuntimeError: deliberate bug in the writer, on {CrashingBagWriter.CRASH_TOPIC}"
         health = recorder.health()
         assert (health.level, health.message) == (ERROR, f"recording stopped: {error}")
-        bag = verify_bag(uri)  # finalized at the failure, while the recorder is still loaded
+        # finalized at the failure (the writer thread closes it right after reporting the error), while the
+        # recorder is still loaded
+        assert wait_until(lambda: (uri / "metadata.yaml").exists(), 10.0)
+        bag = verify_bag(uri)
         assert len(bag.topic(probe_topic)) >= 5
         assert stop.wait_for_service(timeout_sec=10.0)
         response = stop.call(Trigger.Request(), timeout_sec=10.0)
