@@ -230,6 +230,17 @@ RECOVER_SCRIPT = textwrap.dedent("""
         writer.write("/chatter", bytes(4) + len(text).to_bytes(4, "little") + text, 10**9 + i, 10**9 + i)
     writer.sync()
     writer._syncing.join()  # the recorder crashed here: every message durable, the bag never finalized
+    if sys.argv[2] == "sqlite3" and os.fork() == 0:  # and in the middle of a transaction: a hot journal
+        import sqlite3
+        db = sqlite3.connect(next(bag.glob("*.db3")), isolation_level=None)
+        db.execute("PRAGMA cache_size=1")  # pages spill to the file: the journal holds their old content
+        db.execute("BEGIN")
+        for i in range(200):
+            db.execute("INSERT INTO messages (topic_id, timestamp, data) VALUES (1, ?, ?)", (i, bytes(2000)))
+        os._exit(0)
+    if sys.argv[2] == "sqlite3":
+        os.wait()
+        assert next(bag.glob("*.db3-journal"))
     (bag.parent / "recover-starts").touch()  # marks the line where the recover begins
     report = recover_bag(bag)
     assert report.readable, report.text()

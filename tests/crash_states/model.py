@@ -317,9 +317,10 @@ class BagModel:
                     roll = rng.random()
                     versions[block] = n if roll < 0.3 else 0 if roll < 0.5 else rng.choice(choices)
             # data=ordered: a block the persisted size exposes through an append holds at least that append.
+            # (A block that the size grows over but no write touches is a hole: zeros in every version.)
             for block, indexes in growths.items():
                 floor = max((index for index in indexes if index <= k), default=0)
-                if floor and versions.get(block, 0) < floor:
+                if floor and block in touched and versions.get(block, 0) < floor:
                     versions[block] = max(i for i in touched[block] if i >= floor) if \
                         rng.random() < 0.5 else floor
         final_size = sizes[k]
