@@ -422,6 +422,14 @@ def build_parser() -> argparse.ArgumentParser:
     create.add_arguments(p)
     p.set_defaults(handler=create.run_create)
 
+    from ipc_component import top  # its own modules, like the verbs below
+
+    p = add("top", help="A live view of the containers: components, topic rates, drops, free disk",
+            description="A live view of the containers in the domain, from their /diagnostics reports and "
+                        "ListNodes, redrawn once a second (q or Ctrl-C quits); one plain-text snapshot with "
+                        "--once or when the output is not a terminal.")
+    top.add_arguments(p)
+
     from ipc_component import record_fleet  # fleet recording: its own modules
 
     record_fleet.add_record_parser(verbs)
