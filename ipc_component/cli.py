@@ -472,4 +472,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # ``python -m ipc_component.cli``: run the package's module, not this ``__main__`` copy of it, so that the
+    # CliError raised by the verbs in other modules (which import ipc_component.cli) is the one main() catches.
+    from ipc_component import cli
+
+    sys.exit(cli.main())

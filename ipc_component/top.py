@@ -17,10 +17,13 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from ipc_component.cli import BUDGET, LIST_DISCOVERY, CliError, RosSession
+from ipc_component.cli import BUDGET, CliError, RosSession
 from ipc_component.top_view import ContainerView, parse_reports, render
 
 REFRESH = 1.0          # s between two frames of the live view
+# s watching the graph for containers when none is named: longer than `list`'s, as the first rates take two
+# reports (1 to 2 s) anyway; like `record status`.
+DISCOVERY = 1.5
 KEY_POLL = 0.1         # s: longest wait for the keyboard while spinning
 REPORTS_BUDGET = 4.0   # s after listing for --once to get two reports of every container (they come every 1 s)
 RELIST_BUDGET = 1.0    # s for re-listing the containers in the live view (when they changed)
@@ -125,7 +128,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--once", action="store_true",
                         help="print one plain-text snapshot and exit (what happens anyway when the output is not "
                              "a terminal)")
-    parser.add_argument("--spin-time", type=float, default=LIST_DISCOVERY,
-                        help=f"seconds to watch the graph for containers when none is named (default "
-                             f"{LIST_DISCOVERY:g})")
+    parser.add_argument("--spin-time", type=float, default=DISCOVERY,
+                        help=f"seconds to watch the graph for containers when none is named (default {DISCOVERY:g})")
     parser.set_defaults(handler=run_top)
