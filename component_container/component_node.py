@@ -177,10 +177,7 @@ class CountingPublisher(Publisher):
 
     def publish(self, msg: Any) -> None:
         super().publish(msg)
-        if isinstance(msg, bytes):
-            self.publish_counter.count_bytes(len(msg))
-        else:
-            self.publish_counter.count(msg)
+        self.publish_counter.count(msg)
 
 
 class IntraProcessPublisher:

@@ -53,7 +53,10 @@ class PublishCounter:
         self._overhead: int | None = None
 
     def count(self, message: Any) -> None:
-        """One message object published."""
+        """One message published: an object, or its serialization (``bytes``)."""
+        if isinstance(message, bytes):
+            self.count_bytes(len(message))
+            return
         if self._overhead is None:
             self._overhead = _overhead(message)
         self.count_bytes(self._overhead + data_size(message))
