@@ -236,7 +236,8 @@ def test_counts_survive_the_trip_through_a_status() -> None:
     idle = PublishCounter()
     now = counter.state[2] + 250_000_000
     values = publication_values([("/a", counter), ("/b", idle), ("/a", idle)], now)
-    assert values == {"published /a": "2 messages, 150 bytes, last 0.250000 s ago", "published /b": "0 messages, 0 bytes"}
+    assert values == {"published /a": "2 messages, 150 bytes, last 0.250000 s ago",
+                      "published /b": "0 messages, 0 bytes"}
     parsed = dict(parse_publication(key, value) for key, value in values.items())
     assert (parsed["/a"].messages, parsed["/a"].bytes, parsed["/a"].age) == (2, 150, 0.25)
     assert parsed["/b"].age is None
