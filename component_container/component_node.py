@@ -60,10 +60,11 @@ class ComponentNode(Node):
         self._ipc_publishers: list[IntraProcessPublisher] = []
         self._ipc_subscriptions: list[IntraProcessSubscriber] = []
         # Publishers whose messages the container reports (component_container.publish_counts); rclpy's own,
-        # made while Node.__init__ runs (/parameter_events), are not among them.
-        self._counted_publishers: list[IntraProcessPublisher | CountingPublisher] | None = None
+        # made while Node.__init__ runs (/parameter_events), are not among them. Names mangled (``__``), as
+        # components subclass this class and name their own attributes as they like (``self._count = ...``).
+        self.__counted: list[IntraProcessPublisher | CountingPublisher] | None = None
         super().__init__(node_name, **kwargs)
-        self._counted_publishers = []
+        self.__counted = []
 
     @property
     def uses_intra_process(self) -> bool:
@@ -91,7 +92,7 @@ class ComponentNode(Node):
 
     def publish_counters(self) -> list[tuple[str, PublishCounter]]:
         """``(topic, counter)`` of every publisher this component created (thread-safe: a snapshot)."""
-        publishers = list(self._counted_publishers or ())
+        publishers = list(self.__counted or ())
         return [(publisher.topic_name, publisher.publish_counter) for publisher in publishers]
 
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: QoSProfile | int,
@@ -102,17 +103,17 @@ class ComponentNode(Node):
             kwargs.setdefault("publisher_class", CountingPublisher)
             publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
             if isinstance(publisher, CountingPublisher):
-                self._count(publisher)
+                self.__count(publisher)
             return publisher
         wrapper = IntraProcessPublisher(super().create_publisher(msg_type, topic, qos_profile, **kwargs),
                                         self._ipm, self.get_logger())
         self._ipc_publishers.append(wrapper)
-        self._count(wrapper)
+        self.__count(wrapper)
         return wrapper  # type: ignore[return-value]  # duck-types Publisher
 
-    def _count(self, publisher: IntraProcessPublisher | CountingPublisher) -> None:
-        if self._counted_publishers is not None:
-            self._counted_publishers.append(publisher)
+    def __count(self, publisher: IntraProcessPublisher | CountingPublisher) -> None:
+        if self.__counted is not None:
+            self.__counted.append(publisher)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
                             qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,
@@ -139,8 +140,8 @@ class ComponentNode(Node):
         return subscriber  # type: ignore[return-value]  # duck-types Subscription
 
     def destroy_publisher(self, publisher: Any) -> bool:
-        if publisher in (self._counted_publishers or ()):
-            self._counted_publishers.remove(publisher)
+        if publisher in (self.__counted or ()):
+            self.__counted.remove(publisher)
         if isinstance(publisher, IntraProcessPublisher):
             self._ipc_publishers.remove(publisher)
             publisher.unregister()

@@ -229,6 +229,25 @@ def test_every_publisher_of_a_component_counts_messages_and_serialized_bytes(ros
         in_process.destroy_node()
 
 
+class CountingComponent(ComponentNode):
+    """A component whose own attributes have the names a counting base class might use for itself."""
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__("top_own_names", **kwargs)
+        self._count, self._counted, self._counted_publishers = 3, [], None
+        self.publisher = self.create_publisher(Imu, "~/imu", 10)
+
+
+@pytest.mark.parametrize("in_process", [False, True])
+def test_a_component_s_own_attribute_names_do_not_break_counting(ros: None, in_process: bool) -> None:
+    node = CountingComponent(intra_process_manager=IntraProcessManager() if in_process else None)
+    try:
+        node.publisher.publish(Imu())
+        assert [(topic, counter.state[0]) for topic, counter in node.publish_counters()] == [("/top_own_names/imu", 1)]
+    finally:
+        node.destroy_node()
+
+
 def test_counts_survive_the_trip_through_a_status() -> None:
     counter = PublishCounter()
     counter.count_bytes(100)
