@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import threading
 import time
@@ -33,9 +34,10 @@ from component_container.component_executors import ComponentExecutor, make_comp
 from component_container.component_node import ComponentNode
 from component_container.component_options import LoadRequestError, options_from_request
 from component_container.diagnostics import DiagnosticsPublisher, component_health, status, threads_health
-from component_container.health import ERROR, Health
+from component_container.health import ERROR, FREE_DISK_MB, Health
 from component_container.intra_process import IntraProcessManager
 from component_container.plugin_registry import PluginError, PluginRegistry
+from component_container.publish_counts import UPTIME, publication_values
 from component_container.supervisor import ComponentFailure, ExitRequest, Supervisor
 
 TYPE_DESCRIPTION_SERVICE_PARAMETER = "start_type_description_service"
@@ -83,6 +85,7 @@ class ComponentManager(Node):
                  on_component_error: str = "unload", shutdown_timeout: float = 10.0,
                  exit_request: ExitRequest | None = None, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
+        self._started_ns = time.monotonic_ns()
         self._registry = PluginRegistry(allow_module_plugins, allow_plugins)
         self._default_intra_process = use_intra_process_comms
         self.shutdown_timeout = shutdown_timeout
@@ -306,16 +309,19 @@ class ComponentManager(Node):
         self._reap_destroyed()
         prefix = self.get_fully_qualified_name()
         components = self.components()
+        now_ns = time.monotonic_ns()  # the instant the publish counts are read at (publish_counts.UPTIME)
         container = threads_health(self.threads())
         if not self.supervisor.alive():
             container = Health(ERROR, "supervisor thread died", container.values)
         container.values.update({"executor": self.executor_kind, "components": str(len(components)),
-                                 "on_component_error": self.supervisor.policy})
+                                 "on_component_error": self.supervisor.policy,
+                                 UPTIME: f"{(now_ns - self._started_ns) / 1e9:.6f}", **self._free_disk()})
         statuses = [status(f"{prefix}: container", container)]
         for component in components:
             health = component_health(component.node)
+            counters = getattr(component.node, "publish_counters", None)
             health.values = {"unique_id": str(component.unique_id), "plugin": component.plugin_name,
-                             **health.values}
+                             **health.values, **publication_values(counters() if counters else (), now_ns)}
             statuses.append(status(f"{prefix}: {component.full_name}", health))
         running = {component.full_name for component in components}
         for failure in self.supervisor.failures:
@@ -323,6 +329,14 @@ class ComponentManager(Node):
                 statuses.append(status(f"{prefix}: {failure.full_name}", Health(
                     ERROR, f"failed and unloaded: {failure.reason}", {"unique_id": str(failure.unique_id)})))
         return statuses
+
+    def _free_disk(self) -> dict[str, str]:
+        """The free space where components' relative paths go (the bag root, or the working directory)."""
+        try:
+            free = shutil.disk_usage(self.bag_root or os.getcwd()).free
+        except OSError:  # the directory is gone: nothing to report
+            return {}
+        return {FREE_DISK_MB: f"{free / 1e6:.0f}"}
 
 
 class ComponentConstructionError(Exception):

@@ -27,6 +27,7 @@ from component_container.intra_process import (
     IntraProcessPublication,
     IntraProcessSubscription,
 )
+from component_container.publish_counts import PublishCounter
 
 
 # See IntraProcessPublisher: how many published objects are watched for reuse (and copied while watching).
@@ -58,7 +59,12 @@ class ComponentNode(Node):
         self._ipm = intra_process_manager
         self._ipc_publishers: list[IntraProcessPublisher] = []
         self._ipc_subscriptions: list[IntraProcessSubscriber] = []
+        # Publishers whose messages the container reports (component_container.publish_counts); rclpy's own,
+        # made while Node.__init__ runs (/parameter_events), are not among them. Names mangled (``__``), as
+        # components subclass this class and name their own attributes as they like (``self._count = ...``).
+        self.__counted: list[IntraProcessPublisher | CountingPublisher] | None = None
         super().__init__(node_name, **kwargs)
+        self.__counted = []
 
     @property
     def uses_intra_process(self) -> bool:
@@ -84,14 +90,30 @@ class ComponentNode(Node):
         """
         return None
 
+    def publish_counters(self) -> list[tuple[str, PublishCounter]]:
+        """``(topic, counter)`` of every publisher this component created (thread-safe: a snapshot)."""
+        publishers = list(self.__counted or ())
+        return [(publisher.topic_name, publisher.publish_counter) for publisher in publishers]
+
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: QoSProfile | int,
                          **kwargs: Any) -> Publisher:
-        publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
+        """rclpy's create_publisher; the publisher counts what it publishes, and takes part in intra-process
+        delivery when the component does."""
         if self._ipm is None:
+            kwargs.setdefault("publisher_class", CountingPublisher)
+            publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
+            if isinstance(publisher, CountingPublisher):
+                self.__count(publisher)
             return publisher
-        wrapper = IntraProcessPublisher(publisher, self._ipm, self.get_logger())
+        wrapper = IntraProcessPublisher(super().create_publisher(msg_type, topic, qos_profile, **kwargs),
+                                        self._ipm, self.get_logger())
         self._ipc_publishers.append(wrapper)
+        self.__count(wrapper)
         return wrapper  # type: ignore[return-value]  # duck-types Publisher
+
+    def __count(self, publisher: IntraProcessPublisher | CountingPublisher) -> None:
+        if self.__counted is not None:
+            self.__counted.append(publisher)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
                             qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,
@@ -118,6 +140,8 @@ class ComponentNode(Node):
         return subscriber  # type: ignore[return-value]  # duck-types Subscription
 
     def destroy_publisher(self, publisher: Any) -> bool:
+        if publisher in (self.__counted or ()):
+            self.__counted.remove(publisher)
         if isinstance(publisher, IntraProcessPublisher):
             self._ipc_publishers.remove(publisher)
             publisher.unregister()
@@ -145,6 +169,18 @@ class ComponentNode(Node):
             super().destroy_node()
 
 
+class CountingPublisher(Publisher):
+    """rclpy's Publisher, counting what it publishes (a component's publisher without intra-process)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.publish_counter = PublishCounter()
+
+    def publish(self, msg: Any) -> None:
+        super().publish(msg)
+        self.publish_counter.count(msg)
+
+
 class IntraProcessPublisher:
     """Publishes a message object to in-process subscriptions by reference, and to DDS when needed.
 
@@ -169,6 +205,7 @@ class IntraProcessPublisher:
         self.reuses_messages = False
         self._dds_count = 0
         self._dds_count_read_ns = -(1 << 62)
+        self.publish_counter = PublishCounter()
 
     def publish(self, msg: Any) -> None:
         """Deliver ``msg`` in-process (by reference unless the reuse rule says copy) and, if needed, over DDS."""
@@ -176,6 +213,7 @@ class IntraProcessPublisher:
         # DDS only for readers outside the intra-process set; transient_local keeps the DDS history whole.
         if self._always_dds or self._dds_readers() > local:
             self._publication.log.record(lambda: self.publisher.publish(msg))
+        self.publish_counter.count(msg)
 
     def _dds_readers(self) -> int:
         """The DDS readers matched to this publisher (its in-process subscriptions' own among them).
@@ -207,6 +245,7 @@ class IntraProcessPublisher:
         if self._always_dds or self._dds_readers() > local:
             data = serialized if isinstance(serialized, bytes) else bytes(serialized)  # rclpy publishes bytes only
             self._publication.log.record(lambda: self.publisher.publish(data))
+        self.publish_counter.count_bytes(len(serialized))
 
     def _must_copy(self, msg: Any) -> bool:
         if self.reuses_messages:

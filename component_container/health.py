@@ -12,6 +12,13 @@ OK = 0
 WARN = 1
 ERROR = 2
 
+# Keys of ``Health.values`` that viewers show in their own columns (``ipc-component top``): a component that
+# loses messages or writes to a disk reports them under these names.
+#: Messages this component lost so far (a recorder's drops, a driver's frames skipped at the source).
+DROPPED = "dropped"
+#: Megabytes free on the disk this component writes to (the container: its bag root, or working directory).
+FREE_DISK_MB = "free disk (MB)"
+
 
 @dataclass
 class Health:

@@ -76,6 +76,7 @@ from rclpy.qos import (
 )
 
 from component_container.component_node import ComponentNode
+from component_container.health import DROPPED, Health
 from components.bounds import Bounds
 
 #: Names accepted by the ``qos`` parameter.
@@ -207,6 +208,10 @@ class SensorDriver(ComponentNode):
     def timer_period(self) -> float:
         """Period of the rate-loop timer in seconds."""
         return self._timer_period
+
+    def health(self) -> Health:
+        """For /diagnostics: running, with the frames skipped at the source so far as its drops."""
+        return Health(values={DROPPED: str(self._skipped_count)})
 
     def next_sequence(self, publisher: Any) -> int:
         """Return the next sequence number of ``publisher`` (0, 1, 2 ... per publisher) and advance it."""

@@ -422,6 +422,14 @@ def build_parser() -> argparse.ArgumentParser:
     create.add_arguments(p)
     p.set_defaults(handler=create.run_create)
 
+    from ipc_component import top  # its own modules, like the verbs below
+
+    p = add("top", help="A live view of the containers: components, topic rates, drops, free disk",
+            description="A live view of the containers in the domain, from their /diagnostics reports and "
+                        "ListNodes, redrawn once a second (q or Ctrl-C quits); one plain-text snapshot with "
+                        "--once or when the output is not a terminal.")
+    top.add_arguments(p)
+
     from ipc_component import record_fleet  # fleet recording: its own modules
 
     record_fleet.add_record_parser(verbs)
@@ -465,4 +473,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # ``python -m ipc_component.cli``: run the package's module, not this ``__main__`` copy of it, so that the
+    # CliError raised by the verbs in other modules (which import ipc_component.cli) is the one main() catches.
+    from ipc_component import cli
+
+    sys.exit(cli.main())

@@ -17,6 +17,7 @@ from baglib.format import fleet_keys
 from ipc_component.cli import BUDGET, CliError, RosSession
 from ipc_component.fleet_link import ContainerLink, Fleet
 from ipc_component.record_fleet import recorder_full_name
+from ipc_component.text_table import format_table
 
 RECORDER_SERVICES = {"get_stats": "std_srvs/srv/Trigger", "split_bagfile": "rosbag2_interfaces/srv/SplitBagfile"}
 HEADER = ("HOST", "CONTAINER", "SESSION", "BAG", "ELAPSED", "MB/S", "MESSAGES", "DROPS", "FREE", "TO FULL")
@@ -65,12 +66,6 @@ def _row(link: ContainerLink, node_name: str, sample: Sample, previous: Sample |
             "-" if left is None else f"{left / 60:.0f} min")
 
 
-def _table(rows: list[Sequence[str]]) -> str:
-    widths = [max(len(row[i]) for row in [HEADER, *rows]) for i in range(len(HEADER))]
-    return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip()
-                     for row in [HEADER, *rows])
-
-
 def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     from std_srvs.srv import Trigger
 
@@ -106,7 +101,7 @@ def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
                 previous[(c, n)] = sample
             if args.watch:
                 print("\033[H\033[J" if round_number else "", end="")
-            print(_table(rows), flush=True)
+            print("\n".join(format_table(HEADER, rows)), flush=True)
             if args.watch and round_number + 1 < args.count:
                 fleet.spin_until(lambda: False, time.monotonic() + args.interval)
     return 0

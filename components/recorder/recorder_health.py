@@ -8,7 +8,7 @@ import threading
 import time
 from typing import Any
 
-from component_container.health import ERROR, OK, WARN, Health
+from component_container.health import DROPPED, ERROR, FREE_DISK_MB, OK, WARN, Health
 
 
 class HealthMonitor:
@@ -40,8 +40,8 @@ class HealthMonitor:
             "write rate (MB/s)": f"{rate:.2f}",
             "received": str(sum(t["received"] for t in topics)),
             "written": str(sum(t["written"] for t in topics)),
-            "dropped": str(dropped),
-            "free disk (MB)": f"{stats['free_bytes'] / 1e6:.0f}",
+            DROPPED: str(dropped),
+            FREE_DISK_MB: f"{stats['free_bytes'] / 1e6:.0f}",
             "time to min_free_space (s)": ("not writing" if stats["seconds_until_min_free"] is None
                                            else f"{stats['seconds_until_min_free']:.0f}"),
             "backlog (MB)": f"{stats['backlog_bytes'] / 1e6:.1f}",
