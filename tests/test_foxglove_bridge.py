@@ -24,7 +24,7 @@ from std_srvs.srv import Trigger
 from components.foxglove_bridge.channel_queue import MAX_QUEUED_BYTES, ChannelQueue
 
 from container_process import recorder_stats
-from foxglove_ws_client import FoxgloveClient, bridge_url, gaps, install_client
+from ipc_testing.foxglove_client import FoxgloveClient, bridge_url, gaps, install_client
 from ipc_testing import ContainerClient, ContainerProcess, call, wait_until
 
 REPO = Path(__file__).resolve().parents[1]

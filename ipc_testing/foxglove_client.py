@@ -1,5 +1,6 @@
 """Drives Foxglove's own WebSocket client (tests/foxglove_client/client.js, run with the machine's node) from a
-test: commands go to its stdin, the events it prints (decoded by Foxglove's ROS 2 CDR reader) are collected.
+test or a benchmark: commands go to its stdin, the events it prints (decoded by Foxglove's ROS 2 CDR reader)
+are collected.
 
 :func:`install_client` installs its npm packages once (``npm ci`` from the committed package-lock.json), under
 a lock shared by the pytest-xdist workers.
@@ -16,9 +17,10 @@ import subprocess
 import threading
 from typing import Any, Callable
 
-from ipc_testing import stop_process, wait_until
+from ipc_testing.calls import wait_until
+from ipc_testing.process import stop_process
 
-CLIENT_DIR = pathlib.Path(__file__).resolve().parent / "foxglove_client"
+CLIENT_DIR = pathlib.Path(__file__).resolve().parents[1] / "tests" / "foxglove_client"
 URL = re.compile(r"Foxglove bridge listening on (ws://\S+)")
 
 
