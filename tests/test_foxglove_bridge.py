@@ -47,7 +47,8 @@ def client_dir() -> Path:
 
 
 @pytest.fixture(scope="module")
-def rig(ros: None, tmp_path_factory: pytest.TempPathFactory, client_dir: Path) -> Iterator[tuple[ContainerProcess, ContainerClient]]:
+def rig(ros: None, tmp_path_factory: pytest.TempPathFactory,
+        client_dir: Path) -> Iterator[tuple[ContainerProcess, ContainerClient]]:
     """A container with a 640x480 30 Hz camera and a 200 Hz IMU (intra-process), and a second one with an IMU
     whose messages reach the bridge over DDS."""
     folder = tmp_path_factory.mktemp("foxglove_rig")
@@ -204,7 +205,8 @@ def test_parameters_and_connection_graph(rig, probe: Node) -> None:
             client.wait_for("serverInfo")
             assert {"parameters", "connectionGraph"} <= set(client.of("serverInfo")[0]["capabilities"])
             client.send(op="getParameters", names=["/camera.fps", "/imu.rate"], id="get")
-            values = {p["name"]: p for p in client.wait_for("parameterValues", lambda e: e["id"] == "get")["parameters"]}
+            answer = client.wait_for("parameterValues", lambda e: e["id"] == "get")
+            values = {p["name"]: p for p in answer["parameters"]}
             assert values["/camera.fps"]["value"] == 30 and values["/camera.fps"]["type"] == "float64"
             assert values["/imu.rate"]["value"] == 200
 
@@ -225,6 +227,27 @@ def test_parameters_and_connection_graph(rig, probe: Node) -> None:
             published = {t["name"]: t["publisherIds"] for e in client.of("connectionGraph")
                          for t in e["publishedTopics"]}
             assert published[CAMERA] == ["/camera"]
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+def test_services_are_called_with_cdr(rig) -> None:
+    """A ROS service of the graph, called from Foxglove's client: the request encoded and the response decoded
+    by Foxglove's CDR writer and reader with the definitions the bridge advertised."""
+    unique_id, url = load_bridge(rig, service_whitelist=["/camera/.*"])
+    try:
+        with FoxgloveClient(url) as client:
+            client.wait_for("advertiseServices", lambda e: any(s["name"] == "/camera/get_parameters"
+                                                                  for s in e["services"]))
+            offered = {s["name"]: s["type"] for e in client.of("advertiseServices") for s in e["services"]}
+            assert offered["/camera/get_parameters"] == "rcl_interfaces/srv/GetParameters"
+            assert all(name.startswith("/camera/") for name in offered)
+            client.send(op="callService", service="/camera/get_parameters", request={"names": ["fps", "width"]},
+                        callId=7)
+            response = client.wait_for("serviceResponse", lambda e: e["callId"] == 7)["response"]
+            assert [(v["type"], v["double_value"], v["integer_value"]) for v in response["values"]] == [
+                (3, 30.0, 0), (2, 0.0, 640)]
+            assert client.of("serviceFailure") == []
     finally:
         assert rig[1].unload(unique_id).success
 

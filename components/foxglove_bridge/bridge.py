@@ -9,7 +9,8 @@ raw CDR.
 
 What a client sees: every topic of the graph as a channel (``cdr``, schema ``ros2msg``, see
 channel_registry), kept current at ``polling_interval``; the parameters of the graph's nodes
-(ros_parameters); the connection graph (graph_view); with ``use_sim_time``, ``/clock`` as the server's time.
+(ros_parameters); the graph's services, called with CDR (ros_services); the connection graph (graph_view);
+with ``use_sim_time``, ``/clock`` as the server's time.
 ``~/get_stats`` (std_srvs/Trigger) answers the counts per channel as JSON; ``/diagnostics`` shows them too.
 
 A slow client never slows the container: each channel's queue in the bridge is bounded (newest kept, drops
@@ -36,6 +37,7 @@ from components.foxglove_bridge.executor_work import WorkQueue
 from components.foxglove_bridge.forwarder import Forwarder
 from components.foxglove_bridge.graph_view import Graph, connection_graph, read_graph
 from components.foxglove_bridge.ros_parameters import RosParameters
+from components.foxglove_bridge.ros_services import RosServices
 from components.foxglove_bridge.server_listener import BridgeListener
 from components.foxglove_bridge.topic_subscriptions import TopicSubscriptions
 
@@ -66,6 +68,7 @@ class FoxgloveBridge(ComponentNode):
             self._ros_parameters = RosParameters(self, self._options, self._work, self._publish_parameters)
             self._listener = BridgeListener(self._registry, self._ros_parameters)
             self._server = self._start_server()
+            self._ros_services = RosServices(self, self._options, self._work, self._server, self._warn)
         except Exception:
             self._stop()
             super().destroy_node()
@@ -84,7 +87,7 @@ class FoxgloveBridge(ComponentNode):
         self.get_logger().info(f"Foxglove bridge listening on {self.url}")
 
     def _start_server(self) -> Any:
-        capabilities = [Capability.Parameters, Capability.ConnectionGraph]
+        capabilities = [Capability.Parameters, Capability.ConnectionGraph, Capability.Services]
         if self._sim_time:
             capabilities.append(Capability.Time)
         try:
@@ -120,6 +123,7 @@ class FoxgloveBridge(ComponentNode):
 
     def _sync_graph(self) -> None:
         self._registry.sync(self.get_topic_names_and_types())
+        self._ros_services.sync(self.get_service_names_and_types())
         self._ros_parameters.prune({f"{ns.rstrip('/')}/{name}" for name, ns in self.get_node_names_and_namespaces()})
         if self._listener.graph_watched:
             graph = read_graph(self)
@@ -178,7 +182,7 @@ class FoxgloveBridge(ComponentNode):
         """Stop the server (clients are disconnected), the subscriptions, the thread; close the channels."""
         if self._server is not None:
             self._server.stop()
-        for part in ("_topic_subscriptions", "_ros_parameters"):
+        for part in ("_topic_subscriptions", "_ros_parameters", "_ros_services"):
             if hasattr(self, part):
                 getattr(self, part).close()
         if self._forwarder is not None:

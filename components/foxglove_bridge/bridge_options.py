@@ -6,7 +6,9 @@
                                                 address exposes the graph to the network (docs/security.md)
 ``topic_whitelist``         ``['.*']``          regexes; a topic is advertised if one matches all of it
 ``param_whitelist``         ``['.*']``          regexes over ``/node.parameter`` names clients may get/set
-``include_hidden``          False               advertise hidden topics (a name part starting with ``_``)
+``service_whitelist``       ``['.*']``          regexes over the service names clients may call
+``include_hidden``          False               advertise hidden topics and services (a name part starting
+                                                with ``_``)
 ``min_qos_depth``           1                   the bridge's subscription depth is the publishers' summed
 ``max_qos_depth``           25                  depth, clamped to [min_qos_depth, max_qos_depth]
 ``message_backlog_size``    32                  per-client outbox of the SDK server, in messages: when a
@@ -41,6 +43,7 @@ DEFAULTS: dict[str, Any] = {
     "address": "127.0.0.1",
     "topic_whitelist": [".*"],
     "param_whitelist": [".*"],
+    "service_whitelist": [".*"],
     "include_hidden": False,
     "min_qos_depth": 1,
     "max_qos_depth": 25,
@@ -71,6 +74,7 @@ class BridgeOptions:
     address: str
     topic_whitelist: tuple[re.Pattern[str], ...]
     param_whitelist: tuple[re.Pattern[str], ...]
+    service_whitelist: tuple[re.Pattern[str], ...]
     include_hidden: bool
     min_qos_depth: int
     max_qos_depth: int
@@ -84,9 +88,16 @@ class BridgeOptions:
 
     def advertises(self, topic: str) -> bool:
         """Whether ``topic`` is in ``topic_whitelist`` (and not hidden, unless ``include_hidden``)."""
-        if not self.include_hidden and any(part.startswith("_") for part in topic.split("/")):
+        return self._listed(topic, self.topic_whitelist)
+
+    def offers_service(self, service: str) -> bool:
+        """Whether ``service`` is in ``service_whitelist`` (and not hidden, unless ``include_hidden``)."""
+        return self._listed(service, self.service_whitelist)
+
+    def _listed(self, name: str, whitelist: tuple[re.Pattern[str], ...]) -> bool:
+        if not self.include_hidden and any(part.startswith("_") for part in name.split("/")):
             return False
-        return any(pattern.fullmatch(topic) for pattern in self.topic_whitelist)
+        return any(pattern.fullmatch(name) for pattern in whitelist)
 
     def exposes_parameter(self, name: str) -> bool:
         """Whether ``/node.parameter`` is in ``param_whitelist``."""
@@ -109,6 +120,7 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> BridgeOption
         port=values["port"], address=_address(values["address"]),
         topic_whitelist=_patterns("topic_whitelist", clean(values["topic_whitelist"])),
         param_whitelist=_patterns("param_whitelist", clean(values["param_whitelist"])),
+        service_whitelist=_patterns("service_whitelist", clean(values["service_whitelist"])),
         include_hidden=values["include_hidden"], min_qos_depth=values["min_qos_depth"],
         max_qos_depth=values["max_qos_depth"], message_backlog_size=values["message_backlog_size"],
         rate_limits=tuple(_rate_limit(entry) for entry in clean(values["rate_limits"])),

@@ -2,10 +2,10 @@
 
 Messages arrive in the publisher's thread (intra-process, inline) or on the executor (raw CDR over DDS); both
 only :meth:`ChannelQueue.offer` them, which never blocks and never raises: the container and the recorder never
-wait for the bridge. The queue keeps the newest ``depth`` messages (:data:`INTAKE_DEPTH`) (and at most :data:`MAX_QUEUED_BYTES`):
-when it is full the oldest is dropped and counted. A channel with a rate limit admits a message only once
-``1 / rate`` seconds (steady clock) have passed since the last one it admitted; the others are counted as throttled, and
-never queued nor serialized.
+wait for the bridge. The queue keeps the newest ``depth`` messages (see :data:`INTAKE_DEPTH`), and at most
+:data:`MAX_QUEUED_BYTES`: when it is full the oldest is dropped and counted. A channel with a rate limit admits a
+message only once ``1 / rate`` seconds (steady clock) have passed since the last one it admitted; the others are
+counted as throttled, and never queued nor serialized.
 """
 from __future__ import annotations
 

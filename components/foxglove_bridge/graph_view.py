@@ -20,7 +20,8 @@ def read_graph(node: Node) -> Graph:
     published: dict[str, list[str]] = {}
     subscribed: dict[str, list[str]] = {}
     for topic, _types in node.get_topic_names_and_types():
-        publishers = sorted({_full_name(i.node_namespace, i.node_name) for i in node.get_publishers_info_by_topic(topic)})
+        publishers = sorted({_full_name(i.node_namespace, i.node_name)
+                             for i in node.get_publishers_info_by_topic(topic)})
         subscribers = sorted({_full_name(i.node_namespace, i.node_name)
                               for i in node.get_subscriptions_info_by_topic(topic)})
         if publishers:
