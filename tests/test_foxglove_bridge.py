@@ -21,6 +21,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
+from baglib.format.message_definitions import service_definitions
 from components.foxglove_bridge.channel_queue import MAX_QUEUED_BYTES, ChannelQueue
 
 from container_process import recorder_stats
@@ -342,3 +343,13 @@ def test_channel_queue_bounds_bytes_and_rate() -> None:
     for _ in range(10):
         limited.offer(b"x")
     assert (len(limited), limited.throttled) == (1, 9)
+
+
+def test_service_definitions_split_the_srv_file() -> None:
+    request, response = service_definitions("std_srvs/srv/SetBool")
+    assert request.startswith("bool data") and "---" not in request
+    assert response.startswith("bool success") and "string message" in response
+    request, _ = service_definitions("rcl_interfaces/srv/SetParameters")
+    assert "MSG: rcl_interfaces/Parameter\n" in request and "MSG: rcl_interfaces/ParameterValue\n" in request
+    with pytest.raises(ValueError, match="not a service type name"):
+        service_definitions("std_msgs/msg/String")

@@ -59,14 +59,17 @@ class Forwarder:
         while not self._stopping:
             busy = False
             for channel in channels:
-                item = channel.queue.take()
-                if item is not None:
-                    busy = True
-                    self._send(channel, *item)
+                busy = self._send_next(channel) or busy
             if not busy:
                 return
 
-    def _send(self, channel: BridgeChannel, message: Any, log_time: int) -> None:
+    def _send_next(self, channel: BridgeChannel) -> bool:
+        """Send the channel's oldest queued message, if any; whether there was one."""
+        item = channel.queue.take()
+        if item is None:
+            return False
+        message, log_time = item
+        del item
         try:
             data = cdr_bytes(message)
         except Exception as exc:  # noqa: BLE001 - a message that cannot be serialized costs that message only
@@ -74,13 +77,14 @@ class Forwarder:
             if channel.serialize_errors == 1:
                 self._warn(f"Cannot serialize a message of {channel.topic} ({type(exc).__name__}: {exc}); "
                            "its messages are dropped")
-            return
+            return True
         del message  # an in-process frame goes back to its publisher's ring as soon as it is serialized
         channel.sdk.log(data, log_time=log_time)
         channel.sent += 1
         channel.sent_bytes += len(data)
         for client in tuple(channel.clients):
             channel.sent_to[client] = channel.sent_to.get(client, 0) + 1
+        return True
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stopping = True
