@@ -13,11 +13,12 @@ files kept, so a run needs little disk), and Foxglove's own client (tests/foxglo
   bridge over DDS, the same SDK), one client watching both cameras;
 * ``stalled``: as ``in_container`` with a second client that stops reading (SIGSTOP) for the whole window.
 
-Measured over each window: CPU seconds per second of the rig's container (and of the bridge's process), the
-recorder's drops (must be none), the frames each client decoded and the gaps in their sequence numbers,
-and for a stalled client what the bridge handed to its outbox against what it got.
+Measured over each window (the same length in every mode): CPU seconds per second of the rig's container (and
+of the bridge's process and the viewers), the recorder's drops and their reasons, the frames each client
+decoded and the gaps in their sequence numbers, and for a stalled client what the bridge handed to its outbox
+against what it got.
 
-    python benchmarks/foxglove_bench.py [--seconds 10] [--stall-seconds 30] [--modes ...] [--quick]
+    python benchmarks/foxglove_bench.py [--seconds 30] [--modes ...] [--quick]
 
 Results: benchmarks/results/<date>-<commit>/foxglove.json.
 """
@@ -82,6 +83,11 @@ def trigger_json(node: Node, service: str) -> dict[str, Any]:
 
 def recorder_topics(node: Node) -> dict[str, dict[str, int]]:
     return trigger_json(node, "/recorder/get_stats")["current"]["topics"]
+
+
+def recorder_drop_reasons(node: Node) -> dict[str, dict[str, int]]:
+    """Drops per topic and reason since the recording began (warm-up included)."""
+    return trigger_json(node, "/recorder/get_stats")["current"]["drop_reasons"]
 
 
 class Rig:
@@ -160,6 +166,7 @@ def run_mode(mode: str, node: Node, seconds: float, workdir: Path) -> dict[str, 
             "container_rss_mb": [rss_before, rss_after],
             "recorder": {t: {k: recorder_after[t][k] - recorder_before.get(t, {}).get(k, 0)
                              for k in ("received", "written", "dropped", "queue_dropped")} for t in recorder_after},
+            "recorder_drop_reasons": recorder_drop_reasons(node),
             "viewers": [viewer_figures(v, a, b, elapsed) for v, a, b in zip(rig.viewers, frames_before, frames_after)]}
         if mode == "stalled":
             result["stalled"] = stalled_figures(rig, node)
@@ -193,19 +200,18 @@ def stalled_figures(rig: Rig, node: Node) -> dict[str, Any]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=10.0, help="window of the viewer modes")
-    parser.add_argument("--stall-seconds", type=float, default=30.0, help="window (and stall) of the stalled mode")
+    parser.add_argument("--seconds", type=float, default=30.0, help="window of every mode (and the stall)")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     parser.add_argument("--dir", default=None, help="where the bags go (default: the system's temporary directory)")
-    parser.add_argument("--quick", action="store_true", help="3 s windows, 5 s stall")
+    parser.add_argument("--quick", action="store_true", help="5 s windows")
     parser.add_argument("--results", default=str(RESULTS))
     args = parser.parse_args()
     if args.quick:
-        args.seconds, args.stall_seconds = 3.0, 5.0
+        args.seconds = 5.0
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     install_client()
     report: dict[str, Any] = {**run_header("foxglove_bench.py", sys.argv[1:]), "rig": "S1: examples/sensors.yaml",
-                              "seconds": args.seconds, "stall_seconds": args.stall_seconds,
+                              "seconds": args.seconds,
                               "load_before": os.getloadavg()[0]}
     rclpy.init()
     node = Node("foxglove_bench")
@@ -214,8 +220,7 @@ def main() -> int:
         for mode in args.modes:
             print(f"{mode} ...", flush=True)
             with tempfile.TemporaryDirectory(dir=args.dir) as workdir:
-                window = args.stall_seconds if mode == "stalled" else args.seconds
-                report[mode] = run_mode(mode, node, window, Path(workdir))
+                report[mode] = run_mode(mode, node, args.seconds, Path(workdir))
             print(f"  {json.dumps(report[mode])}", flush=True)
     finally:
         node.destroy_node()

@@ -238,6 +238,14 @@ FOXGLOVE_MODES = {"no_viewer": "recording, no viewer", "in_container": "viewer t
                   "stalled": "as above, plus a second client stalled"}
 
 
+def drop_reasons(run: dict[str, Any]) -> str:
+    totals: dict[str, int] = {}
+    for reasons in run.get("recorder_drop_reasons", {}).values():
+        for reason, count in reasons.items():
+            totals[reason] = totals.get(reason, 0) + count
+    return ", ".join(f"{reason} {count}" for reason, count in sorted(totals.items())) or "none"
+
+
 def foxglove_table(foxglove: dict[str, Any]) -> list[str]:
     modes = [mode for mode in FOXGLOVE_MODES if mode in foxglove]
     if "in_container" not in modes:
@@ -252,12 +260,13 @@ def foxglove_table(foxglove: dict[str, Any]) -> list[str]:
                      " / ".join(f"{camera['fps']:.1f}" for camera in watcher.values()),
                      str(sum(camera["gaps"] for camera in watcher.values())) if watcher else "",
                      str(sum(t["dropped"] + t["queue_dropped"] for t in run["recorder"].values())),
-                     str(sum(t["received"] for t in run["recorder"].values()))])
+                     str(sum(t["received"] for t in run["recorder"].values())), drop_reasons(run)])
     lines = markdown(["S1 rig recording", "rig container CPU s/s", "bridge process CPU s/s",
-                      "viewer fps (front / rear)", "viewer gaps", "recorder drops", "recorder messages"], rows)
+                      "viewer fps (front / rear)", "viewer gaps", "recorder drops", "recorder messages",
+                      "recorder drops by reason (whole run)"], rows)
     stalled = foxglove.get("stalled", {}).get("stalled")
-    note = (f"Windows of {foxglove['seconds']:g} s ({foxglove['stall_seconds']:g} s stalled); load average "
-            f"{foxglove['load_before']:.1f} before the run on this 2-core machine.")
+    note = (f"Windows of {foxglove['seconds']:g} s; load average {foxglove['load_before']:.1f} before the run and "
+            f"{foxglove['load_after']:.1f} after it on this 2-core machine, shared with other work.")
     if stalled:
         note += (" The stalled client (SIGSTOP for the whole window): the bridge handed "
                  + ", ".join(f"{t['handed_to_outbox']} frames of {topic.split('/')[1]}" for topic, t in stalled.items())
