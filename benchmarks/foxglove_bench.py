@@ -168,6 +168,10 @@ def run_mode(mode: str, node: Node, seconds: float, workdir: Path) -> dict[str, 
                              for k in ("received", "written", "dropped", "queue_dropped")} for t in recorder_after},
             "recorder_drop_reasons": recorder_drop_reasons(node),
             "viewers": [viewer_figures(v, a, b, elapsed) for v, a, b in zip(rig.viewers, frames_before, frames_after)]}
+        if mode != "no_viewer":
+            channels = trigger_json(node, "/foxglove_bridge/get_stats")["channels"]
+            result["bridge"] = {t: {k: channels[t][k] for k in ("received", "sent", "dropped", "throttled")}
+                                for t in CAMERAS}
         if mode == "stalled":
             result["stalled"] = stalled_figures(rig, node)
         return result

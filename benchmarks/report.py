@@ -259,10 +259,12 @@ def foxglove_table(foxglove: dict[str, Any]) -> list[str]:
                      f"{cpu['bridge_process']:.2f}" if "bridge_process" in cpu else "",
                      " / ".join(f"{camera['fps']:.1f}" for camera in watcher.values()),
                      str(sum(camera["gaps"] for camera in watcher.values())) if watcher else "",
+                     str(sum(c["dropped"] for c in run["bridge"].values())) if "bridge" in run else "",
                      str(sum(t["dropped"] + t["queue_dropped"] for t in run["recorder"].values())),
                      str(sum(t["received"] for t in run["recorder"].values())), drop_reasons(run)])
     lines = markdown(["S1 rig recording", "rig container CPU s/s", "bridge process CPU s/s",
-                      "viewer fps (front / rear)", "viewer gaps", "recorder drops", "recorder messages",
+                      "viewer fps (front / rear)", "viewer gaps", "bridge queue drops", "recorder drops",
+                      "recorder messages",
                       "recorder drops by reason (whole run)"], rows)
     stalled = foxglove.get("stalled", {}).get("stalled")
     note = (f"Windows of {foxglove['seconds']:g} s; load average {foxglove['load_before']:.1f} before the run and "
