@@ -235,7 +235,7 @@ def fleet_table(fleet: dict[str, Any]) -> list[str]:
 
 FOXGLOVE_MODES = {"no_viewer": "recording, no viewer", "in_container": "viewer through the in-container bridge",
                   "out_of_process": "viewer through a bridge process over DDS",
-                  "stalled": "as above, plus a second client stalled"}
+                  "stalled": "in-container bridge, plus a second client stalled"}
 
 
 def drop_reasons(run: dict[str, Any]) -> str:
