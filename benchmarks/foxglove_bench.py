@@ -33,10 +33,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import isolation  # noqa: F401  (first: the ROS environment before rclpy is imported)
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -212,7 +212,6 @@ def main() -> int:
     args = parser.parse_args()
     if args.quick:
         args.seconds = 5.0
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     install_client()
     report: dict[str, Any] = {**run_header("foxglove_bench.py", sys.argv[1:]), "rig": "S1: examples/sensors.yaml",
                               "seconds": args.seconds,
