@@ -39,7 +39,7 @@ from sensor_msgs.msg import Image  # noqa: E402
 from baglib.format import fleet_keys  # noqa: E402
 from baglib.format.cdr_read import deserialize  # noqa: E402
 from baglib.read.reader import BagReader  # noqa: E402
-from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
+from benchmarks.result_folder import add_run_arguments, run_header, save  # noqa: E402
 from ipc_testing import ContainerProcess  # noqa: E402
 from ipc_testing.netns import Network, unavailable  # noqa: E402
 
@@ -142,9 +142,7 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--dir", default=None, help="where the bags go (default: the system's temporary directory)")
-    parser.add_argument("--quick", action="store_true", help="3 s windows")
-    parser.add_argument("--results", default=str(RESULTS))
+    add_run_arguments(parser, quick="3 s windows")
     args = parser.parse_args()
     if args.quick:
         args.seconds = 3.0

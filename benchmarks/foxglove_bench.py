@@ -43,7 +43,7 @@ from rclpy.node import Node  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from benchmarks.fleet_bench import cpu_seconds  # noqa: E402
-from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
+from benchmarks.result_folder import add_run_arguments, run_header, save  # noqa: E402
 from ipc_testing import ContainerProcess, call, wait_until  # noqa: E402
 from ipc_testing.foxglove_client import FoxgloveClient, bridge_url, gaps, install_client  # noqa: E402
 
@@ -206,9 +206,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="window of every mode (and the stall)")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
-    parser.add_argument("--dir", default=None, help="where the bags go (default: the system's temporary directory)")
-    parser.add_argument("--quick", action="store_true", help="5 s windows")
-    parser.add_argument("--results", default=str(RESULTS))
+    add_run_arguments(parser, quick="5 s windows")
     args = parser.parse_args()
     if args.quick:
         args.seconds = 5.0

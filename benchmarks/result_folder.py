@@ -5,6 +5,7 @@ same day and commit gets a folder of its own (``...-2``, ``-3``, ...).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import shlex
 import subprocess
@@ -25,6 +26,15 @@ def git_state() -> dict[str, Any]:
             return ""
     return {"commit": git("rev-parse", "--short", "HEAD").strip(),
             "modified": [line[3:] for line in git("status", "--porcelain", "--untracked-files=no").splitlines()]}
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, quick: str) -> None:
+    """The options every bag-writing benchmark script takes: ``--dir`` (where the bags go), ``--quick`` (what
+    ``quick`` says it shortens) and ``--results`` (where the result folder goes; '' for none)."""
+    parser.add_argument("--dir", default=None, help="where the bags go (default: the system's temporary directory)")
+    parser.add_argument("--quick", action="store_true", help=quick)
+    parser.add_argument("--results", default=str(RESULTS),
+                        help="the result folder goes under this directory ('': none)")
 
 
 def run_header(script: str, argv: list[str]) -> dict[str, Any]:
