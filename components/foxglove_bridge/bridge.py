@@ -69,21 +69,21 @@ class FoxgloveBridge(ComponentNode):
             self._listener = BridgeListener(self._registry, self._ros_parameters)
             self._server = self._start_server()
             self._ros_services = RosServices(self, self._options, self._work, self._server, self._warn)
+            self._forwarder.start()
+            self._last_time_ns = 0
+            self._clock_subscription = (self.create_subscription(Clock, "/clock", self._on_clock, 10)
+                                        if self._sim_time else None)
+            self._graph: Graph | None = None
+            self._reported_drops: dict[str, int] = {}
+            self._health_drops = 0
+            self._next_sync = 0.0
+            self._tick()
+            self._tick_timer = self.create_timer(TICK, self._tick)
+            self._stats_service = self.create_service(Trigger, "~/get_stats", self._on_get_stats)
         except Exception:
-            self._stop()
+            self._stop()  # no server, thread or channel is left behind by a load that failed
             super().destroy_node()
             raise
-        self._forwarder.start()
-        self._last_time_ns = 0
-        self._clock_subscription = (self.create_subscription(Clock, "/clock", self._on_clock, 10)
-                                    if self._sim_time else None)
-        self._graph: Graph | None = None
-        self._reported_drops: dict[str, int] = {}
-        self._health_drops = 0
-        self._next_sync = 0.0
-        self._tick()
-        self._tick_timer = self.create_timer(TICK, self._tick)
-        self._stats_service = self.create_service(Trigger, "~/get_stats", self._on_get_stats)
         self.get_logger().info(f"Foxglove bridge listening on {self.url}")
 
     def _start_server(self) -> Any:
