@@ -13,6 +13,8 @@
 ``max_qos_depth``           25                  depth, clamped to [min_qos_depth, max_qos_depth]
 ``message_backlog_size``    32                  per-client outbox of the SDK server, in messages: when a
                                                 client reads too slowly its oldest message is dropped
+                                                (foxglove_bridge 3's name; its default of 1024 would let a
+                                                stalled client hold 6 GB of 1080p frames)
 ``rate_limits``             ``['']``            ``REGEX=HZ`` entries: the first whose regex matches all of
                                                 a topic caps that channel at HZ messages a second (e.g.
                                                 ``'.*/image_raw=5'``); others are forwarded at full rate
