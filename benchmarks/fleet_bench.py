@@ -24,7 +24,6 @@ import os
 import random
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ from sensor_msgs.msg import Image  # noqa: E402
 from baglib.format import fleet_keys  # noqa: E402
 from baglib.format.cdr_read import deserialize  # noqa: E402
 from baglib.read.reader import BagReader  # noqa: E402
-from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
+from benchmarks.result_folder import add_run_arguments, run_header, save, work_directory  # noqa: E402
 from ipc_testing import ContainerProcess  # noqa: E402
 from ipc_testing.netns import Network, unavailable  # noqa: E402
 
@@ -94,7 +93,7 @@ class Rig:
 
 
 def run_mode(mode: str, hosts: list[str], args: argparse.Namespace) -> dict[str, Any]:
-    with tempfile.TemporaryDirectory(dir=args.dir) as workdir, Network([*hosts, CENTRAL]) as network:
+    with work_directory(args, "fleet_bench_") as workdir, Network([*hosts, CENTRAL]) as network:
         rig = Rig(network, Path(workdir), hosts, args)
         try:
             rig.wait_listed(time.monotonic() + 60)
@@ -142,9 +141,7 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--dir", default=None, help="where the bags go (default: the system's temporary directory)")
-    parser.add_argument("--quick", action="store_true", help="3 s windows")
-    parser.add_argument("--results", default=str(RESULTS))
+    add_run_arguments(parser, quick="3 s windows")
     args = parser.parse_args()
     if args.quick:
         args.seconds = 3.0

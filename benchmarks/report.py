@@ -242,6 +242,50 @@ def merge_table(merge: dict[str, Any]) -> list[str]:
                      "merge / read", "merge messages/s"], rows)
 
 
+FOXGLOVE_MODES = {"no_viewer": "recording, no viewer", "in_container": "viewer through the in-container bridge",
+                  "out_of_process": "viewer through a bridge process over DDS",
+                  "stalled": "in-container bridge, plus a second client stalled"}
+
+
+def drop_reasons(run: dict[str, Any]) -> str:
+    totals: dict[str, int] = {}
+    for reasons in run.get("recorder_drop_reasons", {}).values():
+        for reason, count in reasons.items():
+            totals[reason] = totals.get(reason, 0) + count
+    return ", ".join(f"{reason} {count}" for reason, count in sorted(totals.items())) or "none"
+
+
+def foxglove_table(foxglove: dict[str, Any]) -> list[str]:
+    modes = [mode for mode in FOXGLOVE_MODES if mode in foxglove]
+    if "in_container" not in modes:
+        raise Missing("no in_container run measured")
+    rows = []
+    for mode in modes:
+        run = foxglove[mode]
+        cpu = run["cpu_per_s"]
+        watcher = run["viewers"][0] if run["viewers"] else {}
+        rows.append([FOXGLOVE_MODES[mode], f"{cpu['container']:.2f}",
+                     f"{cpu['bridge_process']:.2f}" if "bridge_process" in cpu else "",
+                     " / ".join(f"{camera['fps']:.1f}" for camera in watcher.values()),
+                     str(sum(camera["gaps"] for camera in watcher.values())) if watcher else "",
+                     str(sum(c["dropped"] for c in run["bridge"].values())) if "bridge" in run else "",
+                     str(sum(t["dropped"] + t["queue_dropped"] for t in run["recorder"].values())),
+                     str(sum(t["received"] for t in run["recorder"].values())), drop_reasons(run)])
+    lines = markdown(["S1 rig recording", "rig container CPU s/s", "bridge process CPU s/s",
+                      "viewer fps (front / rear)", "viewer gaps", "bridge queue drops", "recorder drops",
+                      "recorder messages",
+                      "recorder drops by reason (whole run)"], rows)
+    stalled = foxglove.get("stalled", {}).get("stalled")
+    note = (f"Windows of {foxglove['seconds']:g} s; load average {foxglove['load_before']:.1f} before the run and "
+            f"{foxglove['load_after']:.1f} after it on this 2-core machine, shared with other work.")
+    if stalled:
+        note += (" The stalled client (SIGSTOP for the whole window): the bridge handed "
+                 + ", ".join(f"{t['handed_to_outbox']} frames of {topic.split('/')[1]}" for topic, t in stalled.items())
+                 + " to its outbox, it got " + " and ".join(str(t["received"]) for t in stalled.values())
+                 + f"; the bridge's own queues dropped {sum(t['bridge_dropped'] for t in stalled.values())}.")
+    return [*lines, "", note]
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -261,6 +305,8 @@ TABLES: dict[str, Table] = {
     "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
     "fleet": Table("fleet", "central", "python benchmarks/fleet_bench.py", fleet_table, "Fleet"),
     "merge": Table("merge", "workloads", "python benchmarks/merge_bench.py", merge_table, "Merge"),
+    "foxglove": Table("foxglove", "in_container", "python benchmarks/foxglove_bench.py", foxglove_table,
+                      "Foxglove viewer"),
 }
 
 

@@ -41,6 +41,12 @@ def work_directory(args: argparse.Namespace, prefix: str) -> tempfile.TemporaryD
     return tempfile.TemporaryDirectory(prefix=prefix, dir=Path(args.dir) if args.dir else REPO)
 
 
+def add_run_arguments(parser: argparse.ArgumentParser, quick: str) -> None:
+    """:func:`add_location_arguments` plus ``--quick`` (what ``quick`` says it shortens)."""
+    add_location_arguments(parser)
+    parser.add_argument("--quick", action="store_true", help=quick)
+
+
 def run_header(script: str, argv: list[str]) -> dict[str, Any]:
     """What every result file says about its run first: the command, when it started (local time), the code."""
     return {"command": shlex.join(["python", f"benchmarks/{script}", *argv]),

@@ -6,7 +6,9 @@ rosbag2's ``rosbag2_test_common``).
 * :class:`~ipc_testing.client.ContainerClient`: a plain rclpy client of a container's LoadNode / UnloadNode /
   ListNodes services;
 * :mod:`~ipc_testing.calls`: one service call (optionally sent again until answered), and waiting on a condition
-  while spinning.
+  while spinning;
+* :mod:`~ipc_testing.foxglove_client`: Foxglove's own WebSocket client (node, from a checkout's
+  tests/foxglove_client), driven over its stdin and stdout.
 
 Nothing in the product imports it (``tests/test_layout.py``).
 """

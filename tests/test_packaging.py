@@ -25,6 +25,9 @@ from installed import REPO, InstalledEnv
 #: sources (shipped as the generated packages) and docs.
 NOT_SHIPPED = {"tests", "benchmarks", "examples", "srv", "docs", "build", "dist"}
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+#: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port.
+PLUGIN_ARGUMENTS = {"Recorder": ("-p", "storage.uri:=bag"), "Player": ("-p", "storage.uri:=missing_bag"),
+                    "FoxgloveBridge": ("-p", "port:=0")}
 
 
 def source_package_folders() -> set[str]:
@@ -95,10 +98,8 @@ def test_installed_container_loads_every_registered_plugin(installed_env: Instal
         assert set(registered_plugins()) <= listed
         for n, (plugin, target) in enumerate(sorted(registered_plugins().items()), start=1):
             package = target.split(".")[0]  # rclcpp_components' package: where the class is defined
-            loaded = installed_env.run(cli, "load", "/installed", package, plugin,
-                                       "-n", f"plugin_{n}", *(("-p", "storage.uri:=bag") if "Recorder" in plugin
-                                                              else ("-p", "storage.uri:=missing_bag")
-                                                              if "Player" in plugin else ()))
+            loaded = installed_env.run(cli, "load", "/installed", package, plugin, "-n", f"plugin_{n}",
+                                       *PLUGIN_ARGUMENTS.get(plugin.split("::")[-1], ()))
             assert loaded.returncode == 0 or "Player" in plugin, (plugin, loaded.stdout, loaded.stderr)
             if "Player" in plugin:  # it loads its module and class, then refuses the missing bag by name
                 assert "missing_bag" in loaded.stderr, loaded.stderr

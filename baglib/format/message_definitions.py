@@ -22,6 +22,7 @@ __all__ = [
     "message_class",
     "MessageDefinitionNotFoundError",
     "message_definition",
+    "service_definitions",
     "type_hash",
 ]
 
@@ -201,6 +202,30 @@ def message_definition(type_name: str) -> tuple[str, str]:
         raise MessageDefinitionNotFoundError(
             f"no message definition for {type_name}: {error} (is its interface package installed?)"
         ) from None
+
+
+#: The line of a ``.srv`` file between the request and the response.
+_SRV_SEPARATOR = re.compile(r"^---[ \t]*\r?$\n?", re.MULTILINE)
+
+
+@cache
+def service_definitions(service: str) -> tuple[str, str]:
+    """The ``ros2msg`` texts of ``pkg/srv/Name``'s request and response, each followed by its dependencies
+    like a message's (what Foxglove reads to encode a service call and decode its answer).
+
+    Raises:
+        MessageDefinitionNotFoundError: no ``.srv`` file for the service, or no ``.msg`` for a dependency.
+        ValueError: ``service`` is not a ``pkg/srv/Name`` name, or its file has no ``---`` line.
+    """
+    package, folder, name = _split_type_name(service)
+    if folder != "srv":
+        raise ValueError(f"not a service type name (expected 'pkg/srv/Name'): {service!r}")
+    parts = _SRV_SEPARATOR.split(_read_definition(service, ".srv"), maxsplit=1)
+    if len(parts) != 2:
+        raise ValueError(f"the .srv file of {service} has no '---' line")
+    request, response = (_full_text(f"{package}/srv/{name}_{part}", ".msg", "MSG", root_text=text)
+                         for part, text in zip(("Request", "Response"), parts))
+    return request, response
 
 
 @cache

@@ -1,0 +1,1 @@
+"""``components::FoxgloveBridge``: a Foxglove WebSocket bridge component fed from the container (bridge.py)."""

@@ -1,0 +1,355 @@
+"""``components::FoxgloveBridge`` as users run it: a real container with the drivers (and a recorder), the bridge
+loaded next to them, and Foxglove's own WebSocket client (``@foxglove/ws-protocol`` from npm, run with node:
+tests/foxglove_client) decoding what it receives with Foxglove's ROS 2 CDR reader
+(``@foxglove/rosmsg2-serialization``) and the schema the bridge advertised.
+
+What the drivers publish is known: their sequence numbers (first 8 bytes of Image.data, Imu
+``orientation_covariance[1]``) are consecutive, so a client that got every message sees a contiguous run.
+"""
+from __future__ import annotations
+
+import json
+import socket
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import pytest
+import yaml
+from rcl_interfaces.srv import GetParameters
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_srvs.srv import Trigger
+
+from baglib.format.message_definitions import service_definitions
+from components.foxglove_bridge.channel_queue import MAX_QUEUED_BYTES, ChannelQueue
+
+from container_process import recorder_stats
+from ipc_testing.foxglove_client import FoxgloveClient, bridge_url, gaps, install_client
+from ipc_testing import ContainerClient, ContainerProcess, call, wait_until
+
+REPO = Path(__file__).resolve().parents[1]
+IPC = {"use_intra_process_comms": True}
+CAMERA = "/camera/image_raw"
+IMU = "/imu/imu"
+EXT_IMU = "/ext_imu/imu"
+
+
+def rig_file(path: Path, components: list[tuple[str, str, dict[str, Any], bool]]) -> Path:
+    path.write_text(yaml.safe_dump({"components": [
+        {"package": "components", "plugin": plugin, "name": name, "parameters": parameters,
+         "extra_arguments": {"use_intra_process_comms": ipc}} for plugin, name, parameters, ipc in components]}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def client_dir() -> Path:
+    return install_client()
+
+
+@pytest.fixture(scope="module")
+def rig(ros: None, tmp_path_factory: pytest.TempPathFactory,
+        client_dir: Path) -> Iterator[tuple[ContainerProcess, ContainerClient]]:
+    """A container with a 640x480 30 Hz camera and a 200 Hz IMU (intra-process), and a second one with an IMU
+    whose messages reach the bridge over DDS."""
+    folder = tmp_path_factory.mktemp("foxglove_rig")
+    drivers = rig_file(folder / "rig.yaml", [
+        ("components::CameraDriver", "camera", {"width": 640, "height": 480, "fps": 30.0}, True),
+        ("components::ImuDriver", "imu", {"rate": 200.0}, True)])
+    external = rig_file(folder / "ext.yaml", [("components::ImuDriver", "ext_imu", {"rate": 50.0}, False)])
+    node = Node("foxglove_rig_client")
+    rig_process = ContainerProcess("--load", str(drivers), name="foxglove_rig", cwd=str(REPO))
+    ext_process = ContainerProcess("--load", str(external), name="foxglove_ext", cwd=str(REPO))
+    client = ContainerClient(node, rig_process.name)
+    try:
+        client.wait(timeout=30.0)
+        yield rig_process, client
+    finally:
+        for process in (rig_process, ext_process):
+            with process:
+                if process.alive():
+                    process.stop()
+            print(f"--- output of {process.name}:\n{process.output}")
+        client.destroy()
+        node.destroy_node()
+
+
+def load(client: ContainerClient, plugin: str, name: str, parameters: dict[str, Any]) -> int:
+    response = client.load(plugin, name=name, parameters=parameters, extra=IPC)
+    assert response.success, response.error_message
+    return response.unique_id
+
+
+def load_bridge(rig: tuple[ContainerProcess, ContainerClient], name: str = "foxglove_bridge",
+                **parameters: Any) -> tuple[int, str]:
+    """Load a bridge on a free port; returns its unique id and the URL it logged."""
+    process, client = rig
+    mark = len(process.output)
+    unique_id = load(client, "components::FoxgloveBridge", name, {"port": 0, **parameters})
+    assert wait_until(lambda: "Foxglove bridge listening" in process.output[mark:], 10.0), process.output[mark:]
+    return unique_id, bridge_url(process.output[mark:])
+
+
+def bridge_subscriptions(node: Node, topic: str, bridge: str = "foxglove_bridge") -> int:
+    return sum(1 for info in node.get_subscriptions_info_by_topic(topic) if info.node_name == bridge)
+
+
+def trigger_json(node: Node, service: str) -> dict[str, Any]:
+    client = node.create_client(Trigger, service)
+    try:
+        return json.loads(call(node, client, Trigger.Request(), again=True).message)
+    finally:
+        node.destroy_client(client)
+
+
+def assert_contiguous(sequences: list[int], label: str) -> None:
+    assert sequences == sorted(sequences), f"{label}: out of order"
+    assert gaps(sequences) == 0, f"{label}: {gaps(sequences)} missing in {sequences[0]}..{sequences[-1]}"
+
+
+# --- the data path ----------------------------------------------------------------------------------------
+def test_streams_in_process_and_dds_topics_and_subscribes_only_while_wanted(rig, probe: Node) -> None:
+    """Camera and IMU in-process, an IMU of another process over DDS: every message, decoded by Foxglove's
+    reader; the bridge's ROS subscription exists exactly while a client is subscribed to the channel."""
+    unique_id, url = load_bridge(rig)
+    try:
+        assert wait_until(lambda: probe.get_publishers_info_by_topic(EXT_IMU), 20.0, probe)
+        with FoxgloveClient(url) as client:
+            client.wait_for("advertise", lambda e: any(c["topic"] == EXT_IMU for c in e["channels"]))
+            channels = {c["topic"]: c for e in client.of("advertise") for c in e["channels"]}
+            assert channels[CAMERA]["schemaName"] == "sensor_msgs/msg/Image"
+            assert {(c["encoding"], c["schemaEncoding"]) for c in channels.values()} == {("cdr", "ros2msg")}
+            assert bridge_subscriptions(probe, CAMERA) == 0  # nobody asked yet
+            client.subscribe(CAMERA, IMU, EXT_IMU)
+            for topic, count in ((CAMERA, 30), (IMU, 200)):
+                assert_contiguous(client.wait_messages(topic, count), topic)
+            # Over DDS the bridge is a subscriber like any other: a keep_last reader of depth 10 (the publisher's)
+            # may lose samples while the container's executor is busy, so only the order is exact.
+            external = client.wait_messages(EXT_IMU, 50)
+            assert external == sorted(set(external))
+            assert client.of("error") == []
+            assert bridge_subscriptions(probe, CAMERA) == 1
+
+            client.unsubscribe(CAMERA)
+            assert wait_until(lambda: bridge_subscriptions(probe, CAMERA) == 0, 10.0, probe), "still subscribed"
+            assert bridge_subscriptions(probe, IMU) == 1
+        # the client disconnected: the bridge leaves every topic
+        assert wait_until(lambda: bridge_subscriptions(probe, IMU) + bridge_subscriptions(probe, EXT_IMU) == 0,
+                          10.0, probe)
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+def test_a_stalled_client_costs_the_recorder_and_the_other_client_nothing(rig, probe: Node, tmp_path: Path) -> None:
+    """Client A stops reading (SIGSTOP) for five seconds while B watches the same camera and IMU and a
+    recorder records them: B's runs stay contiguous, the recorder drops nothing, the bridge's own queues drop
+    nothing; what A missed is the difference between what the bridge handed to its outbox and what it got."""
+    process, container = rig
+    recorder = load(container, "components::Recorder", "recorder",
+                    {"record.topics": [CAMERA, IMU], "storage.uri": str(tmp_path / "bag")})
+    unique_id, url = load_bridge(rig)
+    try:
+        with FoxgloveClient(url) as stalled, FoxgloveClient(url) as watcher:
+            for client in (stalled, watcher):
+                client.subscribe(CAMERA, IMU)
+                client.wait_messages(CAMERA, 5)
+            stalled.pause()
+            start = len(watcher.sequences(CAMERA))
+            watcher.wait_messages(CAMERA, start + 150, timeout=30.0)  # five seconds of frames
+            stalled.resume()
+            last = watcher.sequences(CAMERA)[-1]
+            assert wait_until(lambda: stalled.sequences(CAMERA) and stalled.sequences(CAMERA)[-1] >= last, 20.0)
+            watcher_camera, watcher_imu = watcher.sequences(CAMERA), watcher.sequences(IMU)
+            stalled_camera = stalled.sequences(CAMERA)
+            stats = trigger_json(probe, "/foxglove_bridge/get_stats")["channels"]
+        assert_contiguous(watcher_camera, "watcher camera")
+        assert_contiguous(watcher_imu, "watcher imu")
+        assert gaps(stalled_camera) > 0, "the stalled client lost nothing: it did not stall long enough"
+        for topic in (CAMERA, IMU):
+            assert stats[topic]["dropped"] == 0, stats[topic]
+        handed = stats[CAMERA]["sent_to"]
+        assert len(handed) == 2 and len(set(handed.values())) <= 2
+        counts = recorder_stats(probe, "/recorder")["current"]["topics"]
+        for topic in (CAMERA, IMU):
+            assert counts[topic]["dropped"] == 0 and counts[topic]["queue_dropped"] == 0, counts[topic]
+            assert counts[topic]["received"] > 0
+    finally:
+        assert container.unload(unique_id).success
+        assert container.unload(recorder).success
+
+
+def test_rate_limit_and_topic_whitelist(rig, probe: Node) -> None:
+    unique_id, url = load_bridge(rig, topic_whitelist=["/camera/.*", IMU], rate_limits=[".*/image_raw=5"])
+    try:
+        with FoxgloveClient(url) as client:
+            client.wait_for("advertise", lambda e: any(c["topic"] == IMU for c in e["channels"]))
+            topics = {c["topic"] for e in client.of("advertise") for c in e["channels"]}
+            assert topics == {CAMERA, "/camera/camera_info", IMU}
+            client.subscribe(CAMERA, IMU)
+            client.wait_messages(CAMERA, 2)
+            began, first = time.monotonic(), len(client.sequences(CAMERA))
+            imu = client.wait_messages(IMU, len(client.sequences(IMU)) + 400)  # two seconds at full rate
+            frames = len(client.sequences(CAMERA)) - first
+            assert frames <= 5 * (time.monotonic() - began) + 1, frames
+            assert_contiguous(imu, "imu")
+            stats = trigger_json(probe, "/foxglove_bridge/get_stats")["channels"]
+            assert stats[CAMERA]["throttled"] > 0 and stats[IMU]["throttled"] == 0
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+# --- parameters, graph, time ------------------------------------------------------------------------------
+def test_parameters_and_connection_graph(rig, probe: Node) -> None:
+    unique_id, url = load_bridge(rig)
+    try:
+        with FoxgloveClient(url) as client:
+            client.wait_for("serverInfo")
+            assert {"parameters", "connectionGraph"} <= set(client.of("serverInfo")[0]["capabilities"])
+            client.send(op="getParameters", names=["/camera.fps", "/imu.rate"], id="get")
+            answer = client.wait_for("parameterValues", lambda e: e["id"] == "get")
+            values = {p["name"]: p for p in answer["parameters"]}
+            assert values["/camera.fps"]["value"] == 30 and values["/camera.fps"]["type"] == "float64"
+            assert values["/imu.rate"]["value"] == 200
+
+            client.send(op="setParameters", parameters=[{"name": "/camera.frame_id", "value": "front"}], id="set")
+            answer = client.wait_for("parameterValues", lambda e: e["id"] == "set")["parameters"]
+            assert answer == [{"name": "/camera.frame_id", "value": "front"}]
+            assert ros_parameter(probe, "/camera", "frame_id") == "front"
+
+            client.send(op="getParameters", names=[], id="all")
+            names = {p["name"] for p in client.wait_for("parameterValues", lambda e: e["id"] == "all")["parameters"]}
+            assert {"/camera.width", "/imu.rate", "/foxglove_bridge.port"} <= names
+
+            client.subscribe(IMU)
+            client.send(op="subscribeConnectionGraph")
+            graph = client.wait_for("connectionGraph", lambda e: any(
+                t["name"] == IMU and "/foxglove_bridge" in t["subscriberIds"] for t in e["subscribedTopics"]))
+            assert graph is not None
+            published = {t["name"]: t["publisherIds"] for e in client.of("connectionGraph")
+                         for t in e["publishedTopics"]}
+            assert published[CAMERA] == ["/camera"]
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+def test_services_are_called_with_cdr(rig) -> None:
+    """A ROS service of the graph, called from Foxglove's client: the request encoded and the response decoded
+    by Foxglove's CDR writer and reader with the definitions the bridge advertised."""
+    unique_id, url = load_bridge(rig, service_whitelist=["/camera/.*"])
+    try:
+        with FoxgloveClient(url) as client:
+            client.wait_for("advertiseServices", lambda e: any(s["name"] == "/camera/get_parameters"
+                                                                  for s in e["services"]))
+            offered = {s["name"]: s["type"] for e in client.of("advertiseServices") for s in e["services"]}
+            assert offered["/camera/get_parameters"] == "rcl_interfaces/srv/GetParameters"
+            assert all(name.startswith("/camera/") for name in offered)
+            client.send(op="callService", service="/camera/get_parameters", request={"names": ["fps", "width"]},
+                        callId=7)
+            response = client.wait_for("serviceResponse", lambda e: e["callId"] == 7)["response"]
+            assert [(v["type"], v["double_value"], v["integer_value"]) for v in response["values"]] == [
+                (3, 30.0, 0), (2, 0.0, 640)]
+            assert client.of("serviceFailure") == []
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+def ros_parameter(node: Node, target: str, name: str) -> Any:
+    client = node.create_client(GetParameters, f"{target}/get_parameters")
+    try:
+        return call(node, client, GetParameters.Request(names=[name]), again=True).values[0].string_value
+    finally:
+        node.destroy_client(client)
+
+
+def test_param_whitelist_limits_what_clients_see(rig) -> None:
+    unique_id, url = load_bridge(rig, param_whitelist=[r"/camera\..*"])
+    try:
+        with FoxgloveClient(url) as client:
+            client.send(op="getParameters", names=[], id="all")
+            names = {p["name"] for p in client.wait_for("parameterValues", lambda e: e["id"] == "all")["parameters"]}
+            assert names and all(name.startswith("/camera.") for name in names), names
+            client.send(op="setParameters", parameters=[{"name": "/imu.rate", "value": 10.0}], id="set")
+            assert client.wait_for("parameterValues", lambda e: e["id"] == "set")["parameters"] == []
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+def test_sim_time_sends_clock_as_server_time(rig, probe: Node) -> None:
+    unique_id, url = load_bridge(rig, use_sim_time=True)
+    publisher = probe.create_publisher(Clock, "/clock", 10)
+    try:
+        with FoxgloveClient(url) as client:
+            assert "time" in client.wait_for("serverInfo")["capabilities"]
+            stamp = Clock()
+            stamp.clock.sec, stamp.clock.nanosec = 1234, 500_000_000
+
+            def got_time() -> bool:
+                publisher.publish(stamp)
+                return bool(client.of("time", lambda e: e["timestamp"] == 1_234_500_000_000))
+            assert wait_until(got_time, 20.0, interval=0.1)
+    finally:
+        probe.destroy_publisher(publisher)
+        assert rig[1].unload(unique_id).success
+
+
+# --- what is refused ----------------------------------------------------------------------------------------
+def free_port() -> int:
+    with socket.socket() as probe_socket:
+        probe_socket.bind(("127.0.0.1", 0))
+        return probe_socket.getsockname()[1]
+
+
+@pytest.mark.parametrize("parameters, message", [
+    ({"port": 70000}, "parameter 'port' must be in [0, 65535]"),
+    ({"address": "example.com"}, "parameter 'address' must be an IPv4 or IPv6 address"),
+    ({"rate_limits": ["camera"]}, "parameter 'rate_limits' entries must be 'REGEX=HZ'"),
+    ({"rate_limits": [".*=0"]}, "must be in [0.01, 10000] Hz"),
+    ({"topic_whitelist": ["("]}, "parameter 'topic_whitelist': '(' is not a valid regular expression"),
+    ({"message_backlog_size": 0}, "parameter 'message_backlog_size' must be in [1, 4096] messages"),
+])
+def test_bad_parameters_are_load_errors(rig, parameters: dict[str, Any], message: str) -> None:
+    response = rig[1].load("components::FoxgloveBridge", name="bad_bridge", parameters={"port": 0, **parameters})
+    assert not response.success and message in response.error_message, response.error_message
+
+
+def test_binds_loopback_by_default_and_refuses_a_port_in_use(rig) -> None:
+    port = free_port()
+    unique_id, url = load_bridge(rig, port=port)
+    try:
+        assert url == f"ws://127.0.0.1:{port}"
+        response = rig[1].load("components::FoxgloveBridge", name="second_bridge", parameters={"port": port})
+        assert not response.success and f"cannot listen on 127.0.0.1:{port}" in response.error_message
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+# --- the channel queue ----------------------------------------------------------------------------------------
+def test_channel_queue_keeps_the_newest_and_counts_what_it_drops() -> None:
+    woken: list[int] = []
+    queue = ChannelQueue("/t", 3, 0.0, lambda: woken.append(1))
+    for n in range(5):
+        queue.offer(bytes([n]))
+    assert (queue.received, queue.dropped, len(woken)) == (5, 2, 5)
+    assert [queue.take()[0] for _ in range(3)] == [b"\x02", b"\x03", b"\x04"] and queue.take() is None
+
+
+def test_channel_queue_bounds_bytes_and_rate() -> None:
+    queue = ChannelQueue("/t", 100, 0.0, lambda: None)
+    frame = bytes(MAX_QUEUED_BYTES // 3 + 1)
+    for _ in range(4):
+        queue.offer(frame)
+    assert len(queue) == 2 and queue.dropped == 2
+    limited = ChannelQueue("/t", 100, 1.0, lambda: None)
+    for _ in range(10):
+        limited.offer(b"x")
+    assert (len(limited), limited.throttled) == (1, 9)
+
+
+def test_service_definitions_split_the_srv_file() -> None:
+    request, response = service_definitions("std_srvs/srv/SetBool")
+    assert request.startswith("bool data") and "---" not in request
+    assert response.startswith("bool success") and "string message" in response
+    request, _ = service_definitions("rcl_interfaces/srv/SetParameters")
+    assert "MSG: rcl_interfaces/Parameter\n" in request and "MSG: rcl_interfaces/ParameterValue\n" in request
+    with pytest.raises(ValueError, match="not a service type name"):
+        service_definitions("std_msgs/msg/String")
