@@ -41,7 +41,7 @@ UNUSABLE = strace_usable()
 needs_strace = pytest.mark.skipif(UNUSABLE is not None, reason=UNUSABLE or "")
 
 #: Crash states per configuration in the default run (the sweep runs 1000 and more).
-STATES = int(os.environ.get("IPC_POWER_CUT_STATES") or 80)
+STATES = int(os.environ.get("IPC_POWER_CUT_STATES") or 50)
 SEED = int(os.environ.get("IPC_POWER_CUT_SEED") or 0)
 
 
