@@ -334,7 +334,7 @@ class RecordingSession:
         """Per topic: written, received, queue drops and the reasons of every drop; never waits on the storage."""
         idle = not self._thread.is_alive()  # only then is the writer's lock free for sure
         handed = dict(self.handed)
-        written = self.writer.topic_message_counts if idle else handed
+        written = self.writer.written_message_counts if idle else handed
         received, cache_full, refused = self.cache.counts()
         queue = Counter(self._queue_drops() if self._queue_drops else {})
         with self._stats_lock:
