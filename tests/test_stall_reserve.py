@@ -89,7 +89,13 @@ def record_through_a_stall(manager: ComponentManager, bag: Path, reserve: int) -
     health = recorder.health()
     StallingBagWriter.DISK_UP.set()
     manager.unload(camera.unique_id)
-    assert wait_until(lambda: recorder.stats()["current"]["backlog_bytes"] == 0, 30.0), recorder.stats()
+    returns = 1 if reserve else 0  # a backlog in the reserve gives its memory back once it has drained
+
+    def drained() -> bool:
+        current = recorder.stats()["current"]
+        return current["backlog_bytes"] == 0 and current["memory_returns"] == returns
+
+    assert wait_until(drained, 30.0), recorder.stats()
     final = recorder.stats()["current"]
     manager.unload(loaded.unique_id)
     return {"live": live, "health": health, "final": final}

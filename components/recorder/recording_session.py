@@ -32,6 +32,7 @@ from typing import Any, Callable
 from baglib.format import cdr_fast
 from baglib.format.cdr_fast import CdrData
 from baglib.write.writer import BagWriteError, BagWriter
+from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from baglib.format.metadata import TopicInfo
@@ -111,6 +112,10 @@ class RecordingSession:
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
         self._snapshot_mode = options.snapshot_mode
+        # Backlogs that went into the stall reserve and whose memory went back to the system (_return_memory).
+        self._reserve_entries_returned = 0
+        self.memory_returns = 0
+        self.memory_returned_bytes = 0
         # Loss bounds: flush/sync deadlines, checked after every batch and at least every wake-up period.
         self._flush_ns = round(options.flush_interval * 1e9)
         self._sync_ns = round(options.sync_interval * 1e9)
@@ -196,6 +201,7 @@ class RecordingSession:
                 self._bytes_written = self.writer.bytes_written
                 self._check_storage()
                 self._keep_loss_bounds()
+                self._return_memory()
                 if self._snapshot is batch:
                     self._snapshot = None  # written: the next snapshot may be taken
                 if closed and not batch:
@@ -228,6 +234,22 @@ class RecordingSession:
         if self._sync_ns and self._unsynced and now - self._last_sync_ns >= self._sync_ns:
             self.writer.sync()
             self._last_sync_ns, self._unsynced = now, False
+
+    def _return_memory(self) -> None:
+        """Once a backlog that went into the stall reserve has drained (the cache holds at most a quarter of
+        ``max_cache_size`` again), give the memory its messages held back to the system, once per such backlog.
+        glibc keeps freed heap memory for reuse: without this the container would keep a stall's backlog, up to
+        the whole reserve, as resident memory for good."""
+        entries = self.cache.reserve_entries
+        if entries == self._reserve_entries_returned or self.cache.bytes > self.cache.max_bytes // 4:
+            return
+        self._reserve_entries_returned = entries
+        before = resident_bytes()
+        if release_free_memory():
+            self.memory_returns += 1
+            returned = max(0, before - resident_bytes())
+            self.memory_returned_bytes += returned
+            self._logger.info(f"The backlog has drained: {returned / 1e6:.0f} MB of memory returned to the system")
 
     def _next_batch(self) -> list[CachedMessage]:
         wake = self._wake_ns / 1e9
@@ -386,7 +408,8 @@ class RecordingSession:
                 "backlog_s": 0.0 if oldest_ns is None else max(0.0, (time.time_ns() - oldest_ns) / 1e9),
                 "max_cache_size": self.cache.max_bytes, "stall_reserve": self.cache.reserve,
                 "reserve_in_use_bytes": max(0, held - self.cache.max_bytes),
-                "peak_backlog_bytes": self.cache.peak_bytes}
+                "peak_backlog_bytes": self.cache.peak_bytes, "memory_returns": self.memory_returns,
+                "memory_returned_bytes": self.memory_returned_bytes}
 
     def summary(self) -> str:
         stats = self.stats()
