@@ -129,6 +129,11 @@ class RecordingSession:
         self._snapshot: list[CachedMessage] | None = None
         self._finish_lock = threading.Lock()
         self._finished = False
+        # finish() gave up waiting for the writer (a stalled disk): the writer closes the bag itself if it ever
+        # gets to its end; ``_writer_done`` says it got there first. Both under ``_abandon_lock``.
+        self._abandon_lock = threading.Lock()
+        self._abandoned = False
+        self._writer_done = False
         # A daemon: a writer stuck on a hung disk is abandoned by finish() and must not keep the process alive.
         self._thread = threading.Thread(target=self._run, name=f"bag_writer:{self.writer.path.name}",
                                         daemon=True)
@@ -205,12 +210,24 @@ class RecordingSession:
                 if self._snapshot is batch:
                     self._snapshot = None  # written: the next snapshot may be taken
                 if closed and not batch:
+                    self._end_of_writing()
                     return
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
             self._release_written()
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
+
+    def _end_of_writing(self) -> None:
+        """The writer thread's last step: if finish() gave up on it meanwhile, the bag is still closed now
+        (summary, metadata.yaml: readable without a repair) and its file descriptors released."""
+        with self._abandon_lock:
+            self._writer_done = True
+            late = self._abandoned
+        if late:
+            self._close_writer()
+            self._logger.warning(f"Recording to {self.writer.path}: the writer finished after all; the bag is "
+                                 "closed with what it wrote")
 
     def _check_storage(self) -> None:
         """At most every DISK_CHECK_PERIOD: the free-space guard, and whether the bag file is still ours on
@@ -334,7 +351,8 @@ class RecordingSession:
 
         Waits at most ``timeout`` seconds (None: as long as it takes) for the writer thread. One still busy
         then is stuck on its storage: it is abandoned with the bag unfinalized, and nothing that would wait on
-        that storage (closing the bag, its counts) is attempted.
+        that storage (closing the bag, its counts) is attempted here. Should it get to its end after all, it
+        closes the bag itself (:meth:`_end_of_writing`).
         """
         with self._finish_lock:
             if self._finished:
@@ -345,7 +363,9 @@ class RecordingSession:
         self.cache.close()
         self._thread.join(timeout)
         self._discard(self.cache.drain(), STORAGE_FAILED)  # left behind by a failed or stuck writer
-        if self._thread.is_alive():
+        with self._abandon_lock:
+            self._abandoned = not self._writer_done and self._thread.is_alive()
+        if self._abandoned:
             self._fail(f"the writer did not finish within {timeout:.1f} s (a hung disk?): the bag was not "
                        "finalized; it can be repaired (ipc-component bag recover)")
         else:
