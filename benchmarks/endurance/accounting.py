@@ -15,7 +15,8 @@ Streams (topic, ``header.frame_id``) and what each must show in the union of the
   image stream, from the later of the two streams' first stamps on.
 * **the player's topic**: the bag's numbers 0 .. N-1 played in a loop. The same number recorded twice within
   half a loop (two recorders during a hand-over) is one publication; the publications in receive order must go
-  0, 1, ..., N-1, 0, 1, ... without a skip, and there must be as many as the player says it published.
+  0, 1, ..., N-1, 0, 1, ... without a skip, and there must be as many as the player says it published (at
+  least one).
 
 Duplicates inside one recorder's bag (the same number twice) count as errors; across recorders they are the
 hand-over's overlap and expected.
@@ -123,18 +124,23 @@ def replay_report(replay: list[tuple[int, int]], messages: int, loop_ns: int, pu
     if order and order[0] != 0:
         skips += 1
     return {"published": published, "recorded": len(order), "skips": skips,
-            "missing": max(0, published - len(order)) + skips}
+            "missing": max(0, published - len(order)) + skips + (published == 0)}
 
 
-def account(union: Union, rig_streams: list[Stream], extra_instances: int, replay_messages: int, loop_ns: int,
+def account(union: Union, rig_topics: list[str], extra_instances: int, replay_messages: int, loop_ns: int,
             replay_published: int) -> dict[str, Any]:
-    """The whole accounting (module docstring): per stream, and ``lost``, the sum of everything missing."""
-    rig = {f"{topic} ({frame})": stream_report(union.runs.get((topic, frame), []), from_zero=False)
-           for topic, frame in rig_streams}
-    for (topic, frame), entry in zip(rig_streams, rig.values()):
-        entry["before_first_recorder"] = entry.get("first")
-        if topic.endswith("/image_raw"):
-            entry["camera_info"] = camera_info_report(union, (topic, frame))
+    """The whole accounting (module docstring): per stream, and ``lost``: every number missing, every stream
+    (a rig topic, an extra instance) with nothing recorded at all, every unmatched CameraInfo stamp, every
+    publication of the player missing."""
+    rig = {}
+    for topic in rig_topics:
+        streams = sorted(stream for stream in union.runs if stream[0] == topic) or [(topic, "")]
+        for stream in streams:
+            entry = stream_report(union.runs.get(stream, []), from_zero=False)
+            entry["before_first_recorder"] = entry.get("first")
+            if topic.endswith("/image_raw"):
+                entry["camera_info"] = camera_info_report(union, stream)
+            rig[f"{topic} ({stream[1]})"] = entry
     extras = []
     for index in range(extra_instances):
         stream = (EXTRA_IMAGE_TOPIC, extra_frame_id(index))
@@ -143,9 +149,8 @@ def account(union: Union, rig_streams: list[Stream], extra_instances: int, repla
         extras.append(entry)
     player = replay_report(union.replay, replay_messages, loop_ns, replay_published)
     entries = [*rig.values(), *extras]
-    lost = (sum(e["missing"] for e in entries) + sum(e["camera_info"]["unmatched"] for e in entries
-                                                       if "camera_info" in e) + player["missing"])
-    lost += sum(1 for e in extras if e["recorded"] == 0)
+    lost = (sum(e["missing"] + (e["recorded"] == 0) for e in entries) + player["missing"]
+            + sum(e["camera_info"]["unmatched"] for e in entries if "camera_info" in e))
     return {"lost": lost, "duplicates_in_one_bag": union.duplicates_in_bags(), "rig": rig,
             "extra": {"instances": extra_instances, "recorded_messages": sum(e["recorded"] for e in extras),
                       "missing": sum(e["missing"] for e in extras),

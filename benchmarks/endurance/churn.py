@@ -7,9 +7,11 @@ topic. Then, on one thread, by the clock (a late step runs at once and the sched
 * every ``extra_period_s``: a resource sample (resources.Sample), then an extra camera loaded, and unloaded
   ``extra_alive_s`` later;
 * every ``handover_period_s``: the next recorder loaded (a bag of its own); once it has written messages of
-  every topic of the run, the previous one is stopped (``~/stop_recording``: its final counts) and unloaded;
-* every ``poll_s``: every recorder's newly finished files handed to the worker, the files it has read taken in,
-  the bags of unloaded recorders whose files are all read checked and deleted.
+  every topic of the run, the previous one is stopped (``~/stop_recording``, answered with its final counts once
+  its backlog is written: the schedule goes on meanwhile) and then unloaded;
+* every tenth of a split: the files the worker has read taken in, the bags of unloaded recorders whose files
+  are all read checked and deleted. A thread of its own (recorders.Collector) hands the recorders' newly
+  finished files to the worker.
 
 End: the player paused, its published count read, the player and the rig drivers unloaded, the last recorder
 stopped and unloaded, the container stopped with SIGINT (its exit status must be 0), every file read.
@@ -38,15 +40,18 @@ from baglib.format.metadata import TopicInfo
 from baglib.write.writer import BagWriter
 from benchmarks.endurance.accounting import Union
 from benchmarks.endurance.plan import IPC, PLAYER, REPLAY_TOPIC, Component, SoakPlan
-from benchmarks.endurance.recorders import RecorderRun, check_bag, discard
+from benchmarks.endurance.recorders import Collector, RecorderRun, check_bag, discard
 from benchmarks.endurance.resources import Sample
 from benchmarks.record.measure import cpu_seconds, machine_snapshot, other_cpu, peak_rss_mb
 from benchmarks.record.modes import RecorderServices
 from ipc_testing import ContainerClient, ContainerProcess, call, wait_until
 
 STARTUP_TIMEOUT = 90.0
-STOP_TIMEOUT = 60.0  # s the container gets to exit after SIGINT
+STOP_TIMEOUT = 120.0  # s the container gets to exit after SIGINT (its own bound: plan.shutdown_timeout_s)
 READ_TIMEOUT = 600.0  # s the worker gets, after the end, to read the last files
+#: The run stops (failed) when the bags' filesystem has less free space than this: the worker is far behind,
+#: and the disk is shared.
+MIN_FREE_BYTES = 15 * 10**9
 
 
 def write_replay_bag(path: Path, messages: int, rate: float) -> None:
@@ -76,6 +81,8 @@ class ChurnResult:
     extra_instances: int = 0
     extra_load_failures: list[str] = field(default_factory=list)
     handovers: list[float] = field(default_factory=list)  # seconds each took
+    max_pending_files: int = 0  # the most files waiting for the worker at once
+    error: Optional[str] = None  # what stopped the run before its end
     replay_published: int = 0
     exit_status: Optional[int] = None
     container_cpu_s: float = 0.0
@@ -96,24 +103,30 @@ class Churn:
         self.events = SingleThreadedExecutor(context=node.context)
         self.events.add_node(self.events_node)
         self.client = ContainerClient(node)
-        self.links = workdir / "links"
-        self.links.mkdir()
+        (workdir / "links").mkdir()
         (workdir / "bags").mkdir()
         self.result = ChurnResult()
+        self.collector = Collector(workdir / "links", pool, min(0.5, plan.split_s / 10), self.result.problems)
         self.process: Optional[ContainerProcess] = None
         self.recorder: Optional[RecorderRun] = None   # the one recording
         self.incoming: Optional[RecorderRun] = None   # the next one, during a hand-over
+        self.retiring: Optional[RecorderRun] = None   # the previous one, being stopped
         self.extra: Optional[Extra] = None
         self.rig_ids: list[int] = []
         self.player_id = 0
 
     # --- the run ------------------------------------------------------------------------------------------
     def run(self) -> ChurnResult:
+        """The run; one that cannot go on is stopped, with what it observed and ``error`` saying why."""
         try:
             self.start()
             self.churn()
             self.finish()
+        except Exception as exc:  # noqa: BLE001 - the report says what stopped the run, and what it saw until then
+            self.result.error = f"{type(exc).__name__}: {exc}"
+            self.log(f"the run stopped: {self.result.error}")
         finally:
+            self.collector.stop()
             if self.process is not None:
                 self.process.kill()
             self.client.destroy()
@@ -129,8 +142,8 @@ class Churn:
         startup = self.workdir / "startup.yaml"
         entries = [*plan.rig_components(), plan.player(replay_bag).startup_entry(), first.startup_entry()]
         startup.write_text(yaml.safe_dump({"components": entries}, sort_keys=False))
-        self.process = ContainerProcess("--load", str(startup), cwd=self.workdir,
-                                        log_path=self.workdir / "container.log")
+        self.process = ContainerProcess("--shutdown-timeout", f"{plan.shutdown_timeout_s:g}", "--load", str(startup),
+                                        cwd=self.workdir, log_path=self.workdir / "container.log")
         self.client.wait(timeout=STARTUP_TIMEOUT)
         names = [f"/{entry['name']}" for entry in entries]
         listed = wait_until(lambda: self.listed(names), STARTUP_TIMEOUT)
@@ -162,17 +175,14 @@ class Churn:
             if self.extra is not None and now >= self.extra.unload_at:
                 self.unload_extra()
             elif self.extra is None and now >= next_extra:
-                if now >= end and self.incoming is None:
+                if now >= end and self.incoming is None and self.retiring is None:
                     break
-                backlog = self.recorder_stats(self.recorder).get("backlog_bytes", 0)
-                self.result.samples.append(Sample.take(self.process.pid, now - start, self.incoming is None, backlog))
+                self.sample(now - start)
                 self.load_extra(now)
                 next_extra += plan.extra_period_s
-            if self.incoming is None and next_handover <= now < end - 3 * plan.extra_period_s:
-                self.begin_handover(now)
+            self.step_recorders(now, now >= next_handover and now < end - 3 * plan.extra_period_s)
+            if self.incoming is not None and next_handover <= now:
                 next_handover += plan.handover_period_s
-            elif self.incoming is not None:
-                self.step_handover(now)
             if now >= next_poll:
                 self.poll()
                 next_poll += plan.split_s / 10
@@ -182,6 +192,14 @@ class Churn:
         self.result.other_cpu_s, self.result.kernel_cpu_s = other_cpu(
             machine, machine_snapshot(), self.result.container_cpu_s, {self.process.pid, os.getpid()})
 
+    def sample(self, t: float) -> None:
+        """The container's resources now; a comparable moment (resources.Sample) when no recorder comes or goes
+        and the recorder's backlog fits its cache (a backlog in the stall reserve is a disk stall's memory)."""
+        stats = self.recorder_stats(self.recorder)
+        backlog = stats.get("backlog_bytes", 0)
+        base = self.incoming is None and self.retiring is None and backlog <= stats.get("max_cache_size", 0)
+        self.result.samples.append(Sample.take(self.process.pid, t, base, backlog))
+
     def finish(self) -> None:
         """The end (module docstring)."""
         if self.extra is not None:
@@ -190,7 +208,11 @@ class Churn:
         for unique_id in [self.player_id, *self.rig_ids]:
             self.unload(unique_id, "the player or a rig driver")
         self.result.peak_rss_mib = peak_rss_mb(self.process.pid)
-        self.retire(self.recorder)
+        self.retiring, self.recorder = self.recorder, None
+        self.send_stop(self.retiring)
+        while self.retiring is not None:
+            self.step_recorders(time.monotonic(), False)
+            self.events.spin_once(timeout_sec=0.05)
         self.result.exit_status = self.process.stop(signal.SIGINT, timeout=STOP_TIMEOUT, check=False)
         if not wait_until(self.all_checked, READ_TIMEOUT, interval=0.2):
             self.result.problems.append(f"the worker had not read every file {READ_TIMEOUT:g} s after the end")
@@ -229,7 +251,9 @@ class Churn:
                                RecorderServices(self.node, component.name), time.monotonic())
         self.events_node.create_subscription(MessagesLostEvent, f"/{component.name}/events/messages_lost",
                                              recorder.on_lost_event, 10)
-        self.result.recorders.append(recorder)
+        with self.collector.lock:
+            self.result.recorders.append(recorder)
+            self.collector.recorders.append(recorder)
         return recorder
 
     def recorder_stats(self, recorder: RecorderRun) -> dict[str, Any]:
@@ -239,7 +263,17 @@ class Churn:
     def recorder_topics(self, recorder: RecorderRun) -> dict[str, Any]:
         return self.recorder_stats(recorder).get("topics", {})
 
-    def begin_handover(self, now: float) -> None:
+    def step_recorders(self, now: float, handover_due: bool) -> None:
+        """One step of the recorders' hand-over: begin one, wait for the incoming recorder's topics, wait for the
+        retiring recorder's final counts, unload it."""
+        if self.retiring is not None:
+            self.step_retire(now)
+        elif self.incoming is not None:
+            self.step_handover(now)
+        elif handover_due:
+            self.begin_handover()
+
+    def begin_handover(self) -> None:
         index = len(self.result.recorders)
         component = self.recorder_component(index)
         response = self.client.load(component.plugin, name=component.name, parameters=component.parameters,
@@ -249,7 +283,7 @@ class Churn:
         self.incoming = self.track_recorder(index, component, response.unique_id)
 
     def step_handover(self, now: float) -> None:
-        """Once the incoming recorder has written every topic, the previous one retires."""
+        """Once the incoming recorder has written every topic, the previous one is told to stop."""
         topics = self.recorder_topics(self.incoming)
         waiting = [t for t in self.plan.recorded_topics() if topics.get(t, {}).get("written", 0) == 0]
         if waiting:
@@ -257,26 +291,47 @@ class Churn:
                 raise RuntimeError(f"{self.incoming.name} never recorded {waiting}")
             return
         self.result.handovers.append(now - self.incoming.loaded_at)
-        previous, self.recorder, self.incoming = self.recorder, self.incoming, None
-        self.retire(previous)
+        self.retiring, self.recorder, self.incoming = self.recorder, self.incoming, None
+        self.send_stop(self.retiring)
 
-    def retire(self, recorder: RecorderRun) -> None:
-        """``~/stop_recording`` (the final counts), unload, and collect its last files."""
-        recorder.finish(recorder.services.trigger("stop_recording", timeout=120.0, check=False))
+    def send_stop(self, recorder: RecorderRun) -> None:
+        """``~/stop_recording``, from the node the churn spins: its reply (the final counts) comes once the
+        backlog is written, which can take the container's whole unload bound."""
+        client = self.events_node.create_client(Trigger, f"/{recorder.name}/stop_recording")
+        if not client.wait_for_service(timeout_sec=30.0):
+            raise RuntimeError(f"{recorder.name}: no ~/stop_recording service")
+        recorder.stopping = (client, client.call_async(Trigger.Request()), time.monotonic())
+
+    def step_retire(self, now: float) -> None:
+        """The retiring recorder's final counts in: unload it, and collect its last files."""
+        recorder = self.retiring
+        client, future, sent = recorder.stopping
+        if not future.done():
+            if now - sent > 2 * self.plan.shutdown_timeout_s:
+                raise RuntimeError(f"{recorder.name} did not answer ~/stop_recording")
+            return
+        recorder.finish(future.result())
+        self.events_node.destroy_client(client)
         self.unload(recorder.unique_id, recorder.name)
         recorder.services.destroy()
         recorder.unloaded = True
-        recorder.collect(self.links, self.pool, self.result.problems)
+        self.collector.collect()
+        self.retiring = None
 
     def poll(self) -> None:
-        """Files in and out of the worker; checks of the bags whose files are all read."""
-        for recorder in self.result.recorders:
-            if not recorder.unloaded:
-                recorder.collect(self.links, self.pool, self.result.problems)
-            recorder.harvest(self.result.union, self.result.problems)
-            if recorder.ready_for_check():
-                recorder.check = check_bag(recorder)
-                discard(recorder, self.keep_bags)
+        """The files the worker has read taken in; checks of the bags whose files are all read."""
+        with self.collector.lock:
+            pending = sum(len(recorder.pending) for recorder in self.result.recorders)
+            self.result.max_pending_files = max(self.result.max_pending_files, pending)
+            disk = os.statvfs(self.workdir)
+            if disk.f_bavail * disk.f_frsize < MIN_FREE_BYTES:
+                raise RuntimeError(f"less than {MIN_FREE_BYTES / 1e9:g} GB free on the bags' filesystem, "
+                                   f"{pending} files waiting to be read: stopped")
+            for recorder in self.result.recorders:
+                recorder.harvest(self.result.union, self.result.problems)
+                if recorder.ready_for_check():
+                    recorder.check = check_bag(recorder)
+                    discard(recorder, self.keep_bags)
 
     # --- the player ---------------------------------------------------------------------------------------
     def stop_player(self) -> int:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import os
 import shutil
@@ -34,6 +35,7 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--keep-bags", action="store_true", help="do not delete the bags (debugging)")
     p.add_argument("--results", default=str(RESULTS),
                    help="the result folder (soak.json and its tables) goes under this directory ('': none)")
+    p.add_argument("--json", metavar="FILE", help="also write the report as JSON to FILE")
     return p.parse_args(argv)
 
 
@@ -45,6 +47,7 @@ def verdicts(result: ChurnResult, accounting: dict[str, Any], resources: dict[st
     bag_problems = [f"{bag['name']}: {problem}" for bag in bags for problem in bag["problems"]]
     files = sum(bag["files"] for bag in bags)
     return [
+        bound("the run went to its end", result.error is None, result.error or f"{result.churn_s:.0f} s of churn"),
         bound("zero loss: every sequence number accounted for", accounting["lost"] == 0
               and accounting["duplicates_in_one_bag"] == 0 and not result.extra_load_failures,
               f"{accounting['lost']} missing, {accounting['duplicates_in_one_bag']} twice in one bag, "
@@ -61,9 +64,8 @@ def verdicts(result: ChurnResult, accounting: dict[str, Any], resources: dict[st
 
 def build_report(header: dict[str, Any], plan: SoakPlan, result: ChurnResult) -> dict[str, Any]:
     union = result.union
-    rig_streams = [(topic, topic.split("/")[1]) for topic, spec in plan.rig.topics().items()
-                   if spec.kind != "camera_info"]
-    accounting = account(union, rig_streams, result.extra_instances, plan.replay_messages,
+    numbered = [topic for topic, spec in plan.rig.topics().items() if spec.kind != "camera_info"]
+    accounting = account(union, numbered, result.extra_instances, plan.replay_messages,
                          round(1e9 * plan.replay_messages / plan.replay_rate), result.replay_published)
     resources = evaluate(result.samples, plan.warmup_s)
     bags = [recorder.check or {"name": recorder.name, "files": 0, "dropped": 0, "lost_events": [],
@@ -79,7 +81,7 @@ def build_report(header: dict[str, Any], plan: SoakPlan, result: ChurnResult) ->
                         "messages": sum(r.messages for r in records),
                         "rosbags_read_messages": sum(r.rosbags_read for r in records),
                         "read_seconds": summary_of([r.seconds for r in records]),
-                        "worker_cpu_s": worker_cpu},
+                        "worker_cpu_s": worker_cpu, "most_waiting": result.max_pending_files},
               "bags": bags, "accounting": accounting, "resources": resources,
               "container": {"cpu_s": result.container_cpu_s, "cpus": result.container_cpu_s / max(result.churn_s, 1e-9),
                             "peak_rss_mib": result.peak_rss_mib, "exit_status": result.exit_status},
@@ -152,4 +154,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     print_report(report)
     if args.results:
         print(f"results: {save(report, 'soak', Path(args.results))}", file=sys.stderr)
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
     return 0 if all(line["result"] != "FAIL" for line in report["verdicts"]) else 1

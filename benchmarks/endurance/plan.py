@@ -54,6 +54,9 @@ class SoakPlan:
     #: storage.max_bag_files: circular recording keeps the disk use of a 405 MB/s rig bounded (the files are
     #: collected, and read, as soon as they are closed)
     max_bag_files: int = 2
+    #: the container's --shutdown-timeout: a recorder stopped with a full stall reserve (up to 4 GiB) gets 80 %
+    #: of it to write its backlog, more than the default 8 s at this machine's disk speed under the soak's load
+    shutdown_timeout_s: float = 60.0
 
     def rig_topics(self) -> list[str]:
         return list(self.rig.topics())
@@ -105,9 +108,10 @@ def full_plan(minutes: float) -> SoakPlan:
 
 def short_plan() -> SoakPlan:
     """30 s for the test suite: the rig's shape with 320x240 cameras and a 4096-point LiDAR, splits every 2 s,
-    an extra driver every 2 s, a new recorder every 10 s."""
+    an extra driver every 2 s, a new recorder every 10 s; three files kept, so that a file stays listed for 4 s
+    even on a busy machine."""
     seconds = 30.0
     rig = Scenario("S1", "S1 rig, small frames", seconds, cameras=2, width=320, height=240, fps=30.0,
                    lidar_points=4096, lidar_rate=10.0, imus=1, imu_rate=200.0)
     return SoakPlan(seconds=seconds, split_s=2.0, extra_period_s=2.0, extra_alive_s=1.0, handover_period_s=10.0,
-                    warmup_s=6.0, rig=rig, extra_width=160, extra_height=120)
+                    warmup_s=6.0, rig=rig, extra_width=160, extra_height=120, max_bag_files=3)

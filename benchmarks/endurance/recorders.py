@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +53,7 @@ class RecorderRun:
     pending: dict[str, tuple[Future, Path]] = field(default_factory=dict)  # file name -> (worker's read, link)
     files: dict[str, FileRecord] = field(default_factory=dict)  # file name -> what its reading found
     final: Optional[dict[str, Any]] = None  # ~/stop_recording's final counts
+    stopping: Any = None  # the pending ~/stop_recording call (an rclpy Future)
     unloaded: bool = False
     check: Optional[dict[str, Any]] = None
 
@@ -104,6 +106,34 @@ class RecorderRun:
         """``~/stop_recording``'s reply: the final counts (or the failure)."""
         message = stop_reply.message
         self.final = json.loads(message) if message.startswith("{") else {"error": message}
+
+
+class Collector:
+    """A thread that hands every recorder's newly finished files to the worker every ``period`` seconds, so that
+    no call the churn waits on (a recorder finishing a backlog can take many seconds) holds it up: circular
+    recording deletes a file a few splits after listing it. ``lock`` guards the recorders' pending files."""
+
+    def __init__(self, links: Path, pool: Executor, period: float, problems: list[str]) -> None:
+        self.links, self.pool, self.period, self.problems = links, pool, period, problems
+        self.recorders: list[RecorderRun] = []
+        self.lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="soak_file_collector", daemon=True)
+        self._thread.start()
+
+    def collect(self) -> None:
+        with self.lock:
+            for recorder in self.recorders:
+                if recorder.check is None:
+                    recorder.collect(self.links, self.pool, self.problems)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            self.collect()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 def written_problems(recorder: RecorderRun) -> list[str]:

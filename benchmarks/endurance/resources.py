@@ -45,16 +45,22 @@ class Sample:
                    base, os.getloadavg()[0], backlog_bytes / 2**20)
 
 
-def slope_per_hour(points: list[tuple[float, float]]) -> Optional[float]:
-    """The least-squares slope of (seconds, value) points, per hour; None for fewer than two distinct times."""
+def least_squares_slope(points: list[tuple[float, float]]) -> Optional[float]:
+    """The least-squares slope of (x, y) points; None for fewer than two distinct x."""
     if len(points) < 2:
         return None
-    mean_t = sum(t for t, _ in points) / len(points)
-    mean_v = sum(v for _, v in points) / len(points)
-    spread = sum((t - mean_t) ** 2 for t, _ in points)
+    mean_x = sum(x for x, _ in points) / len(points)
+    mean_y = sum(y for _, y in points) / len(points)
+    spread = sum((x - mean_x) ** 2 for x, _ in points)
     if spread == 0:
         return None
-    return 3600.0 * sum((t - mean_t) * (v - mean_v) for t, v in points) / spread
+    return sum((x - mean_x) * (y - mean_y) for x, y in points) / spread
+
+
+def slope_per_hour(points: list[tuple[float, float]]) -> Optional[float]:
+    """The least-squares slope of (seconds, value) points, per hour."""
+    slope = least_squares_slope(points)
+    return None if slope is None else 3600.0 * slope
 
 
 def thirds(points: list[tuple[float, float]]) -> tuple[float, float]:
