@@ -154,7 +154,7 @@ def runs_of(numbers: list[int]) -> tuple[list[tuple[int, int]], int]:
 
 def lower_priority() -> None:
     """The worker's initializer: the container and the churn come first."""
-    os.nice(5)
+    os.nice(10)
 
 
 def read_file(path: str) -> FileContent:
