@@ -108,7 +108,8 @@ def test_a_stall_longer_than_the_cache_fills_the_reserve_and_loses_nothing(manag
     result = record_through_a_stall(manager, tmp_path / "bag", reserve=64 * 1024 * 1024)
     live, final = result["live"], result["final"]
     assert live["backlog_bytes"] > CACHE and live["reserve_in_use_bytes"] == live["backlog_bytes"] - CACHE
-    assert live["backlog_s"] > 0
+    assert live["backlog_s"] > 0 and live["memory_return_pending"]
+    assert not final["memory_return_pending"] and final["memory_returns"] == 1
     assert result["health"].level == WARN and "writer behind" in result["health"].message
     topic = final["topics"]["/camera/image_raw"]
     assert topic["dropped"] == 0 and topic["written"] == topic["received"], final

@@ -193,11 +193,13 @@ class Churn:
             machine, machine_snapshot(), self.result.container_cpu_s, {self.process.pid, os.getpid()})
 
     def sample(self, t: float) -> None:
-        """The container's resources now; a comparable moment (resources.Sample) when no recorder comes or goes
-        and the recorder's backlog fits its cache (a backlog in the stall reserve is a disk stall's memory)."""
+        """The container's resources now; a comparable moment (resources.Sample) when no recorder comes or goes,
+        the recorder's backlog fits its cache and the memory of its last backlog in the stall reserve has gone
+        back to the system (until then it is a disk stall's memory, not the container's)."""
         stats = self.recorder_stats(self.recorder)
         backlog = stats.get("backlog_bytes", 0)
-        base = self.incoming is None and self.retiring is None and backlog <= stats.get("max_cache_size", 0)
+        base = (self.incoming is None and self.retiring is None and backlog <= stats.get("max_cache_size", 0)
+                and not stats.get("memory_return_pending", False))
         self.result.samples.append(Sample.take(self.process.pid, t, base, backlog))
 
     def finish(self) -> None:

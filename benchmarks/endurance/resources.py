@@ -1,9 +1,11 @@
 """The container's resources over a soak run: resident memory, open file descriptors, threads.
 
-They are sampled from /proc at comparable moments: just before each load of the extra driver, when the
-container holds the rig, the player and one recorder, and neither an extra driver nor a second recorder (a
-sample taken during a recorder hand-over is kept but marked, and left out). Over the samples after the
-warm-up:
+They are sampled from /proc just before each load of the extra driver. A sample is taken at a comparable moment
+when the container holds the rig, the player and one recorder (neither an extra driver nor a second recorder),
+and that recorder is not behind: its backlog fits its cache, and the memory of its last backlog in the stall
+reserve has gone back to the system (``memory_return_pending``; a disk stall's backlog is memory the recorder
+holds on purpose, and gives back once written). Other samples are kept, marked, and left out. Over the
+comparable samples after the warm-up:
 
 * a least-squares slope, per hour;
 * the thirds: the largest value of the last third of those samples may exceed the largest of the first third by

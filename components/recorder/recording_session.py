@@ -429,7 +429,8 @@ class RecordingSession:
                 "max_cache_size": self.cache.max_bytes, "stall_reserve": self.cache.reserve,
                 "reserve_in_use_bytes": max(0, held - self.cache.max_bytes),
                 "peak_backlog_bytes": self.cache.peak_bytes, "memory_returns": self.memory_returns,
-                "memory_returned_bytes": self.memory_returned_bytes}
+                "memory_returned_bytes": self.memory_returned_bytes,
+                "memory_return_pending": self.cache.reserve_entries != self._reserve_entries_returned}
 
     def summary(self) -> str:
         stats = self.stats()
