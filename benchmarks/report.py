@@ -251,7 +251,8 @@ def soak_table(soak: dict[str, Any]) -> list[str]:
                                                f"missing: {accounting['lost']}"],
             ["drops reported", f"{sum(bag['dropped'] for bag in soak['bags'])} dropped, "
                                f"{sum(len(bag['lost_events']) for bag in soak['bags'])} messages_lost events"],
-            ["bags", f"{len(soak['bags'])} finalized; baglib read every message, rosbags "
+            ["bags", f"{sum(1 for bag in soak['bags'] if not bag['problems'])} of {len(soak['bags'])} finalized and "
+                     f"matching their recorders' counts; baglib read every message, rosbags "
                      f"{files['rosbags_read_messages']} one by one and every file's index"]]
     for metric, label, unit in (("rss_mib", "RSS", "MiB"), ("fds", "open fds", ""), ("threads", "threads", "")):
         m = resources.get(metric)
