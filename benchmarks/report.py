@@ -253,7 +253,9 @@ def soak_table(soak: dict[str, Any]) -> list[str]:
                                f"{sum(len(bag['lost_events']) for bag in soak['bags'])} messages_lost events"],
             ["bags", f"{sum(1 for bag in soak['bags'] if not bag['problems'])} of {len(soak['bags'])} finalized and "
                      f"matching their recorders' counts; baglib read every message, rosbags "
-                     f"{files['rosbags_read_messages']} one by one and every file's index"]]
+                     f"{files['rosbags_read_messages']} one by one and every file's index"
+                     + (f"; the reader stood aside {files['reader_pauses']} times ({files['reader_paused_s']:.0f} s) "
+                        "while the recorder was behind" if "reader_pauses" in files else "")]]
     for metric, label, unit in (("rss_mib", "RSS", "MiB"), ("fds", "open fds", ""), ("threads", "threads", "")):
         m = resources.get(metric)
         if m:

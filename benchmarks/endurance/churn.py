@@ -10,8 +10,9 @@ topic. Then, on one thread, by the clock (a late step runs at once and the sched
   every topic of the run, the previous one is stopped (``~/stop_recording``, answered with its final counts once
   its backlog is written: the schedule goes on meanwhile) and then unloaded;
 * every tenth of a split: the files the worker has read taken in, the bags of unloaded recorders whose files
-  are all read checked and deleted. A thread of its own (recorders.Collector) hands the recorders' newly
-  finished files to the worker.
+  are all read checked and deleted, and once a second the worker stopped or continued by the recorder's
+  backlog (reader_pause). A thread of its own (recorders.Collector) hands the recorders' newly finished files
+  to the worker.
 
 End: the player paused, its published count read, the player and the rig drivers unloaded, the last recorder
 stopped and unloaded, the container stopped with SIGINT (its exit status must be 0), every file read.
@@ -40,6 +41,7 @@ from baglib.format.metadata import TopicInfo
 from baglib.write.writer import BagWriter
 from benchmarks.endurance.accounting import Union
 from benchmarks.endurance.plan import IPC, PLAYER, REPLAY_TOPIC, Component, SoakPlan
+from benchmarks.endurance.reader_pause import ReaderPause
 from benchmarks.endurance.recorders import Collector, RecorderRun, check_bag, discard
 from benchmarks.endurance.resources import Sample
 from benchmarks.record.measure import cpu_seconds, machine_snapshot, other_cpu, peak_rss_mb
@@ -83,6 +85,8 @@ class ChurnResult:
     handovers: list[float] = field(default_factory=list)  # seconds each took
     max_pending_files: int = 0  # the most files waiting for the worker at once
     error: Optional[str] = None  # what stopped the run before its end
+    reader_pauses: int = 0       # how often, and how long in all, the worker stood still (reader_pause)
+    reader_paused_s: float = 0.0
     replay_published: int = 0
     exit_status: Optional[int] = None
     container_cpu_s: float = 0.0
@@ -98,6 +102,8 @@ class Churn:
     def __init__(self, plan: SoakPlan, workdir: Path, node: Node, pool: Executor, log: Callable[[str], None],
                  keep_bags: bool = False) -> None:
         self.plan, self.workdir, self.node, self.pool, self.log = plan, workdir, node, pool, log
+        self.reader = ReaderPause(pool.submit(os.getpid).result())
+        self.next_backlog_check = 0.0
         self.keep_bags = keep_bags
         self.events_node = Node(f"soak_events_{os.getpid()}", context=node.context)
         self.events = SingleThreadedExecutor(context=node.context)
@@ -126,6 +132,8 @@ class Churn:
             self.result.error = f"{type(exc).__name__}: {exc}"
             self.log(f"the run stopped: {self.result.error}")
         finally:
+            self.reader.resume()
+            self.result.reader_pauses, self.result.reader_paused_s = self.reader.pauses, self.reader.paused_s
             self.collector.stop()
             if self.process is not None:
                 self.process.kill()
@@ -215,6 +223,7 @@ class Churn:
         while self.retiring is not None:
             self.step_recorders(time.monotonic(), False)
             self.events.spin_once(timeout_sec=0.05)
+        self.reader.resume()
         self.result.exit_status = self.process.stop(signal.SIGINT, timeout=STOP_TIMEOUT, check=False)
         if not wait_until(self.all_checked, READ_TIMEOUT, interval=0.2):
             self.result.problems.append(f"the worker had not read every file {READ_TIMEOUT:g} s after the end")
@@ -321,7 +330,12 @@ class Churn:
         self.retiring = None
 
     def poll(self) -> None:
-        """The files the worker has read taken in; checks of the bags whose files are all read."""
+        """The files the worker has read taken in; checks of the bags whose files are all read; once a second,
+        the worker stopped or continued by the recorder's backlog (reader_pause)."""
+        if self.recorder is not None and time.monotonic() >= self.next_backlog_check:
+            self.next_backlog_check = time.monotonic() + 1.0
+            stats = self.recorder_stats(self.recorder)
+            self.reader.update(stats.get("backlog_bytes", 0), stats.get("max_cache_size", 0))
         with self.collector.lock:
             pending = sum(len(recorder.pending) for recorder in self.result.recorders)
             self.result.max_pending_files = max(self.result.max_pending_files, pending)

@@ -81,7 +81,8 @@ def build_report(header: dict[str, Any], plan: SoakPlan, result: ChurnResult) ->
                         "messages": sum(r.messages for r in records),
                         "rosbags_read_messages": sum(r.rosbags_read for r in records),
                         "read_seconds": summary_of([r.seconds for r in records]),
-                        "worker_cpu_s": worker_cpu, "most_waiting": result.max_pending_files},
+                        "worker_cpu_s": worker_cpu, "most_waiting": result.max_pending_files,
+                        "reader_pauses": result.reader_pauses, "reader_paused_s": result.reader_paused_s},
               "bags": bags, "accounting": accounting, "resources": resources,
               "container": {"cpu_s": result.container_cpu_s, "cpus": result.container_cpu_s / max(result.churn_s, 1e-9),
                             "peak_rss_mib": result.peak_rss_mib, "exit_status": result.exit_status},
@@ -101,7 +102,8 @@ def print_report(report: dict[str, Any]) -> None:
     print(f"\n== Soak: {report['plan']['rig']['describe'].split(';')[0]}; {churn['seconds'] / 60:.1f} min of churn")
     print(f"  {churn['extra_instances']} extra drivers loaded and unloaded, {churn['recorders']} recorders, "
           f"{files['count']} files ({files['bytes'] / 1e9:.1f} GB, {files['messages']} messages; rosbags read "
-          f"{files['rosbags_read_messages']} of them one by one)")
+          f"{files['rosbags_read_messages']} of them one by one; the reader stood aside {files['reader_pauses']} "
+          f"times, {files['reader_paused_s']:.0f} s in all, while the recorder was behind)")
     for metric in ("rss_mib", "fds", "threads"):
         m = report["resources"].get(metric)
         if m:
