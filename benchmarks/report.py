@@ -112,6 +112,26 @@ def s2_table(record: dict[str, Any]) -> list[str]:
                      f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
 
 
+def s2_repeat_table(record: dict[str, Any]) -> list[str]:
+    repeat = part(record, "S2").get("repeat")
+    if not repeat:
+        raise Missing("no S2 --repeat in this run")
+    rows = []
+    for number, run in enumerate(repeat["results"], 1):
+        if not measured(run):
+            rows.append([str(number), f"failed: {run['error'][:80]}", "", "", "", ""])
+            continue
+        direct = run.get("direct_write_pct")
+        rows.append([str(number), lost_text(run), fmt(run["mb_per_s"]), "" if direct is None else f"{direct:.0f} %",
+                     fmt(run.get("recorder_rss_mb"), ".0f"), "yes" if run["lossless"] else "no"])
+    direct = record.get("direct_write") or {}
+    return [*markdown(["run", "lost", "MB/s", "of direct-write limit", "recorder peak RSS MiB", "lossless"], rows), "",
+            f"ipc with {repeat['cameras']} {record['config']['height']}p{record['config']['fps']:g} cameras "
+            f"({record['S2']['base']}), {record['S2']['seconds']:g} s "
+            f"windows: lossless in {repeat['lossless_runs']} of {repeat['runs']} runs; direct-write limit of the run "
+            f"{fmt(direct.get('mb_per_s'), '.0f')} MB/s."]
+
+
 def micro(value: Optional[float]) -> str:
     return "" if value is None else f"{value:.1f} µs"
 
@@ -286,6 +306,60 @@ def foxglove_table(foxglove: dict[str, Any]) -> list[str]:
     return [*lines, "", note]
 
 
+def soak_table(soak: dict[str, Any]) -> list[str]:
+    if "verdicts" not in soak:
+        raise Missing("no soak run")
+    plan, churn, files, accounting = soak["plan"], soak["churn"], soak["files"], soak["accounting"]
+    resources, machine = soak["resources"], soak["machine"]
+    accounted = (sum(e.get("recorded", 0) for e in accounting["rig"].values())
+                 + accounting["extra"]["recorded_messages"] + accounting["/soak_replay/chatter"]["recorded"])
+    rows = [["run", f"{churn['seconds'] / 60:.0f} min: {plan['rig']['describe'].split(';')[0]}; an extra camera "
+                    f"loaded every {plan['extra_period_s']:g} s for {plan['extra_alive_s']:g} s, a new recorder "
+                    f"every {plan['handover_period_s']:g} s, splits every {plan['split_s']:g} s, a player looping"],
+            ["churn", f"{churn['extra_instances']} extra drivers, {churn['recorders']} recorders, {files['count']} "
+                      f"files ({files['bytes'] / 1e9:.0f} GB, {files['messages']} messages)"],
+            ["sequence numbers accounted for", f"{accounted} (camera infos and hand-over duplicates not counted); "
+                                               f"missing: {accounting['lost']}"],
+            ["drops reported", f"{sum(bag['dropped'] for bag in soak['bags'])} dropped, "
+                               f"{sum(len(bag['lost_events']) for bag in soak['bags'])} messages_lost events"],
+            ["bags", f"{sum(1 for bag in soak['bags'] if not bag['problems'])} of {len(soak['bags'])} finalized and "
+                     f"matching their recorders' counts; baglib read every message, rosbags "
+                     f"{files['rosbags_read_messages']} one by one and every file's index"
+                     + (f"; the reader stood aside {files['reader_pauses']} times ({files['reader_paused_s']:.0f} s) "
+                        "while the recorder was behind" if "reader_pauses" in files else "")]]
+    for metric, label, unit in (("rss_mib", "RSS", "MiB"), ("fds", "open fds", ""), ("threads", "threads", "")):
+        m = resources.get(metric)
+        if m:
+            unit = f" {unit}" if unit else ""
+            rows.append([f"{label} after the warm-up", f"{m['start']:.0f} → {m['end']:.0f}{unit}, slope "
+                                                      f"{m['slope_per_hour']:+.1f}{unit}/h"])
+    rows.append(["machine", f"container {soak['container']['cpus']:.2f} CPUs, reading the files "
+                            f"{files['worker_cpu_s'] / max(churn['seconds'], 1):.2f}, other processes "
+                            f"{machine['other_cpus']:.2f}; load average {soak['environment']['loadavg_start'][0]:.1f}"
+                            f" → {soak['environment']['loadavg_end'][0]:.1f}"])
+    return [*markdown(["figure", "value"], rows), "",
+            *markdown(["bound", "result"], [[v["bound"], f"{v['result']}: {v['detail']}"] for v in soak["verdicts"]])]
+
+
+def fuzz_table(fuzz: dict[str, Any]) -> list[str]:
+    if not fuzz.get("seeds"):
+        raise Missing("no fuzz seed run")
+    rows = []
+    for seed in fuzz["seeds"]:
+        rss, rates = seed["rss"], seed["rates"]
+        late = sum(seed["late"].get(kind, 0) + seed["abandoned"].get(kind, 0) for kind in ("load", "unload"))
+        rows.append([str(seed["seed"]), f"{seed['requests']} ({seed['requests'] / max(seed['seconds'], 1e-9):.0f}/s)",
+                     f"{late} late or unanswered, slowest {max(seed['slowest_s'].values(), default=0):.2f} s",
+                     f"{'alive' if seed['exit_status'] == 0 else 'FAILED'}, exit {seed['exit_status']}",
+                     ", ".join(f"{rate:.1f}/s" for rate in rates.values()),
+                     f"{rss['start_mib']:.0f} → {rss['last_third_start_mib']:.0f} → {rss['end_mib']:.0f}",
+                     f"{rss['growth_last_third_mib']:+.1f} MiB ({rss['slope_last_third_mib_per_10k']:+.2f} per 10 k)",
+                     "PASS" if seed["healthy"] else "FAIL: " + ", ".join(k for k, ok in seed["checks"].items()
+                                                                          if not ok)])
+    return markdown(["seed", "requests", "LoadNode / UnloadNode within 5 s", "container", "drivers afterwards",
+                     "RSS MiB: start → 2/3 → end", "RSS over the last third", "result"], rows)
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -299,6 +373,8 @@ TABLES: dict[str, Table] = {
     "headline": Table("record", "S1 (ipc and dds) and S2 of one run", "make bench", headline_table, ""),
     "s1": Table("record", "S1", "python benchmarks/record_bench.py --quick", s1_table, "S1 rig"),
     "s2": Table("record", "S2", "python benchmarks/record_bench.py --scenarios s2", s2_table, "S2 ramp"),
+    "s2_repeat": Table("record", "S2 with --repeat", "python benchmarks/record_bench.py --scenarios s2 --repeat 5",
+                       s2_repeat_table, "S2 repeated"),
     "s3": Table("record", "S3", "python benchmarks/record_bench.py --scenarios s3", s3_table, "S3 IMU storm"),
     "targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
@@ -307,6 +383,9 @@ TABLES: dict[str, Table] = {
     "merge": Table("merge", "workloads", "python benchmarks/merge_bench.py", merge_table, "Merge"),
     "foxglove": Table("foxglove", "in_container", "python benchmarks/foxglove_bench.py", foxglove_table,
                       "Foxglove viewer"),
+    "fuzz": Table("fuzz_load", "seeds", "python benchmarks/fuzz_load.py --seed 1 --seed 2 --seed 3", fuzz_table,
+                  "Fuzz load"),
+    "soak": Table("soak", "verdicts", "python benchmarks/soak.py", soak_table, "Soak"),
 }
 
 

@@ -42,6 +42,15 @@ class PipelineCounts:
     abandoned: dict[str, int] = field(default_factory=dict)
     slowest: dict[str, float] = field(default_factory=dict)
 
+    def add(self, other: "PipelineCounts") -> None:
+        """Take in the counts of another run: sums, and the slowest of both."""
+        for mine, theirs in ((self.sent, other.sent), (self.answered, other.answered), (self.late, other.late),
+                             (self.abandoned, other.abandoned)):
+            for kind, count in theirs.items():
+                mine[kind] = mine.get(kind, 0) + count
+        for kind, seconds in other.slowest.items():
+            self.slowest[kind] = max(self.slowest.get(kind, 0.0), seconds)
+
 
 class Pipeline:
     """Bounded concurrent calls; :meth:`submit` blocks (spinning) while ``max_in_flight`` are pending."""

@@ -79,6 +79,16 @@ class FuzzReport:
     internal_errors: list[str] = field(default_factory=list)
     recorder_failures: Counter = field(default_factory=Counter)
 
+    def add(self, other: "FuzzReport") -> None:
+        """Take in another run's report (the same scene, the next part of a run)."""
+        self.requests += other.requests
+        self.seconds += other.seconds
+        self.counts.add(other.counts)
+        self.loaded += other.loaded
+        self.load_errors.update(other.load_errors)
+        self.internal_errors.extend(other.internal_errors)
+        self.recorder_failures.update(other.recorder_failures)
+
     def summary(self) -> str:
         errors = "\n".join(f"    {count:6d}  {message}" for message, count in self.load_errors.most_common(12))
         return (f"seed {self.seed}: {self.requests} requests in {self.seconds:.1f} s "

@@ -672,6 +672,8 @@ def test_circular_split_by_duration_keeps_the_newest_files(tmp_path: Path, stora
         writer.add_topic(topic_info("/imu"))
         written = write_messages(writer, [("/imu", i) for i in range(20)], step=100_000_000)
     assert writer.deleted_files == [f"ring_{n}{ext}" for n in range(5)]
+    # the bag holds the last five; the writer wrote twenty, the deleted files' fifteen included
+    assert (writer.topic_message_counts, writer.written_message_counts) == ({"/imu": 5}, {"/imu": 20})
     assert sorted(p.name for p in bag.iterdir() if p.suffix == ext) == [f"ring_5{ext}", f"ring_6{ext}"]
     meta = check_split_bag(bag, written[-5:], storage_id)
     assert meta["relative_file_paths"] == [f"ring_5{ext}", f"ring_6{ext}"]

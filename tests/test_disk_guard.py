@@ -111,7 +111,12 @@ def test_circular_recording_keeps_the_newest_files(rig: Any, tmp_path: pathlib.P
     recorder = load_recorder(client, **{"storage.uri": str(uri), "storage.max_bagfile_size": 86016,
                                         "storage.max_bag_files": 2, "record.topics": ["/camera/image_raw"]})
     assert wait_until(lambda: len(get_stats(probe)["current"]["deleted_files"]) >= 2, 15.0)
+    stop = probe.create_client(Trigger, "/recorder/stop_recording")
+    final = json.loads(call(probe, stop, Trigger.Request(), 30.0).message)
+    probe.destroy_client(stop)
     assert client.unload(recorder).success
+    counts = final["topics"]["/camera/image_raw"]  # written: every message, the deleted files' included
+    assert counts["written"] == counts["received"] - counts["dropped"] > bag_messages(uri), counts
     meta = yaml.safe_load((uri / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     on_disk = sorted(p.name for p in uri.glob("*.mcap"))
     assert sorted(meta["relative_file_paths"]) == on_disk and len(on_disk) == 2

@@ -8,6 +8,7 @@ frames' first 8 bytes).
 """
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 from typing import Any, Iterator
@@ -44,12 +45,13 @@ class StallingRecorder(Recorder):
     writer_class = StallingBagWriter
 
 
-@pytest.fixture()
-def manager() -> Iterator[ComponentManager]:
+@pytest.fixture(params=[10.0])
+def manager(request: pytest.FixtureRequest) -> Iterator[ComponentManager]:
+    """An in-process container; its shutdown timeout (the recorder's bound on finishing a bag) is the param."""
     context = Context()
     rclpy.init(context=context)
     manager = ComponentManager("single", use_intra_process_comms=True, allow_module_plugins=True,
-                               node_name="stall_reserve_test", context=context)
+                               node_name="stall_reserve_test", context=context, shutdown_timeout=request.param)
     StallingBagWriter.DISK_UP.set()
     try:
         yield manager
@@ -89,7 +91,13 @@ def record_through_a_stall(manager: ComponentManager, bag: Path, reserve: int) -
     health = recorder.health()
     StallingBagWriter.DISK_UP.set()
     manager.unload(camera.unique_id)
-    assert wait_until(lambda: recorder.stats()["current"]["backlog_bytes"] == 0, 30.0), recorder.stats()
+    returns = 1 if reserve else 0  # a backlog in the reserve gives its memory back once it has drained
+
+    def drained() -> bool:
+        current = recorder.stats()["current"]
+        return current["backlog_bytes"] == 0 and current["memory_returns"] == returns
+
+    assert wait_until(drained, 30.0), recorder.stats()
     final = recorder.stats()["current"]
     manager.unload(loaded.unique_id)
     return {"live": live, "health": health, "final": final}
@@ -100,7 +108,8 @@ def test_a_stall_longer_than_the_cache_fills_the_reserve_and_loses_nothing(manag
     result = record_through_a_stall(manager, tmp_path / "bag", reserve=64 * 1024 * 1024)
     live, final = result["live"], result["final"]
     assert live["backlog_bytes"] > CACHE and live["reserve_in_use_bytes"] == live["backlog_bytes"] - CACHE
-    assert live["backlog_s"] > 0
+    assert live["backlog_s"] > 0 and live["memory_return_pending"]
+    assert not final["memory_return_pending"] and final["memory_returns"] == 1
     assert result["health"].level == WARN and "writer behind" in result["health"].message
     topic = final["topics"]["/camera/image_raw"]
     assert topic["dropped"] == 0 and topic["written"] == topic["received"], final
@@ -135,3 +144,34 @@ def test_a_snapshot_ring_has_no_reserve() -> None:
     for n in range(15):
         ring.push(CachedMessage("/t", b"", 100, n, n))
     assert ring.bytes == 1000 and ring.evicted == {"/t": 5}
+
+
+@pytest.mark.parametrize("manager", [0.5], indirect=True)
+def test_a_writer_given_up_on_closes_the_bag_when_it_gets_to_its_end(manager: ComponentManager,
+                                                                       tmp_path: Path) -> None:
+    """Stopping the recorder on a stalled disk gives up on the writer after 80 % of the shutdown timeout; when
+    the disk comes back, the writer finishes its batch and closes the bag: finalized, its file closed (the
+    container does not keep a descriptor per stalled recording)."""
+    bag = tmp_path / "bag"
+    loaded = load(manager, "test_stall_reserve:StallingRecorder", "test_stall_reserve", **{
+        "storage.uri": str(bag), "record.topics": ["/camera/image_raw"]})
+    recorder = loaded.node
+    camera = load(manager, "components::CameraDriver", "components", **FRAME)
+    topics = lambda: recorder.stats()["current"]["topics"]  # noqa: E731
+    assert wait_until(lambda: topics().get("/camera/image_raw", {}).get("written", 0) >= 3, 10.0)
+    StallingBagWriter.DISK_UP.clear()
+    assert wait_until(lambda: recorder.stats()["current"]["backlog_bytes"] > 0, 10.0)
+    final = recorder.stop_recording()
+    assert "did not finish" in final["error"] and not (bag / "metadata.yaml").exists()
+    StallingBagWriter.DISK_UP.set()
+    assert wait_until(lambda: (bag / "metadata.yaml").exists(), 10.0)
+
+    def open_in_bag() -> list[str]:
+        fds = Path("/proc/self/fd")
+        return [target for target in (os.readlink(fd) for fd in fds.iterdir() if fd.exists()) if str(bag) in target]
+
+    assert wait_until(lambda: not open_in_bag(), 5.0), open_in_bag()
+    assert len(sequences(bag)) >= 3  # rosbags reads it as it is, no repair needed
+    manager.unload(camera.unique_id)
+    manager.unload(loaded.unique_id)
+

@@ -150,8 +150,9 @@ class BagWriter:
 
         self._preset = storage_preset_profile
         self._max_bag_files = int(max_bag_files)
-        #: Files deleted by circular recording (max_bag_files), oldest first.
+        #: Files deleted by circular recording (max_bag_files), oldest first, and their messages per topic.
         self.deleted_files: list[str] = []
+        self._deleted_counts: dict[str, int] = {}
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the current file
         self._prepared: _Storage | None = None  # the next file, created ahead of the split
         self._closing: _ClosingFile | None = None  # the previous file, finished in the background
@@ -236,6 +237,16 @@ class BagWriter:
                 for name, count in file_counts.items():
                     counts[name] += count
             return counts
+
+    @property
+    def written_message_counts(self) -> dict[str, int]:
+        """Messages written per topic since the bag was opened: :attr:`topic_message_counts` plus what the files
+        circular recording deleted held."""
+        with self._lock:  # reentrant: the two counts of one moment
+            counts = self.topic_message_counts
+            for name, count in self._deleted_counts.items():
+                counts[name] = counts.get(name, 0) + count
+        return counts
 
     @property
     def message_count(self) -> int:
@@ -609,6 +620,9 @@ class BagWriter:
         dropped = {info.path for info in closing.dropped}
         self._metadata.files = [info for info in self._metadata.files if info.path not in dropped]
         self.deleted_files.extend(info.path for info in closing.dropped)
+        for info in closing.dropped:
+            for name, count in info.topic_message_counts.items():
+                self._deleted_counts[name] = self._deleted_counts.get(name, 0) + count
         if self._on_split is not None:
             self._on_split(str(closing.storage.path), str(closing.opened))
 

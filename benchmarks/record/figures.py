@@ -63,6 +63,7 @@ def apply_direct_share(report: dict[str, Any]) -> None:
             entries += [run.get(mode) for mode in IPC_MODES]
     s2 = report.get("S2") or {}
     entries += [step for step in s2.get("steps", []) if step.get("mode") in IPC_MODES]
+    entries += (s2.get("repeat") or {}).get("results", [])
     entries.append(s2.get("ceiling"))
     for entry in entries:
         if good(entry) and entry.get("mb_per_s"):
@@ -101,3 +102,11 @@ def repeat_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {"per_mode": per_mode,
             "ipc_dds_cpu_per_gb_ratio": [cpu_per_gb_ratio(r.get("ipc"), r.get("dds")) for r in runs] if both else None,
             "split_ipc_p99_ratio": [p99_ratio(r.get("split"), r.get("ipc")) for r in runs] if split else None}
+
+
+def s2_repeat_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """How many of S2's repeated ipc runs were lossless, and their peak RSS range."""
+    rss = [run["recorder_rss_mb"] for run in runs if good(run)]
+    return {"runs": len(runs), "failed_runs": sum(1 for run in runs if not good(run)),
+            "lossless_runs": sum(1 for run in runs if good(run) and run["lossless"]),
+            "peak_rss_mb_max": max(rss, default=None)}

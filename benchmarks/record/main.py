@@ -17,11 +17,12 @@ import rclpy
 
 from benchmarks.record.bench import Bench, guarded
 from benchmarks.record.disk import DIRECT_BLOCK, run_ceiling, run_direct_write
-from benchmarks.record.figures import apply_direct_share, apply_recorder_cpu, good, repeat_summary
+from benchmarks.record.figures import (apply_direct_share, apply_recorder_cpu, good, repeat_summary,
+                                       s2_repeat_summary)
 from benchmarks.record.modes import run_baseline, run_drivers_only, run_recorder_mode
 from benchmarks.record.report import plot, print_report
 from benchmarks.record.scenarios import RECORDER_MODES, s1_scenario, s2_scenario, s3_scenario
-from benchmarks.record.targets import DEFAULT_CACHE, evaluate_targets
+from benchmarks.record.targets import DEFAULT_CACHE, S2_CAMERAS, evaluate_targets
 from benchmarks.result_folder import RESULTS, run_header, save
 
 DESCRIPTION = "Recording benchmark: the zero-copy in-container recorder against DDS recording, on the same scenario."
@@ -38,6 +39,8 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imu-rate", type=float, default=200.0, help="S1 IMU rate")
     p.add_argument("--s2-seconds", type=float, default=6.0, help="S2 window per step")
     p.add_argument("--s2-max-cameras", type=int, default=8)
+    p.add_argument("--s2-cameras", type=int, default=S2_CAMERAS,
+                   help="with --repeat: S2's ipc step repeated at this many cameras")
     p.add_argument("--s2-base", choices=("rig", "cameras"), default="rig",
                    help="rig: cameras on top of the S1 lidar and IMU; cameras: cameras only")
     p.add_argument("--s3-seconds", type=float, default=10.0)
@@ -69,8 +72,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="MiB written with O_DIRECT to measure the direct-write limit of the bags' filesystem "
                         "(0: skip; at least 8)")
     p.add_argument("--repeat", type=int, default=0,
-                   help="run S1's recorder modes this many times back to back and report the loss distribution "
-                        "(0: once, the plain single-run output)")
+                   help="run S1's recorder modes this many times back to back and report the loss distribution, "
+                        "and after S2's ramp its ipc step at --s2-cameras this many times (0: once, the plain "
+                        "single-run output)")
     p.add_argument("--page-pause", type=float, default=10.0,
                    help="seconds between deleting a bag (or ceiling file) and the next run, so every run writes "
                         "to fresh page-cache pages as a continuously writing recorder does")
@@ -117,8 +121,8 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {*RECORDER_MODES, "drivers", "ceiling"})
     if unknown:
         p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
-    if args.repeat < 0:
-        p.error("--repeat must be >= 0")
+    if args.repeat < 0 or args.s2_cameras < 1:
+        p.error("--repeat must be >= 0, --s2-cameras >= 1")
     if 0 < args.direct_mb < DIRECT_BLOCK / 2**20:
         p.error(f"--direct-mb must be 0 (skip) or at least {DIRECT_BLOCK // 2**20}")
     return args
@@ -173,13 +177,18 @@ def ramp(bench: Bench, s2: dict[str, Any], mode: str) -> None:
 
 
 def run_s2(bench: Bench) -> dict[str, Any]:
-    """S2: the ramp, ipc then dds."""
+    """S2: the ramp, ipc then dds; with --repeat, ipc at --s2-cameras that many times back to back."""
     args = bench.args
     s2: dict[str, Any] = {"base": "S1 lidar + IMU + cameras" if args.s2_base == "rig" else "cameras only",
                           "cap": args.s2_max_cameras, "seconds": args.s2_seconds, "steps": [],
                           "largest_lossless": {}, "limit_reached": {}}
     for mode in ("ipc", "dds"):
         ramp(bench, s2, mode)
+    if args.repeat:
+        scenario = s2_scenario(args, args.s2_cameras)
+        runs = [guarded(bench, f"S2 ipc {args.s2_cameras} cameras (run {run} of {args.repeat})",
+                        lambda: run_recorder_mode(bench, scenario, "ipc")) for run in range(1, args.repeat + 1)]
+        s2["repeat"] = {"cameras": args.s2_cameras, "results": runs, **s2_repeat_summary(runs)}
     return s2
 
 

@@ -200,11 +200,27 @@ def print_s2(s2: dict[str, Any]) -> None:
     for mode, best in s2["largest_lossless"].items():
         print(f"  largest lossless camera count, {mode}: {best}"
               + ("" if s2["limit_reached"].get(mode) else f" (no loss up to the cap of {s2['cap']})"))
+    if s2.get("repeat"):
+        print_s2_repeat(s2["repeat"])
     if s2.get("ceiling"):
         c = s2["ceiling"]
         print(f"  ceiling for the ipc overload step ({c['cameras']} cameras): {c['mb_per_s']:.0f} MB/s (median of "
               + ", ".join(f"{v:.0f}" for v in c["all_runs_mb_per_s"])
               + f"; warm, reusing just-freed pages: {c['warm_mb_per_s']:.0f} MB/s)")
+
+
+def print_s2_repeat(repeat: dict[str, Any]) -> None:
+    print(f"\n== S2 repeated: ipc with {repeat['cameras']} cameras, {repeat['runs']} runs back to back")
+    rows = []
+    for number, run in enumerate(repeat["results"], 1):
+        if "error" in run:
+            rows.append([str(number), "ERROR " + run["error"][:50]] + [""] * 6)
+            continue
+        rows.append([str(number), str(run["published"]), str(run["lost"]), fmt(run["mb_per_s"], ".1f"),
+                     fmt(run.get("direct_write_pct"), ".0f"), fmt(run["recorder_rss_mb"], ".0f"),
+                     fmt((run.get("latency_ms") or {}).get("p99"), ".1f"), verdict(run)])
+    print(table(["run", "published", "lost", "MB/s", "% direct", "peak RSS MB", "p99 ms", "lossless"], rows))
+    print(f"  lossless in {repeat['lossless_runs']} of {repeat['runs']} runs")
 
 
 def print_s3(s3: dict[str, Any], scenario: Scenario) -> None:

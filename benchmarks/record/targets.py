@@ -125,6 +125,21 @@ def s2_direct_target(s2: Optional[dict[str, Any]], targets: Targets) -> None:
                 f"{pct:.0f} % of the direct-write limit{capped}")
 
 
+def s2_repeat_target(repeat: dict[str, Any], args: argparse.Namespace, targets: Targets) -> None:
+    """S2's ipc step repeated (--repeat): lossless in every run, with the default storage and cache; each run's
+    share of the direct-write limit and peak RSS reported."""
+    name = f"S2 ipc lossless with {repeat['cameras']} cameras in {REPEAT_RUNS} of {REPEAT_RUNS} consecutive runs"
+    runs = [run for run in repeat["results"] if good(run)]
+    detail = (f"lossless in {repeat['lossless_runs']} of {repeat['runs']} runs; % of the direct-write limit per "
+              "run: " + ", ".join(fmt(run.get("direct_write_pct"), ".0f") for run in runs)
+              + "; recorder peak RSS per run: " + ", ".join(fmt(run["recorder_rss_mb"], ".0f") for run in runs)
+              + " MiB")
+    if args.repeat < REPEAT_RUNS or not default_storage(args):
+        targets.add(name, None, detail + f" (needs --repeat >= {REPEAT_RUNS} and the default storage and cache)")
+        return
+    targets.add(name, repeat["lossless_runs"] == repeat["runs"], detail)
+
+
 def s3_targets(s3: dict[str, Any], args: argparse.Namespace, targets: Targets) -> None:
     ipc, dds, baseline = s3.get("ipc"), s3.get("dds"), s3.get("baseline")
     name = f"S3 ipc zero loss, recorder CPU per message <= 1/{1 / S3_RECORDER_RATIO:g} of dds"
@@ -181,5 +196,7 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
     if s1.get("repeat"):
         repeat_targets(s1["repeat"], args, targets)
     s2_targets(report.get("S2"), targets)
+    if (report.get("S2") or {}).get("repeat"):
+        s2_repeat_target(report["S2"]["repeat"], args, targets)
     s3_targets(report.get("S3") or {}, args, targets)
     return targets.rows

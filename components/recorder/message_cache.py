@@ -89,6 +89,8 @@ class MessageCache:
         self.max_bytes = max_bytes
         self.reserve = 0 if ring else reserve  # a snapshot ring keeps its size: it evicts instead
         self.peak_bytes = 0
+        #: how many times the bytes held went above ``max_bytes``, into the reserve
+        self.reserve_entries = 0
         self._ring = ring
         self._queue: deque[CachedMessage] = deque()
         self._bytes = 0
@@ -134,6 +136,8 @@ class MessageCache:
                 return False
             self._queue.append(message)
             self._bytes += message.size
+            if self._bytes > self.max_bytes >= self._bytes - message.size:
+                self.reserve_entries += 1
             if self._bytes > self.peak_bytes:
                 self.peak_bytes = self._bytes
             if not self._ring and self._bytes >= self._wake_bytes:

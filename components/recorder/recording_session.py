@@ -32,6 +32,7 @@ from typing import Any, Callable
 from baglib.format import cdr_fast
 from baglib.format.cdr_fast import CdrData
 from baglib.write.writer import BagWriteError, BagWriter
+from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from baglib.format.metadata import TopicInfo
@@ -111,6 +112,10 @@ class RecordingSession:
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
         self._latencies: deque[int] = deque(maxlen=LATENCY_SAMPLES)
         self._snapshot_mode = options.snapshot_mode
+        # Backlogs that went into the stall reserve and whose memory went back to the system (_return_memory).
+        self._reserve_entries_returned = 0
+        self.memory_returns = 0
+        self.memory_returned_bytes = 0
         # Loss bounds: flush/sync deadlines, checked after every batch and at least every wake-up period.
         self._flush_ns = round(options.flush_interval * 1e9)
         self._sync_ns = round(options.sync_interval * 1e9)
@@ -124,6 +129,11 @@ class RecordingSession:
         self._snapshot: list[CachedMessage] | None = None
         self._finish_lock = threading.Lock()
         self._finished = False
+        # finish() gave up waiting for the writer (a stalled disk): the writer closes the bag itself if it ever
+        # gets to its end; ``_writer_done`` says it got there first. Both under ``_abandon_lock``.
+        self._abandon_lock = threading.Lock()
+        self._abandoned = False
+        self._writer_done = False
         # A daemon: a writer stuck on a hung disk is abandoned by finish() and must not keep the process alive.
         self._thread = threading.Thread(target=self._run, name=f"bag_writer:{self.writer.path.name}",
                                         daemon=True)
@@ -196,15 +206,28 @@ class RecordingSession:
                 self._bytes_written = self.writer.bytes_written
                 self._check_storage()
                 self._keep_loss_bounds()
+                self._return_memory()
                 if self._snapshot is batch:
                     self._snapshot = None  # written: the next snapshot may be taken
                 if closed and not batch:
+                    self._end_of_writing()
                     return
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
             self._release_written()
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
+
+    def _end_of_writing(self) -> None:
+        """The writer thread's last step: if finish() gave up on it meanwhile, the bag is still closed now
+        (summary, metadata.yaml: readable without a repair) and its file descriptors released."""
+        with self._abandon_lock:
+            self._writer_done = True
+            late = self._abandoned
+        if late:
+            self._close_writer()
+            self._logger.warning(f"Recording to {self.writer.path}: the writer finished after all; the bag is "
+                                 "closed with what it wrote")
 
     def _check_storage(self) -> None:
         """At most every DISK_CHECK_PERIOD: the free-space guard, and whether the bag file is still ours on
@@ -228,6 +251,22 @@ class RecordingSession:
         if self._sync_ns and self._unsynced and now - self._last_sync_ns >= self._sync_ns:
             self.writer.sync()
             self._last_sync_ns, self._unsynced = now, False
+
+    def _return_memory(self) -> None:
+        """Once a backlog that went into the stall reserve has drained (the cache holds at most a quarter of
+        ``max_cache_size`` again), give the memory its messages held back to the system, once per such backlog.
+        glibc keeps freed heap memory for reuse: without this the container would keep a stall's backlog, up to
+        the whole reserve, as resident memory for good."""
+        entries = self.cache.reserve_entries
+        if entries == self._reserve_entries_returned or self.cache.bytes > self.cache.max_bytes // 4:
+            return
+        self._reserve_entries_returned = entries
+        before = resident_bytes()
+        if release_free_memory():
+            self.memory_returns += 1
+            returned = max(0, before - resident_bytes())
+            self.memory_returned_bytes += returned
+            self._logger.info(f"The backlog has drained: {returned / 1e6:.0f} MB of memory returned to the system")
 
     def _next_batch(self) -> list[CachedMessage]:
         wake = self._wake_ns / 1e9
@@ -312,7 +351,8 @@ class RecordingSession:
 
         Waits at most ``timeout`` seconds (None: as long as it takes) for the writer thread. One still busy
         then is stuck on its storage: it is abandoned with the bag unfinalized, and nothing that would wait on
-        that storage (closing the bag, its counts) is attempted.
+        that storage (closing the bag, its counts) is attempted here. Should it get to its end after all, it
+        closes the bag itself (:meth:`_end_of_writing`).
         """
         with self._finish_lock:
             if self._finished:
@@ -323,7 +363,9 @@ class RecordingSession:
         self.cache.close()
         self._thread.join(timeout)
         self._discard(self.cache.drain(), STORAGE_FAILED)  # left behind by a failed or stuck writer
-        if self._thread.is_alive():
+        with self._abandon_lock:
+            self._abandoned = not self._writer_done and self._thread.is_alive()
+        if self._abandoned:
             self._fail(f"the writer did not finish within {timeout:.1f} s (a hung disk?): the bag was not "
                        "finalized; it can be repaired (ipc-component bag recover)")
         else:
@@ -334,7 +376,7 @@ class RecordingSession:
         """Per topic: written, received, queue drops and the reasons of every drop; never waits on the storage."""
         idle = not self._thread.is_alive()  # only then is the writer's lock free for sure
         handed = dict(self.handed)
-        written = self.writer.topic_message_counts if idle else handed
+        written = self.writer.written_message_counts if idle else handed
         received, cache_full, refused = self.cache.counts()
         queue = Counter(self._queue_drops() if self._queue_drops else {})
         with self._stats_lock:
@@ -386,7 +428,9 @@ class RecordingSession:
                 "backlog_s": 0.0 if oldest_ns is None else max(0.0, (time.time_ns() - oldest_ns) / 1e9),
                 "max_cache_size": self.cache.max_bytes, "stall_reserve": self.cache.reserve,
                 "reserve_in_use_bytes": max(0, held - self.cache.max_bytes),
-                "peak_backlog_bytes": self.cache.peak_bytes}
+                "peak_backlog_bytes": self.cache.peak_bytes, "memory_returns": self.memory_returns,
+                "memory_returned_bytes": self.memory_returned_bytes,
+                "memory_return_pending": self.cache.reserve_entries != self._reserve_entries_returned}
 
     def summary(self) -> str:
         stats = self.stats()
