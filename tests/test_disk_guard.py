@@ -135,6 +135,8 @@ def test_a_deleted_bag_file_is_a_storage_failure(rig: Any, tmp_path: pathlib.Pat
     current.unlink()
     error = wait_until(lambda: get_stats(probe)["current"]["error"], 5.0)
     assert error and "the bag file was deleted while recording" in error, error
+    # the writer thread finalizes the bag right after reporting the error
+    assert wait_until(lambda: (uri / "metadata.yaml").exists(), 10.0)
     meta = yaml.safe_load((uri / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert current.name not in meta["relative_file_paths"]
     assert [name for _, name in listing(client)] == [*DRIVERS, "/recorder"]
