@@ -90,7 +90,8 @@ def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tm
 
 
 def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Path) -> None:
-    started = cli("record", "start", "--session", "crash", "--in", "0.5", "-p", "storage.flush_interval:=0.5")
+    started = cli("record", "start", "/fa/container", "/fb/container", "--session", "crash", "--in", "0.5",
+                  "-p", "storage.flush_interval:=0.5")  # named: other tests' containers share this domain
     assert started.returncode == 0, started.stdout + started.stderr
     time.sleep(3.5)
     killed_ns = time.time_ns()

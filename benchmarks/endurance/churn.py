@@ -108,7 +108,9 @@ class Churn:
         self.events_node = Node(f"soak_events_{os.getpid()}", context=node.context)
         self.events = SingleThreadedExecutor(context=node.context)
         self.events.add_node(self.events_node)
-        self.client = ContainerClient(node)
+        # A name of its own: a test run may have other containers on the same domain (a module's shared one)
+        self.container_name = f"/soak_container_{os.getpid()}"
+        self.client = ContainerClient(node, self.container_name)
         (workdir / "links").mkdir()
         (workdir / "bags").mkdir()
         self.result = ChurnResult()
@@ -151,7 +153,8 @@ class Churn:
         entries = [*plan.rig_components(), plan.player(replay_bag).startup_entry(), first.startup_entry()]
         startup.write_text(yaml.safe_dump({"components": entries}, sort_keys=False))
         self.process = ContainerProcess("--shutdown-timeout", f"{plan.shutdown_timeout_s:g}", "--load", str(startup),
-                                        cwd=self.workdir, log_path=self.workdir / "container.log")
+                                        name=self.container_name, cwd=self.workdir,
+                                        log_path=self.workdir / "container.log")
         self.client.wait(timeout=STARTUP_TIMEOUT)
         names = [f"/{entry['name']}" for entry in entries]
         listed = wait_until(lambda: self.listed(names), STARTUP_TIMEOUT)
