@@ -108,9 +108,10 @@ class Churn:
         self.events_node = Node(f"soak_events_{os.getpid()}", context=node.context)
         self.events = SingleThreadedExecutor(context=node.context)
         self.events.add_node(self.events_node)
-        # A name of its own: a test run may have other containers on the same domain (a module's shared one)
-        self.container_name = f"/soak_container_{os.getpid()}"
-        self.client = ContainerClient(node, self.container_name)
+        # A container name of its own: a client of another run in the same ROS domain (a test's ContainerClient
+        # of /ComponentManager) cannot load into this one, nor this run's client into theirs.
+        self.container = f"soak_container_{os.getpid()}"
+        self.client = ContainerClient(node, f"/{self.container}")
         (workdir / "links").mkdir()
         (workdir / "bags").mkdir()
         self.result = ChurnResult()
@@ -153,8 +154,7 @@ class Churn:
         entries = [*plan.rig_components(), plan.player(replay_bag).startup_entry(), first.startup_entry()]
         startup.write_text(yaml.safe_dump({"components": entries}, sort_keys=False))
         self.process = ContainerProcess("--shutdown-timeout", f"{plan.shutdown_timeout_s:g}", "--load", str(startup),
-                                        name=self.container_name, cwd=self.workdir,
-                                        log_path=self.workdir / "container.log")
+                                        name=self.container, cwd=self.workdir, log_path=self.workdir / "container.log")
         self.client.wait(timeout=STARTUP_TIMEOUT)
         names = [f"/{entry['name']}" for entry in entries]
         listed = wait_until(lambda: self.listed(names), STARTUP_TIMEOUT)
@@ -174,7 +174,7 @@ class Churn:
     def churn(self) -> None:
         plan = self.plan
         start = time.monotonic()
-        self.result.container_cpu_s = -cpu_seconds(self.process.pid)
+        cpu = cpu_seconds(self.process.pid)
         machine = machine_snapshot()
         next_extra, next_handover, next_poll = start, start + plan.handover_period_s, start
         end = start + plan.seconds
@@ -199,7 +199,7 @@ class Churn:
                 next_poll += plan.split_s / 10
             self.events.spin_once(timeout_sec=0.02)
         self.result.churn_s = time.monotonic() - start
-        self.result.container_cpu_s += cpu_seconds(self.process.pid)
+        self.result.container_cpu_s = cpu_seconds(self.process.pid) - cpu
         self.result.other_cpu_s, self.result.kernel_cpu_s = other_cpu(
             machine, machine_snapshot(), self.result.container_cpu_s, {self.process.pid, os.getpid()})
 
