@@ -235,6 +235,17 @@ def recover_table(recover: dict[str, Any]) -> list[str]:
                 f"{target['result']}; {target['detail']}."]
 
 
+def files_read(files: dict[str, Any]) -> str:
+    """How the soak's files were read (benchmarks/endurance/bag_files.py)."""
+    indexed = files.get("read_through_indexes", 0)
+    if indexed:
+        return (f"every message's number read, of {indexed} of the {files['count']} files through their MCAP "
+                "message indexes (baglib and rosbags checked their counts), of the others by baglib and rosbags "
+                f"reading every message")
+    return (f"baglib read every message, rosbags {files['rosbags_read_messages']} one by one and every file's "
+            "index")
+
+
 def soak_table(soak: dict[str, Any]) -> list[str]:
     if "verdicts" not in soak:
         raise Missing("no soak run")
@@ -252,8 +263,7 @@ def soak_table(soak: dict[str, Any]) -> list[str]:
             ["drops reported", f"{sum(bag['dropped'] for bag in soak['bags'])} dropped, "
                                f"{sum(len(bag['lost_events']) for bag in soak['bags'])} messages_lost events"],
             ["bags", f"{sum(1 for bag in soak['bags'] if not bag['problems'])} of {len(soak['bags'])} finalized and "
-                     f"matching their recorders' counts; baglib read every message, rosbags "
-                     f"{files['rosbags_read_messages']} one by one and every file's index"
+                     f"matching their recorders' counts; " + files_read(files)
                      + (f"; the reader stood aside {files['reader_pauses']} times ({files['reader_paused_s']:.0f} s) "
                         "while the recorder was behind" if "reader_pauses" in files else "")]]
     for metric, label, unit in (("rss_mib", "RSS", "MiB"), ("fds", "open fds", ""), ("threads", "threads", "")):
