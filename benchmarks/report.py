@@ -125,11 +125,14 @@ def s2_repeat_table(record: dict[str, Any]) -> list[str]:
         rows.append([str(number), lost_text(run), fmt(run["mb_per_s"]), "" if direct is None else f"{direct:.0f} %",
                      fmt(run.get("recorder_rss_mb"), ".0f"), "yes" if run["lossless"] else "no"])
     direct = record.get("direct_write") or {}
+    s2_targets = [f"* {t['result']}: {t['target']}: {t['detail']}." for t in record.get("targets", [])
+                  if t["target"].startswith("S2")]
     return [*markdown(["run", "lost", "MB/s", "of direct-write limit", "recorder peak RSS MiB", "lossless"], rows), "",
             f"ipc with {repeat['cameras']} {record['config']['height']}p{record['config']['fps']:g} cameras "
             f"({record['S2']['base']}), {record['S2']['seconds']:g} s "
             f"windows: lossless in {repeat['lossless_runs']} of {repeat['runs']} runs; direct-write limit of the run "
-            f"{fmt(direct.get('mb_per_s'), '.0f')} MB/s."]
+            f"{fmt(direct.get('mb_per_s'), '.0f')} MB/s. The S2 targets of the same run (its ramp and these runs):",
+            "", *s2_targets]
 
 
 def micro(value: Optional[float]) -> str:
@@ -159,6 +162,13 @@ def s3_table(record: dict[str, Any]) -> list[str]:
 def targets_table(record: dict[str, Any]) -> list[str]:
     rows = [[t["target"], f"{t['result']}: {t['detail']}"] for t in part(record, "targets")]
     return markdown(["target", "result"], rows)
+
+
+def full_run_targets_table(record: dict[str, Any]) -> list[str]:
+    """The targets of a run of every scenario (a run of a part of them leaves most of them N/A)."""
+    if not all(record.get(key) for key in ("S1", "S2", "S3")):
+        raise Missing("not a run of S1, S2 and S3")
+    return targets_table(record)
 
 
 def headline_table(record: dict[str, Any]) -> list[str]:
@@ -306,6 +316,17 @@ def foxglove_table(foxglove: dict[str, Any]) -> list[str]:
     return [*lines, "", note]
 
 
+def files_read(files: dict[str, Any]) -> str:
+    """How the soak's files were read (benchmarks/endurance/bag_files.py)."""
+    indexed = files.get("read_through_indexes", 0)
+    if indexed:
+        return (f"every message's number read, of {indexed} of the {files['count']} files through their MCAP "
+                "message indexes (baglib and rosbags checked their counts), of the others by baglib and rosbags "
+                f"reading every message")
+    return (f"baglib read every message, rosbags {files['rosbags_read_messages']} one by one and every file's "
+            "index")
+
+
 def soak_table(soak: dict[str, Any]) -> list[str]:
     if "verdicts" not in soak:
         raise Missing("no soak run")
@@ -323,8 +344,7 @@ def soak_table(soak: dict[str, Any]) -> list[str]:
             ["drops reported", f"{sum(bag['dropped'] for bag in soak['bags'])} dropped, "
                                f"{sum(len(bag['lost_events']) for bag in soak['bags'])} messages_lost events"],
             ["bags", f"{sum(1 for bag in soak['bags'] if not bag['problems'])} of {len(soak['bags'])} finalized and "
-                     f"matching their recorders' counts; baglib read every message, rosbags "
-                     f"{files['rosbags_read_messages']} one by one and every file's index"
+                     f"matching their recorders' counts; " + files_read(files)
                      + (f"; the reader stood aside {files['reader_pauses']} times ({files['reader_paused_s']:.0f} s) "
                         "while the recorder was behind" if "reader_pauses" in files else "")]]
     for metric, label, unit in (("rss_mib", "RSS", "MiB"), ("fds", "open fds", ""), ("threads", "threads", "")):
@@ -376,7 +396,8 @@ TABLES: dict[str, Table] = {
     "s2_repeat": Table("record", "S2 with --repeat", "python benchmarks/record_bench.py --scenarios s2 --repeat 5",
                        s2_repeat_table, "S2 repeated"),
     "s3": Table("record", "S3", "python benchmarks/record_bench.py --scenarios s3", s3_table, "S3 IMU storm"),
-    "targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
+    "targets": Table("record", "targets of S1, S2 and S3", "make bench", full_run_targets_table, ""),
+    "run_targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
     "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
     "fleet": Table("fleet", "central", "python benchmarks/fleet_bench.py", fleet_table, "Fleet"),

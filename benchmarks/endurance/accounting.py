@@ -27,7 +27,8 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
-from benchmarks.endurance.bag_files import FileContent, Stream
+from benchmarks.endurance.bag_files import FileContent
+from benchmarks.endurance.message_fields import Stream
 from benchmarks.endurance.plan import EXTRA_IMAGE_TOPIC, REPLAY_TOPIC, extra_frame_id
 
 #: How many missing numbers a stream's report lists.

@@ -80,6 +80,7 @@ def build_report(header: dict[str, Any], plan: SoakPlan, result: ChurnResult) ->
               "files": {"count": len(records), "bytes": sum(r.size for r in records),
                         "messages": sum(r.messages for r in records),
                         "rosbags_read_messages": sum(r.rosbags_read for r in records),
+                        "read_through_indexes": sum(1 for r in records if r.heads_only),
                         "read_seconds": summary_of([r.seconds for r in records]),
                         "worker_cpu_s": worker_cpu, "most_waiting": result.max_pending_files,
                         "reader_pauses": result.reader_pauses, "reader_paused_s": result.reader_paused_s},
@@ -101,8 +102,9 @@ def print_report(report: dict[str, Any]) -> None:
     files, churn, machine = report["files"], report["churn"], report["machine"]
     print(f"\n== Soak: {report['plan']['rig']['describe'].split(';')[0]}; {churn['seconds'] / 60:.1f} min of churn")
     print(f"  {churn['extra_instances']} extra drivers loaded and unloaded, {churn['recorders']} recorders, "
-          f"{files['count']} files ({files['bytes'] / 1e9:.1f} GB, {files['messages']} messages; rosbags read "
-          f"{files['rosbags_read_messages']} of them one by one; the reader stood aside {files['reader_pauses']} "
+          f"{files['count']} files ({files['bytes'] / 1e9:.1f} GB, {files['messages']} messages; "
+          f"{files['read_through_indexes']} files read through their message indexes, rosbags read "
+          f"{files['rosbags_read_messages']} messages one by one; the reader stood aside {files['reader_pauses']} "
           f"times, {files['reader_paused_s']:.0f} s in all, while the recorder was behind)")
     for metric in ("rss_mib", "fds", "threads"):
         m = report["resources"].get(metric)

@@ -37,6 +37,7 @@ class FileRecord:
     rosbags_read: int
     seconds: float
     cpu_s: float
+    heads_only: bool
 
 
 @dataclass
@@ -95,7 +96,8 @@ class RecorderRun:
             union.add(self.index, content)
             problems.extend(f"{self.name}: {name}: {problem}" for problem in content.problems)
             self.files[name] = FileRecord(content.messages, content.size, content.counts,
-                                          sum(content.rosbags_read.values()), content.seconds, content.cpu_s)
+                                          sum(content.rosbags_read.values()), content.seconds, content.cpu_s,
+                                          content.heads_only)
             done.append(content)
         return done
 
