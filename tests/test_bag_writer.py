@@ -48,7 +48,7 @@ from baglib.format import cdr_fast, message_definitions
 from baglib.write import mcap_storage
 from baglib.write.writer import BagExistsError, BagWriteError, BagWriter
 from baglib.format.cdr_fast import SerializedBuffers
-from baglib.write.direct_file import DirectFile
+from baglib.write.direct_file import GATHER, DirectFile
 from baglib.format.mcap_records import scan
 from baglib.write.mcap_storage import DEFAULT_CHUNK_SIZE, PADDING_OPCODE, McapStorage
 from baglib.read.reader import BagReader
@@ -551,24 +551,26 @@ def test_chunks_indexes_and_buffers(tmp_path: Path, preset: str) -> None:
     assert messages == len(sizes) and (2 if preset == "zstd_small" else 5) <= chunks < len(sizes)
 
 
+@pytest.mark.parametrize("gather", [0, GATHER])
 @pytest.mark.parametrize("preset", ["", "fastwrite", "zstd_fast"])
 def test_big_payloads_go_to_the_disk_in_place_behind_padding_records(
-    tmp_path: Path, preset: str, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, preset: str, gather: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Images (as the recorder hands them over: views of the message's pixels, or rclpy's bytes) are written
-    from their own memory behind padding records, and every reader, indexed or linear, skips the padding."""
+    from their own memory behind padding records, and every reader, indexed or linear, skips the padding;
+    whether the writes are gathered (as the recorder's) or not."""
     files: list[Any] = []
     real_open = mcap_storage.open_exclusive
 
-    def remember(path: Path, buffering: int) -> Any:
-        files.append(real_open(path, buffering))
+    def remember(path: Path, buffering: int, gather_bytes: int) -> Any:
+        files.append(real_open(path, buffering, gather_bytes))
         return files[-1]
 
     monkeypatch.setattr(mcap_storage, "open_exclusive", remember)
     bag = tmp_path / "bag"
     topics = ("/camera/image_raw", "/imu", "/chatter")
     written = []
-    with BagWriter(bag, storage_preset_profile=preset) as writer:
+    with BagWriter(bag, storage_preset_profile=preset, gather_bytes=gather) as writer:
         for topic in topics:
             writer.add_topic(topic_info(topic))
         for n in range(24):

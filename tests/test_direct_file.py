@@ -3,21 +3,28 @@ are when aligned; and a buffered fallback."""
 from __future__ import annotations
 
 import errno
+import mmap
 import os
 import random
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from baglib.write import direct_file
-from baglib.write.direct_file import BLOCK, IN_PLACE_MIN, STAGING, DirectFile, address, open_exclusive
+from baglib.write.direct_file import BLOCK, GATHER, IN_PLACE_MIN, STAGING, DirectFile, address, open_exclusive
+
+#: Gathering off, a little (a few blocks: the queue is written often, mid-buffer), and the recorder's.
+GATHERS = [0, 3 * BLOCK + 1, GATHER]
 
 
+@pytest.mark.parametrize("gather", GATHERS)
 @pytest.mark.parametrize("seed", range(5))
-def test_content_and_length_equal_what_was_written(tmp_path: Path, seed: int) -> None:
+def test_content_and_length_equal_what_was_written(tmp_path: Path, seed: int, gather: int) -> None:
     rng = random.Random(seed)
     path = tmp_path / "out.bin"
-    file = open_exclusive(path, 4096)
+    file = open_exclusive(path, 4096, gather)
     assert isinstance(file, DirectFile)  # the test filesystem supports O_DIRECT; else this tests nothing
     expected = bytearray()
     for _ in range(40):
@@ -28,21 +35,22 @@ def test_content_and_length_equal_what_was_written(tmp_path: Path, seed: int) ->
         expected += piece
         assert file.tell() == len(expected)
         if rng.random() < 0.3:
-            file.flush()  # leaves at most one partial block staged
+            rng.choice([file.flush, file.write_gathered])()  # leave at most one partial block staged
             assert file.tell() == len(expected)
     file.close()
     file.close()  # idempotent
     assert path.read_bytes() == bytes(expected)
 
 
+@pytest.mark.parametrize("gather", GATHERS)
 @pytest.mark.parametrize("seed", range(5))
-def test_big_buffers_placed_by_gap_before_are_written_in_place(tmp_path: Path, seed: int) -> None:
+def test_big_buffers_placed_by_gap_before_are_written_in_place(tmp_path: Path, seed: int, gather: int) -> None:
     """A big buffer preceded by the gap the file asks for goes out from its own memory, all but its unaligned
     head and tail; one preceded by any other gap is staged; the file holds exactly what was written."""
     rng = random.Random(seed)
     print(f"seed {seed}")
     path = tmp_path / "out.bin"
-    file = open_exclusive(path, 4096)
+    file = open_exclusive(path, 4096, gather)
     assert isinstance(file, DirectFile)
     backing = bytearray(rng.randbytes(2 * IN_PLACE_MIN + 2 * BLOCK))
     expected = bytearray()
@@ -61,10 +69,95 @@ def test_big_buffers_placed_by_gap_before_are_written_in_place(tmp_path: Path, s
             in_place += (size - (-address(memoryview(big)) % BLOCK)) // BLOCK * BLOCK
         assert file.in_place == in_place and file.tell() == len(expected)
         if rng.random() < 0.3:
-            rng.choice([file.flush, file.write_through])()
+            rng.choice([file.flush, file.write_gathered, file.write_through])()
     assert in_place > 10 * IN_PLACE_MIN  # most of the big buffers went out in place
     file.close()
     assert path.read_bytes() == bytes(expected)
+
+
+def aligned_frame(size: int) -> memoryview:
+    """A page-aligned buffer of ``size`` random bytes (as a camera frame that lands on a block boundary)."""
+    backing = mmap.mmap(-1, size)
+    backing.write(os.urandom(size))
+    return memoryview(backing)
+
+
+def test_gathered_writes_wait_for_gather_bytes_or_the_writer(tmp_path: Path, monkeypatch) -> None:
+    """With gathering, whole blocks reach the file in one writev once GATHER bytes are queued, or when the writer
+    asks; big buffers are referenced until then (not copied), and the file ends up byte for byte."""
+    calls: list[int] = []
+    real_writev = os.writev
+    monkeypatch.setattr(direct_file.os, "writev", lambda fd, buffers: calls.append(len(buffers))
+                        or real_writev(fd, buffers))
+    path = tmp_path / "out.bin"
+    file = open_exclusive(path, 4096, 4 * IN_PLACE_MIN)
+    assert isinstance(file, DirectFile)
+    frames = [aligned_frame(IN_PLACE_MIN) for _ in range(6)]
+    for frame in frames[:3]:
+        file.write(frame)
+    assert os.path.getsize(path) == 0 and not calls  # 3 of the 4 frames a gather holds: nothing written yet
+    file.write(frames[3])
+    assert os.path.getsize(path) == 4 * IN_PLACE_MIN and calls == [4]  # one writev for all four
+    file.write(frames[4])
+    file.write(b"tail")
+    file.write_gathered()  # the writer has nothing more at hand: the whole blocks go now, the partial one stays
+    assert os.path.getsize(path) == 5 * IN_PLACE_MIN and calls == [4, 1]
+    file.write_through()
+    assert os.path.getsize(path) == 5 * IN_PLACE_MIN + BLOCK
+    file.write(frames[5])
+    file.close()
+    assert path.read_bytes() == b"".join(bytes(frame) for frame in frames[:5]) + b"tail" + bytes(frames[5])
+    assert file.in_place >= 5 * IN_PLACE_MIN
+
+
+def test_without_gathering_a_big_buffer_is_written_before_write_returns(tmp_path: Path) -> None:
+    """The library default: a caller may reuse its buffer as soon as write() returns."""
+    path = tmp_path / "out.bin"
+    file = open_exclusive(path, 4096)
+    frame = aligned_frame(IN_PLACE_MIN)
+    expected = bytes(frame)
+    file.write(frame)
+    assert os.path.getsize(path) == IN_PLACE_MIN and file.in_place == IN_PLACE_MIN
+    frame[:] = bytes(IN_PLACE_MIN)  # reused by the caller
+    file.close()
+    assert path.read_bytes() == expected
+
+
+@pytest.mark.parametrize("gather", GATHERS)
+def test_after_a_failed_write_the_file_takes_nothing_more(tmp_path: Path, gather: int) -> None:
+    """A write that fails (the file size limit, as a full disk) leaves the file as the successful writes made
+    it: close() adds nothing (no padding, no later bytes at the failed offset), further writes raise."""
+    limit = 2 * IN_PLACE_MIN + 3 * BLOCK
+    path = tmp_path / "out.bin"
+    script = (f"import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+              f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))")
+    # RLIMIT_FSIZE applies to the whole process: a child does the writing.
+    child = subprocess.run([sys.executable, "-c", script + f"""
+import os, mmap
+from baglib.write.direct_file import open_exclusive
+file = open_exclusive(__import__('pathlib').Path({str(path)!r}), 4096, {gather})
+frames = []
+for n in range(4):
+    m = mmap.mmap(-1, {IN_PLACE_MIN}); m.write(bytes([n + 1]) * {IN_PLACE_MIN}); frames.append(memoryview(m))
+try:
+    for frame in frames:
+        file.write(frame)
+        file.write(b"x" * 5)
+    file.write_gathered()
+except OSError as error:
+    print("failed", error.errno)
+    try:
+        file.write(b"more")
+    except OSError as again:
+        print("again", again.errno)
+file.close()
+"""], capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert child.returncode == 0, child.stderr
+    assert child.stdout.split() == ["failed", str(errno.EFBIG), "again", str(errno.EIO)], child.stdout
+    data = path.read_bytes()
+    assert len(data) <= limit and len(data) % BLOCK == 0  # no padded tail, no truncate after the failure
+    expected = b"".join(bytes([n + 1]) * IN_PLACE_MIN + b"x" * 5 for n in range(4))
+    assert data == expected[:len(data)] and len(data) >= 2 * IN_PLACE_MIN
 
 
 def test_small_buffers_and_buffered_files_never_ask_for_a_gap(tmp_path: Path) -> None:

@@ -127,16 +127,19 @@ class McapStorage:
     """Writes one MCAP file; single-threaded (the bag writer serializes access).
 
     ``data`` of :meth:`write` may be ``bytes``, ``bytearray``, ``memoryview`` or
-    :class:`MessageBuffers`; it is not referenced after :meth:`write` returns (it is either copied
-    into the open chunk or written to the file before that).
+    :class:`MessageBuffers`. Small data is copied into the open chunk; a big buffer that completes a chunk is
+    written from where it is before :meth:`write` returns, unless the storage gathers writes (``gather_bytes``,
+    direct I/O): then it must not change until :meth:`write_gathered`, :meth:`flush` or :meth:`close` (see
+    :mod:`.direct_file`).
     """
 
     storage_id = "mcap"
     extension = ".mcap"
     presets = MCAP_PRESETS
 
-    def __init__(self, path: Path, preset: str = "", serialized_metadata: str = "") -> None:
-        """Create ``path`` (never overwriting it) and write the header and opening metadata."""
+    def __init__(self, path: Path, preset: str = "", serialized_metadata: str = "", gather_bytes: int = 0) -> None:
+        """Create ``path`` (never overwriting it) and write the header and opening metadata; with direct I/O,
+        gather up to ``gather_bytes`` of whole blocks into one write (see the class docstring)."""
         if preset not in MCAP_PRESETS:
             raise ValueError(
                 f"unknown MCAP storage preset profile {preset!r} "
@@ -152,7 +155,7 @@ class McapStorage:
         self._chunk_size = options.chunk_size
         self._compression = _COMPRESSION_NAMES[options.compression]
         buffering = io.DEFAULT_BUFFER_SIZE if options.use_chunking else _UNCHUNKED_BUFFER
-        self._file: BinaryIO | DirectFile = open_exclusive(path, buffering)
+        self._file: BinaryIO | DirectFile = open_exclusive(path, buffering, gather_bytes)
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[str, int] = {}
         self._topics_by_channel: dict[int, str] = {}
@@ -282,6 +285,18 @@ class McapStorage:
         except OSError as error:
             self._fail(error)
             raise
+
+    def write_gathered(self) -> None:
+        """Write what the file has gathered for one big write (direct I/O; a buffered file writes its buffer
+        when it is full): the writer calls this when it has no more messages at hand. The open chunk stays open.
+        """
+        self._require_open()
+        if isinstance(self._file, DirectFile):
+            try:
+                self._file.write_gathered()
+            except OSError as error:
+                self._fail(error)
+                raise
 
     def close(self, serialized_metadata: str = "") -> FileInfo:
         """Finish the file (last chunk, closing metadata record, summary, footer), fsync it and describe it.

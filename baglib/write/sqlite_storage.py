@@ -100,13 +100,13 @@ class SqliteStorage:
     extension = ".db3"
     presets = SQLITE_PRESETS
 
-    def __init__(self, path: Path, preset: str = "", serialized_metadata: str = "") -> None:
+    def __init__(self, path: Path, preset: str = "", serialized_metadata: str = "", gather_bytes: int = 0) -> None:
         """Create the database at ``path`` (which must not exist) with the empty tables.
 
         ``serialized_metadata`` is accepted for symmetry with MCAP; rosbag2 stores the bag
-        metadata in sqlite only when closing.
+        metadata in sqlite only when closing. ``gather_bytes`` too: messages are copied into batches anyway.
         """
-        del serialized_metadata
+        del serialized_metadata, gather_bytes
         if preset not in SQLITE_PRESETS:
             raise ValueError(
                 f"unknown sqlite3 storage preset profile {preset!r} "
@@ -199,6 +199,9 @@ class SqliteStorage:
         self._batch_bytes += len(data)
         if len(self._batch) >= _BATCH_MESSAGES or self._batch_bytes >= _BATCH_BYTES:
             self._commit()
+
+    def write_gathered(self) -> None:
+        """Nothing to do: messages are copied into the open batch, which :meth:`flush` commits."""
 
     def flush(self) -> None:
         """Commit the open batch: a crash of the process cannot lose a message written before this call."""

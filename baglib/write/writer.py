@@ -67,6 +67,8 @@ class _Storage(Protocol):
 
     def flush(self) -> None: ...
 
+    def write_gathered(self) -> None: ...
+
     def close(self, serialized_metadata: str = "") -> FileInfo: ...
 
 
@@ -109,6 +111,10 @@ class BagWriter:
         on_split: called after a file is closed and listed in ``metadata.yaml``, with its path and the
             next file's path (``""`` when the bag is closed); it runs with the writer's (reentrant) lock
             held, on the writing thread or on the thread that finished the file after a split.
+        gather_bytes: with direct I/O (MCAP), gather up to this many bytes into one write (0: write at once).
+            Then a big buffer of :meth:`write`'s data is written after the call returns, from where it is: it
+            must not change before the next :meth:`write_gathered`, :meth:`flush` or :meth:`close`. The
+            recorder gathers (its messages do not change once published); see baglib.write.direct_file.
 
     Raises:
         ValueError: unknown storage id or preset, negative limits.
@@ -126,6 +132,7 @@ class BagWriter:
         custom_data: dict[str, str] | None = None,
         on_split: SplitCallback | None = None,
         max_bag_files: int = 0,
+        gather_bytes: int = 0,
     ) -> None:
         storage_id = storage_id or "mcap"
         if storage_id not in _STORAGES:
@@ -150,6 +157,7 @@ class BagWriter:
 
         self._preset = storage_preset_profile
         self._max_bag_files = int(max_bag_files)
+        self._gather_bytes = gather_bytes
         #: Files deleted by circular recording (max_bag_files), oldest first, and their messages per topic.
         self.deleted_files: list[str] = []
         self._deleted_counts: dict[str, int] = {}
@@ -318,7 +326,8 @@ class BagWriter:
         """Write one CDR-serialized message (with its 4-byte encapsulation header).
 
         ``log_time_ns`` is the receive time (bag order, splitting, metadata times);
-        ``publish_time_ns`` the source time. Splits first if the current file is full.
+        ``publish_time_ns`` the source time. Splits first if the current file is full. ``data`` may be reused
+        after the call, unless the writer gathers writes (``gather_bytes``).
 
         Raises:
             KeyError: the topic was not added.
@@ -360,6 +369,15 @@ class BagWriter:
             BagWriteError: the storage failed (the bag is then closed, see class doc).
         """
         self._on_current_file(lambda storage: storage.flush())
+
+    def write_gathered(self) -> None:
+        """Let the storage write what it gathered for one big write (the recorder calls this whenever it has
+        no more messages at hand, so the disk never waits for a gather to fill).
+
+        Raises:
+            BagWriteError: the storage failed (the bag is then closed, see class doc).
+        """
+        self._on_current_file(lambda storage: storage.write_gathered())
 
     def sync(self) -> None:
         """:meth:`flush`, then fsync the current file (what was written survives a power loss too) on a thread
@@ -496,7 +514,7 @@ class BagWriter:
         """Create a storage file with every known topic in it."""
         opening = dataclasses.replace(self._metadata, files=[*self._metadata.files, FileInfo(path.name)])
         try:
-            storage: _Storage = self._storage_class(path, self._preset, opening.to_yaml())
+            storage: _Storage = self._storage_class(path, self._preset, opening.to_yaml(), self._gather_bytes)
         except OSError as error:
             if not isinstance(error, FileExistsError):
                 path.unlink(missing_ok=True)  # a partial file of ours; it holds no messages

@@ -31,6 +31,7 @@ from typing import Any, Callable
 
 from baglib.format import cdr_fast
 from baglib.format.cdr_fast import CdrData
+from baglib.write.direct_file import GATHER
 from baglib.write.writer import BagWriteError, BagWriter
 from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
@@ -89,7 +90,8 @@ class RecordingSession:
         self._monotonic_log_times = options.storage_preset_profile == "fastwrite"
         self.writer = writer_class(uri, options.storage_id, options.max_bagfile_size,
                                    options.max_bagfile_duration, options.storage_preset_profile,
-                                   options.custom_data or None, on_split, options.max_bag_files)
+                                   options.custom_data or None, on_split, options.max_bag_files,
+                                   gather_bytes=GATHER)
         try:  # after the writer: a location that cannot hold a bag at all is reported as such first
             self.disk = DiskGuard(self.writer.path, options.min_free_space)
         except ValueError:
@@ -202,6 +204,8 @@ class RecordingSession:
                 for message in batch:
                     self._write(message)
                     written += 1
+                if batch:
+                    self.writer.write_gathered()
                 self._release_written()
                 self._bytes_written = self.writer.bytes_written
                 self._check_storage()
