@@ -102,14 +102,24 @@ def s2_table(record: dict[str, Any]) -> list[str]:
     rows = []
     for step in s2["steps"]:
         if not measured(step):
-            rows.append([step["mode"], str(step["cameras"]), f"failed: {step['error'][:80]}", "", "", "", "", "no"])
+            rows.append([step["mode"], str(step["cameras"]), f"failed: {step['error'][:80]}", "", "", "", "", "",
+                         "no"])
             continue
         direct = step.get("direct_write_pct")
         rows.append([step["mode"], str(step["cameras"]), lost_text(step), fmt(step["mb_per_s"]),
                      "" if direct is None else f"{direct:.0f} %", fmt(step.get("recorder_rss_mb"), ".0f"),
-                     fmt(step["total_cpu_s"], ".2f"), "yes" if step["lossless"] else "no"])
+                     backlog_text(step), fmt(step["total_cpu_s"], ".2f"), "yes" if step["lossless"] else "no"])
     return markdown(["mode", "cameras", "lost", "MB/s", "of direct-write limit", "recorder peak RSS MiB",
-                     f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
+                     "backlog peak MB", f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
+
+
+def backlog_text(step: dict[str, Any]) -> str:
+    """The recorder's peak backlog, marked when it went beyond the cache into the stall reserve; empty in runs
+    that did not record it."""
+    peak = step.get("peak_backlog_mb")
+    if peak is None:
+        return ""
+    return f"{peak:.0f}" + ("" if step.get("within_cache") else " (stall reserve)")
 
 
 def s2_repeat_table(record: dict[str, Any]) -> list[str]:

@@ -213,7 +213,18 @@ def recording_result(read: dict[str, Any], window: Window, topics: dict[str, Top
             "lost_pct": 100.0 * totals["lost"] / totals["published"] if totals["published"] else 0.0,
             "latency_ms": window.live.get("write_latency_ms"), "recorder_counters": window.final.get("topics"),
             "recorder_error": window.final.get("error"), "bag_messages": bag_total,
+            **backlog_result(window),
             "bag_metadata_messages": read["metadata_count"], "bag_matches_recorder_written": bag_total == written}
+
+
+def backlog_result(window: Window) -> dict[str, Any]:
+    """How far the recorder's writer fell behind over the whole recording (settle, window and drain): its peak
+    backlog, and whether that stayed within ``max_cache_size`` (a run that needed the stall reserve was lossless
+    only for as long as the reserve lasts: a backlog that grows for the whole window is not a rate it sustains)."""
+    stats = window.final if "peak_backlog_bytes" in window.final else window.live
+    peak, cache = stats.get("peak_backlog_bytes"), stats.get("max_cache_size")
+    return {"peak_backlog_mb": None if peak is None else peak / MB,
+            "within_cache": None if peak is None or cache is None else peak <= cache}
 
 
 def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, Any]:
