@@ -110,16 +110,16 @@ def s2_table(record: dict[str, Any]) -> list[str]:
                      "" if direct is None else f"{direct:.0f} %", fmt(step.get("recorder_rss_mb"), ".0f"),
                      backlog_text(step), fmt(step["total_cpu_s"], ".2f"), "yes" if step["lossless"] else "no"])
     return markdown(["mode", "cameras", "lost", "MB/s", "of direct-write limit", "recorder peak RSS MiB",
-                     "backlog peak MB", f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
+                     "backlog MB: peak, end of window", f"total CPU s per {s2['seconds']:g} s", "lossless"], rows)
 
 
 def backlog_text(step: dict[str, Any]) -> str:
-    """The recorder's peak backlog, marked when it went beyond the cache into the stall reserve; empty in runs
-    that did not record it."""
-    peak = step.get("peak_backlog_mb")
-    if peak is None:
+    """The recorder's peak backlog and its backlog at the end of the window, marked when that was beyond the cache
+    (in the stall reserve); empty in runs that did not record them."""
+    peak, end = step.get("peak_backlog_mb"), step.get("end_backlog_mb")
+    if peak is None or end is None:
         return ""
-    return f"{peak:.0f}" + ("" if step.get("within_cache") else " (stall reserve)")
+    return f"{peak:.0f}, {end:.0f}" + ("" if step.get("within_cache") else " (stall reserve)")
 
 
 def s2_repeat_table(record: dict[str, Any]) -> list[str]:

@@ -218,13 +218,17 @@ def recording_result(read: dict[str, Any], window: Window, topics: dict[str, Top
 
 
 def backlog_result(window: Window) -> dict[str, Any]:
-    """How far the recorder's writer fell behind over the whole recording (settle, window and drain): its peak
-    backlog, and whether that stayed within ``max_cache_size`` (a run that needed the stall reserve was lossless
-    only for as long as the reserve lasts: a backlog that grows for the whole window is not a rate it sustains)."""
+    """How far the recorder's writer was behind: its peak backlog over the whole recording (settle, window and
+    drain), its backlog at the end of the window, and whether that was within ``max_cache_size`` again. A writer
+    slower than the rig falls further behind for the whole window and ends it deep in the stall reserve: lossless
+    then only for as long as the reserve lasts, not a rate it sustains; a writer that went into the reserve for a
+    moment and caught up ends it within its cache."""
     stats = window.final if "peak_backlog_bytes" in window.final else window.live
-    peak, cache = stats.get("peak_backlog_bytes"), stats.get("max_cache_size")
+    peak, end, cache = (stats.get("peak_backlog_bytes"), window.live.get("backlog_bytes"),
+                        window.live.get("max_cache_size"))
     return {"peak_backlog_mb": None if peak is None else peak / MB,
-            "within_cache": None if peak is None or cache is None else peak <= cache}
+            "end_backlog_mb": None if end is None else end / MB,
+            "within_cache": None if end is None or cache is None else end <= cache}
 
 
 def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, Any]:

@@ -101,8 +101,9 @@ def s2_targets(s2: Optional[dict[str, Any]], targets: Targets) -> None:
 
 def s2_direct_target(s2: Optional[dict[str, Any]], targets: Targets) -> None:
     """ipc lossless with S2_CAMERAS cameras, judged on its largest lossless step, and at >= S2_DIRECT_SHARE_PCT of
-    the direct-write limit, judged on its largest lossless step that kept its backlog within ``max_cache_size``
-    (a step that needed the stall reserve only lasted as long as the reserve: not a rate it sustains). Below a
+    the direct-write limit, judged on its largest lossless step that ended its window with the backlog within
+    ``max_cache_size`` (a step that ended it deep in the stall reserve was lossless only for as long as the reserve
+    lasts: not a rate the recorder sustains). Below a
     target they fail only when ipc did lose messages at the next step (a ramp capped below proves nothing)."""
     cameras_name = f"S2 ipc lossless with {S2_CAMERAS} cameras"
     name = f"S2 ipc lossless within its cache at >= {S2_DIRECT_SHARE_PCT} % of the direct-write limit"
@@ -123,8 +124,8 @@ def s2_direct_target(s2: Optional[dict[str, Any]], targets: Targets) -> None:
     if pct is None:
         targets.add(name, None, "no direct-write limit measured (--direct-mb 0)")
         return
-    reserve = (f"; {count} cameras lossless with the stall reserve (backlog peak {best['peak_backlog_mb']:.0f} MB)"
-               if best and sustained is not best else "")
+    reserve = (f"; {count} cameras lossless but {best['end_backlog_mb']:.0f} MB behind at the end of the window "
+               "(in the stall reserve)" if best and sustained is not best else "")
     targets.add(name, True if pct >= S2_DIRECT_SHARE_PCT else (False if reached or reserve else None),
                 f"{sustained['mb_per_s'] if sustained else 0:.0f} MB/s at {sustained['cameras'] if sustained else 0} "
                 f"cameras = {pct:.0f} % of the direct-write limit{reserve}{capped}")
