@@ -83,12 +83,13 @@ def aligned_frame(size: int) -> memoryview:
 
 
 def test_gathered_writes_wait_for_gather_bytes_or_the_writer(tmp_path: Path, monkeypatch) -> None:
-    """With gathering, whole blocks reach the file in one writev once GATHER bytes are queued, or when the writer
-    asks; big buffers are referenced until then (not copied), and the file ends up byte for byte."""
+    """With gathering, whole blocks go to the disk in one pwritev once ``gather`` bytes are queued, or when the
+    writer asks, on an I/O thread; big buffers are referenced until then (not copied); write_through() returns once
+    every write has; and the file ends up byte for byte."""
     calls: list[int] = []
-    real_writev = os.writev
-    monkeypatch.setattr(direct_file.os, "writev", lambda fd, buffers: calls.append(len(buffers))
-                        or real_writev(fd, buffers))
+    real_pwritev = os.pwritev
+    monkeypatch.setattr(direct_file.os, "pwritev", lambda fd, buffers, offset: calls.append(len(buffers))
+                        or real_pwritev(fd, buffers, offset))
     path = tmp_path / "out.bin"
     file = open_exclusive(path, 4096, 4 * IN_PLACE_MIN)
     assert isinstance(file, DirectFile)
@@ -97,13 +98,13 @@ def test_gathered_writes_wait_for_gather_bytes_or_the_writer(tmp_path: Path, mon
         file.write(frame)
     assert os.path.getsize(path) == 0 and not calls  # 3 of the 4 frames a gather holds: nothing written yet
     file.write(frames[3])
-    assert os.path.getsize(path) == 4 * IN_PLACE_MIN and calls == [4]  # one writev for all four
+    file.write_through()  # nothing staged: only waits for the gathered write
+    assert os.path.getsize(path) == 4 * IN_PLACE_MIN and calls == [4]  # one write for all four
     file.write(frames[4])
     file.write(b"tail")
     file.write_gathered()  # the writer has nothing more at hand: the whole blocks go now, the partial one stays
-    assert os.path.getsize(path) == 5 * IN_PLACE_MIN and calls == [4, 1]
-    file.write_through()
-    assert os.path.getsize(path) == 5 * IN_PLACE_MIN + BLOCK
+    file.write_through()  # and now the partial block too, padded
+    assert os.path.getsize(path) == 5 * IN_PLACE_MIN + BLOCK and calls == [4, 1, 1]
     file.write(frames[5])
     file.close()
     assert path.read_bytes() == b"".join(bytes(frame) for frame in frames[:5]) + b"tail" + bytes(frames[5])
@@ -125,8 +126,9 @@ def test_without_gathering_a_big_buffer_is_written_before_write_returns(tmp_path
 
 @pytest.mark.parametrize("gather", GATHERS)
 def test_after_a_failed_write_the_file_takes_nothing_more(tmp_path: Path, gather: int) -> None:
-    """A write that fails (the file size limit, as a full disk) leaves the file as the successful writes made
-    it: close() adds nothing (no padding, no later bytes at the failed offset), further writes raise."""
+    """A write that fails (the file size limit, as a full disk), on the writing thread or an I/O thread, is
+    raised by a later call, and leaves the file as the successful writes made it: close() adds nothing (no
+    padding, no later bytes at the failed offset), further writes raise."""
     limit = 2 * IN_PLACE_MIN + 3 * BLOCK
     path = tmp_path / "out.bin"
     script = (f"import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
@@ -143,7 +145,7 @@ try:
     for frame in frames:
         file.write(frame)
         file.write(b"x" * 5)
-    file.write_gathered()
+    file.write_through()  # a gathered write fails on an I/O thread: its error comes here at the latest
 except OSError as error:
     print("failed", error.errno)
     try:

@@ -19,10 +19,14 @@ one by one: staged blocks and big buffers' own blocks are queued in file order a
 thread returning from a system call needs the GIL back before it can issue the next one, and while other
 threads run Python code that takes up to the switch interval (5 ms). With one write per 1080p frame (3.6 ms of
 disk time at 1.7 GB/s) and a busy executor, the disk idled for more than half the time (0.6 instead of 1.9 GB/s
-in a two-thread measurement); one hand-over per gathered write instead of one per frame gives that back. A big
-buffer is then referenced, not copied, until it is written: its content must not change before the next
-:meth:`write_gathered`, :meth:`write_through` or :meth:`close`. Without ``gather`` (0), every whole block is
-written at once, and a big buffer before :meth:`write` returns: the caller may reuse it right after.
+in a two-thread measurement); one hand-over per gathered write instead of one per frame gives most of that back.
+Gathered writes run on :data:`IN_FLIGHT` (2) I/O threads of the file, each ``pwritev`` at its own offset, so that
+when one returns and its thread waits for the GIL the next is in the kernel already (ext4 runs appending direct
+writes one after the other anyway) and the writer thread goes on gathering meanwhile. A big buffer is then
+referenced, not copied, until it is written: its content must not change before :meth:`write_through` or
+:meth:`close` return, which wait for every write. A failed write on an I/O thread is raised by the file's next
+call. Without ``gather`` (0), every whole block is written at once, on the calling thread, and a big buffer before
+:meth:`write` returns: the caller may reuse it right after.
 
 After a failed write the file takes no more data: :meth:`close` only closes it, so that what the file holds is
 what the successful writes put there (the MCAP storage then repairs it).
@@ -36,8 +40,11 @@ import errno
 import fcntl
 import mmap
 import os
+import queue
+import threading
+from collections import deque
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Callable, Iterator
 
 BLOCK = 4096  # a multiple of every logical block size O_DIRECT may require
 STAGING = 1024 * 1024  # bytes of one staging buffer (like the 1 MiB buffer of unchunked files)
@@ -45,6 +52,8 @@ STAGING = 1024 * 1024  # bytes of one staging buffer (like the 1 MiB buffer of u
 IN_PLACE_MIN = 256 * 1024
 #: What the recorder gathers into one ``writev`` (see the module docstring): five 1080p frames.
 GATHER = 32 * 1024 * 1024
+#: Gathered writes running at once, each on an I/O thread of the file (see the module docstring).
+IN_FLIGHT = 2
 #: Most segments one ``writev`` takes (Linux: 1024).
 IOV_MAX = os.sysconf("SC_IOV_MAX") if "SC_IOV_MAX" in os.sysconf_names else 1024
 
@@ -69,6 +78,19 @@ class _Staging:
             self.map.close()
 
 
+class _Job:
+    """One gathered write handed to an I/O thread: the segments, where they go, the staging buffers they use."""
+
+    __slots__ = ("segments", "offset", "buffers", "done", "error")
+
+    def __init__(self, segments: list[memoryview], offset: int, buffers: list[_Staging]) -> None:
+        self.segments: list[memoryview] | None = segments
+        self.offset = offset
+        self.buffers = buffers
+        self.done = threading.Event()
+        self.error: BaseException | None = None
+
+
 class DirectFile:
     """The subset of a binary file object the MCAP storage uses: ``write``, ``flush``, ``tell``, ``close``."""
 
@@ -82,9 +104,9 @@ class DirectFile:
         self.closed = False
         #: Bytes written from the callers' memory without staging (the tests read it).
         self.in_place = 0
-        #: Bytes in the file, written by a system call.
-        self._written = 0
-        # Whole blocks waiting for the next writev, in file order: slices of staging buffers and of callers' memory.
+        #: Bytes handed to writes so far: where the next write goes.
+        self._submitted = 0
+        # Whole blocks waiting for the next write, in file order: slices of staging buffers and of callers' memory.
         self._queue: list[memoryview] = []
         self._queued = 0
         # The staging buffer being filled: bytes [0, _sealed) of it are queued, [_sealed, _staged) are not yet.
@@ -94,6 +116,10 @@ class DirectFile:
         self._staged = 0
         self._full: list[_Staging] = []   # filled staging buffers whose bytes are queued
         self._spare: list[_Staging] = []  # staging buffers free for reuse
+        # Gathering: writes go to IN_FLIGHT I/O threads (started at the first write), oldest first.
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._threads: list[threading.Thread] = []
+        self._in_flight: deque[_Job] = deque()
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
         self._check_usable()
@@ -121,7 +147,7 @@ class DirectFile:
         return -(self.tell() + ahead - address(view)) % BLOCK
 
     def tell(self) -> int:
-        return self._written + self._queued + self._staged - self._sealed
+        return self._submitted + self._queued + self._staged - self._sealed
 
     def flush(self) -> None:
         """Queue every whole staged block (the storage calls this after each chunk): written now, or with the
@@ -130,28 +156,24 @@ class DirectFile:
         self._seal(self._staged - self._staged % BLOCK)
 
     def write_gathered(self) -> None:
-        """Write every whole block gathered so far, in one ``writev`` (the writer has no more data at hand)."""
+        """Start writing every whole block gathered so far (the writer has no more data at hand)."""
         self.flush()
         self._write_queue()
 
     def write_through(self) -> None:
         """Hand every byte written so far to the OS, the last partial block too (zero-padded, written at its
         offset with pwrite and rewritten whole by the next write), so that a crash of the process cannot cut
-        a record that was complete before this call. Leaves the file offset where the full blocks end."""
+        a record that was complete before this call. Returns once every write has."""
         self.write_gathered()
+        self._wait_all()
         if not self._staged:
             return
         length = self._staged
         if self._direct:
             length = -(-self._staged // BLOCK) * BLOCK
             self._current.view[self._staged:length] = bytes(length - self._staged)
-        done = 0
         with self._failing():
-            while done < length:
-                written = os.pwrite(self._fd, self._current.view[done:length], self._written + done)
-                if written <= 0:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-                done += written
+            self._write_at([self._current.view[:length]], self._submitted)
 
     def fileno(self) -> int:
         return self._fd
@@ -159,7 +181,7 @@ class DirectFile:
     def close(self, sync: bool = False) -> None:
         """Write the rest (the last block padded, then the file cut to its length); with ``sync``, fsync
         after the cut, so that a power loss cannot leave the padding behind the file's last record. After a
-        failed write, only close the descriptor."""
+        failed write, only close the descriptor (once no write of the file is running any more)."""
         if self.closed:
             return
         self.closed = True
@@ -173,11 +195,17 @@ class DirectFile:
                     self._staged = padded
                     self._seal(padded)
                     self._write_queue()
+                    self._wait_all()
                     with self._failing():
                         os.ftruncate(self._fd, size)
+                self._wait_all()
                 if sync:
                     os.fsync(self._fd)
         finally:
+            with contextlib.suppress(OSError):  # the first error was raised already
+                self._wait_all()  # no I/O thread may write to the descriptor once it is closed (and reused)
+            for _ in self._threads:
+                self._jobs.put(None)
             os.close(self._fd)
             self._queue.clear()
             for staging in (self._current, *self._full, *self._spare):
@@ -185,6 +213,8 @@ class DirectFile:
 
     # --- the queue ---------------------------------------------------------------------------------------
     def _check_usable(self) -> None:
+        if self._in_flight and self._in_flight[0].done.is_set():
+            self._finish_oldest()  # raises a failed write's error here, at the next call
         if self._failed:
             raise OSError(errno.EIO, "an earlier write to this file failed")
 
@@ -217,30 +247,66 @@ class DirectFile:
             self._write_queue()
 
     def _write_queue(self) -> None:
-        """Write everything queued, then reuse the staging buffers it held; the current buffer's unqueued
-        bytes (at most a partial block, or what was staged since) move to its start."""
+        """Write everything queued: on this thread at once, or, gathering, on an I/O thread (waiting first while
+        IN_FLIGHT writes run). The current staging buffer goes with the write if some of its bytes are queued;
+        its other bytes (a partial block, or what was staged since) move to the start of a fresh one."""
         if not self._queue:
             return
-        queue, self._queue = self._queue, []
-        try:
-            with self._failing():
-                self._write_all(queue)
-        finally:
-            queue.clear()
-            self._queued = 0
-        self._spare += self._full
-        self._full = []
-        kept = self._staged - self._sealed
-        if kept and self._sealed:
-            self._current.view[:kept] = self._current.view[self._sealed:self._staged]
-        self._sealed, self._staged = 0, kept
+        segments, self._queue = self._queue, []
+        buffers, self._full = self._full, []
+        if self._sealed:
+            fresh = self._spare.pop() if self._spare else _Staging()
+            kept = self._staged - self._sealed
+            fresh.view[:kept] = self._current.view[self._sealed:self._staged]
+            buffers.append(self._current)
+            self._current, self._sealed, self._staged = fresh, 0, kept
+        offset, self._submitted = self._submitted, self._submitted + self._queued
+        self._queued = 0
+        if not self._gather:
+            try:
+                with self._failing():
+                    self._write_at(segments, offset)
+            finally:
+                segments.clear()
+            self._spare += buffers
+            return
+        while len(self._in_flight) >= IN_FLIGHT:
+            self._finish_oldest()
+        if not self._threads:
+            self._threads = [threading.Thread(target=_io_thread, args=(self._jobs, self._write_at), daemon=True,
+                                              name=f"bag_io:{self._fd}") for _ in range(IN_FLIGHT)]
+            for thread in self._threads:
+                thread.start()
+        job = _Job(segments, offset, buffers)
+        self._in_flight.append(job)
+        self._jobs.put(job)
 
-    def _write_all(self, segments: list[memoryview]) -> None:
-        """Write ``segments`` in order at the file offset, which is block-aligned while the file is direct."""
+    def _finish_oldest(self) -> None:
+        """Wait for the oldest write in flight; take its staging buffers back; raise its error."""
+        job = self._in_flight.popleft()
+        job.done.wait()
+        self._spare += job.buffers
+        if job.error is not None:
+            self._failed = True
+            raise job.error
+
+    def _wait_all(self) -> None:
+        """Wait for every write in flight; raise the first error."""
+        error: BaseException | None = None
+        while self._in_flight:
+            try:
+                self._finish_oldest()
+            except OSError as failure:
+                error = error or failure
+        if error is not None:
+            raise error
+
+    def _write_at(self, segments: list[memoryview], offset: int) -> None:
+        """Write ``segments`` in order at ``offset``, which is block-aligned while the file is direct."""
         index = 0
         while index < len(segments):
             try:
-                written = os.writev(self._fd, segments[index:index + IOV_MAX])
+                written = os.pwritev(self._fd, segments[index:index + IOV_MAX], offset)
             except OSError as error:
                 if error.errno != errno.EINVAL or not self._direct:
                     raise
@@ -251,7 +317,7 @@ class DirectFile:
                 continue
             if written <= 0:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-            self._written += written
+            offset += written
             while written:
                 size = len(segments[index])
                 if written < size:  # a short write: the rest of this segment next
@@ -259,11 +325,11 @@ class DirectFile:
                     break
                 written -= size
                 index += 1
-            if index < len(segments) and self._written % BLOCK and self._direct:
+            if index < len(segments) and offset % BLOCK and self._direct:
                 self._buffered()  # a short write left the offset unaligned for O_DIRECT
 
     @contextlib.contextmanager
-    def _failing(self):  # noqa: ANN202 - a context manager
+    def _failing(self) -> Iterator[None]:
         """Mark the file failed when the block raises."""
         try:
             yield
@@ -274,6 +340,19 @@ class DirectFile:
     def _buffered(self) -> None:
         fcntl.fcntl(self._fd, fcntl.F_SETFL, fcntl.fcntl(self._fd, fcntl.F_GETFL) & ~os.O_DIRECT)
         self._direct = False
+
+
+def _io_thread(jobs: queue.SimpleQueue[_Job | None], write_at: Callable[[list[memoryview], int], None]) -> None:
+    """An I/O thread of a gathering file: the writes it is handed, until None."""
+    while (job := jobs.get()) is not None:
+        try:
+            assert job.segments is not None
+            write_at(job.segments, job.offset)
+        except BaseException as error:  # noqa: BLE001 - handed to the file's thread, which raises it
+            job.error = error
+        finally:
+            job.segments = None  # the callers' memory is not held once written
+            job.done.set()
 
 
 def open_exclusive(path: Path, buffering: int, gather: int = 0) -> BinaryIO | DirectFile:
