@@ -195,17 +195,18 @@ class DirectFile:
                     self._staged = padded
                     self._seal(padded)
                     self._write_queue()
+                    self._stop_threads()
                     self._wait_all()
                     with self._failing():
                         os.ftruncate(self._fd, size)
+                self._stop_threads()
                 self._wait_all()
                 if sync:
                     os.fsync(self._fd)
         finally:
+            self._stop_threads()
             with contextlib.suppress(OSError):  # the first error was raised already
                 self._wait_all()  # no I/O thread may write to the descriptor once it is closed (and reused)
-            for _ in self._threads:
-                self._jobs.put(None)
             os.close(self._fd)
             self._queue.clear()
             for staging in (self._current, *self._full, *self._spare):
@@ -280,6 +281,13 @@ class DirectFile:
         job = _Job(segments, offset, buffers)
         self._in_flight.append(job)
         self._jobs.put(job)
+
+    def _stop_threads(self) -> None:
+        """Let the I/O threads end once the writes handed to them are done (nothing more is coming): they are
+        gone while the file is cut and fsynced."""
+        for _ in self._threads:
+            self._jobs.put(None)
+        self._threads = []
 
     def _finish_oldest(self) -> None:
         """Wait for the oldest write in flight; take its staging buffers back; raise its error."""
