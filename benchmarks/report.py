@@ -192,8 +192,15 @@ def headline_table(record: dict[str, Any]) -> list[str]:
         return f"{e['lost']} of {e['published']}" + (f" ({e['lost_pct']:.2f} %)" if e["lost"] else "")
 
     def cameras(mode: str) -> str:
+        """The largest lossless step; and, where the recorder ended a larger lossless step behind (in its stall
+        reserve), the largest it sustained."""
         capped = "" if s2["limit_reached"].get(mode) else f" (no loss up to the ramp's cap of {s2['cap']})"
-        return f"{s2['largest_lossless'].get(mode, '-')}{capped}"
+        best = s2["largest_lossless"].get(mode, "-")
+        sustained = [step["cameras"] for step in s2["steps"] if step["mode"] == mode and measured(step)
+                     and step["lossless"] and step.get("within_cache") is not False]
+        behind = (f"; {max(sustained, default=0)} with the writer caught up at the end of the window"
+                  if best != "-" and max(sustained, default=0) != best else "")
+        return f"{best}{capped}{behind}"
 
     config = record["config"]
     camera = f"{config['height']}p{config['fps']:g}"
