@@ -8,7 +8,9 @@ import os
 import random
 import subprocess
 import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -160,6 +162,37 @@ file.close()
     assert len(data) <= limit and len(data) % BLOCK == 0  # no padded tail, no truncate after the failure
     expected = b"".join(bytes([n + 1]) * IN_PLACE_MIN + b"x" * 5 for n in range(4))
     assert data == expected[:len(data)] and len(data) >= 2 * IN_PLACE_MIN
+
+
+def test_close_after_a_failed_write_waits_for_the_writes_still_running(tmp_path: Path, monkeypatch) -> None:
+    """A gathered write fails while the next one still runs on the other I/O thread: the failure is raised by the
+    next call, and close() waits for the running write before it closes the descriptor (which the process could
+    otherwise hand to another file, and the late write would land there)."""
+    seen: dict[str, Any] = {}
+    real_pwritev = os.pwritev
+    calls = iter(range(2))
+
+    def slow_pwritev(fd: int, buffers: Any, offset: int) -> int:
+        if next(calls, None) == 0:
+            time.sleep(0.2)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        time.sleep(0.8)
+        seen["fd_open"] = os.fstat(fd) is not None
+        seen["written"] = real_pwritev(fd, buffers, offset)
+        return seen["written"]
+
+    monkeypatch.setattr(direct_file.os, "pwritev", slow_pwritev)
+    file = open_exclusive(tmp_path / "out.bin", 4096, IN_PLACE_MIN)
+    assert isinstance(file, DirectFile)
+    frames = [aligned_frame(IN_PLACE_MIN) for _ in range(3)]
+    file.write(frames[0])  # the first gathered write: fails after 0.2 s
+    file.write(frames[1])  # the second, on the other thread: still running when the first has failed
+    time.sleep(0.4)
+    with pytest.raises(OSError) as failure:
+        file.write(frames[2])
+    assert failure.value.errno == errno.ENOSPC and "written" not in seen
+    file.close()
+    assert seen == {"fd_open": True, "written": IN_PLACE_MIN}
 
 
 def test_small_buffers_and_buffered_files_never_ask_for_a_gap(tmp_path: Path) -> None:

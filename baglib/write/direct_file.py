@@ -14,7 +14,7 @@ writes, at the disk's throughput.
 
 A file opened with ``gather`` bytes (the recorder's: :data:`GATHER`) gathers whole blocks instead of writing them
 one by one: staged blocks and big buffers' own blocks are queued in file order and go to the disk in one
-``writev`` once ``gather`` bytes are queued, or when the writer asks
+``pwritev`` once ``gather`` bytes are queued, or when the writer asks
 (:meth:`write_gathered` when it has no more messages at hand, :meth:`write_through`, :meth:`close`). Why: a
 thread returning from a system call needs the GIL back before it can issue the next one, and while other
 threads run Python code that takes up to the switch interval (5 ms). With one write per 1080p frame (3.6 ms of
@@ -50,11 +50,11 @@ BLOCK = 4096  # a multiple of every logical block size O_DIRECT may require
 STAGING = 1024 * 1024  # bytes of one staging buffer (like the 1 MiB buffer of unchunked files)
 #: A buffer at least this big is written from the caller's memory when it is aligned (see the module docstring).
 IN_PLACE_MIN = 256 * 1024
-#: What the recorder gathers into one ``writev`` (see the module docstring): five 1080p frames.
+#: What the recorder gathers into one ``pwritev`` (see the module docstring): five 1080p frames.
 GATHER = 32 * 1024 * 1024
 #: Gathered writes running at once, each on an I/O thread of the file (see the module docstring).
 IN_FLIGHT = 2
-#: Most segments one ``writev`` takes (Linux: 1024).
+#: Most segments one ``pwritev`` takes (Linux: 1024).
 IOV_MAX = os.sysconf("SC_IOV_MAX") if "SC_IOV_MAX" in os.sysconf_names else 1024
 
 
@@ -187,20 +187,17 @@ class DirectFile:
         self.closed = True
         try:
             if not self._failed:
+                size, partial = self.tell(), self._staged
+                padded = -(-partial // BLOCK) * BLOCK
+                self._current.view[partial:padded] = bytes(padded - partial)
+                self._staged = padded
+                self._seal(padded)
                 self._write_queue()
-                if self._staged:
-                    size = self.tell()
-                    padded = -(-self._staged // BLOCK) * BLOCK
-                    self._current.view[self._staged:padded] = bytes(padded - self._staged)
-                    self._staged = padded
-                    self._seal(padded)
-                    self._write_queue()
-                    self._stop_threads()
-                    self._wait_all()
-                    with self._failing():
-                        os.ftruncate(self._fd, size)
                 self._stop_threads()
                 self._wait_all()
+                if partial:  # the padding is cut off again
+                    with self._failing():
+                        os.ftruncate(self._fd, size)
                 if sync:
                     os.fsync(self._fd)
         finally:

@@ -129,8 +129,7 @@ class McapStorage:
     ``data`` of :meth:`write` may be ``bytes``, ``bytearray``, ``memoryview`` or
     :class:`MessageBuffers`. Small data is copied into the open chunk; a big buffer that completes a chunk is
     written from where it is before :meth:`write` returns, unless the storage gathers writes (``gather_bytes``,
-    direct I/O): then it must not change until :meth:`write_gathered`, :meth:`flush` or :meth:`close` (see
-    :mod:`.direct_file`).
+    direct I/O): then it must not change until :meth:`flush` or :meth:`close` returns (see :mod:`.direct_file`).
     """
 
     storage_id = "mcap"
@@ -287,9 +286,8 @@ class McapStorage:
             raise
 
     def write_gathered(self) -> None:
-        """Write what the file has gathered for one big write (direct I/O; a buffered file writes its buffer
-        when it is full): the writer calls this when it has no more messages at hand. The open chunk stays open.
-        """
+        """Start writing what the file has gathered (direct I/O; a buffered file writes its buffer when it is
+        full): the writer calls this when it has no more messages at hand. The open chunk stays open."""
         self._require_open()
         if isinstance(self._file, DirectFile):
             try:

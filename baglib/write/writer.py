@@ -113,7 +113,7 @@ class BagWriter:
             held, on the writing thread or on the thread that finished the file after a split.
         gather_bytes: with direct I/O (MCAP), gather up to this many bytes into one write (0: write at once).
             Then a big buffer of :meth:`write`'s data is written after the call returns, from where it is: it
-            must not change before the next :meth:`write_gathered`, :meth:`flush` or :meth:`close`. The
+            must not change before the next :meth:`flush` or :meth:`close` returns. The
             recorder gathers (its messages do not change once published); see baglib.write.direct_file.
 
     Raises:
@@ -371,8 +371,8 @@ class BagWriter:
         self._on_current_file(lambda storage: storage.flush())
 
     def write_gathered(self) -> None:
-        """Let the storage write what it gathered for one big write (the recorder calls this whenever it has
-        no more messages at hand, so the disk never waits for a gather to fill).
+        """Let the storage start writing what it gathered (the recorder calls this whenever it has no more
+        messages at hand, so the disk never waits for a gather to fill); it does not wait for the writes.
 
         Raises:
             BagWriteError: the storage failed (the bag is then closed, see class doc).

@@ -193,12 +193,13 @@ def print_s2(s2: dict[str, Any]) -> None:
             continue
         rows.append([step["mode"], str(step["cameras"]), str(step["lost"]), fmt(step["lost_pct"], ".2f"),
                      fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".1f"),
-                     fmt(step.get("direct_write_pct"), ".0f"), fmt(step.get("peak_backlog_mb"), ".0f"), fmt(step.get("end_backlog_mb"), ".0f"),
+                     fmt(step.get("direct_write_pct"), ".0f"), fmt(step.get("peak_backlog_mb"), ".0f"),
+                     fmt(step.get("end_backlog_mb"), ".0f"),
                      "" if step.get("within_cache") is None else ("yes" if step["within_cache"] else "no"),
                      fmt(step["total_cpu_s"], ".2f"), fmt(step.get("kernel_cpu_s"), ".1f"),
                      fmt(step.get("background_cpu_s"), ".1f"), verdict(step)])
-    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "% direct", "backlog peak", "at end", "in cache",
-                 "tot CPU s", "kernel s", "other s", "lossless"], rows))
+    print(table(["mode", "cameras", "lost", "lost %", "min pub %nom", "MB/s", "% direct", "backlog peak", "at end",
+                 "in cache", "tot CPU s", "kernel s", "other s", "lossless"], rows))
     for mode, best in s2["largest_lossless"].items():
         print(f"  largest lossless camera count, {mode}: {best}"
               + ("" if s2["limit_reached"].get(mode) else f" (no loss up to the cap of {s2['cap']})"))

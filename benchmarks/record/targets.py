@@ -103,8 +103,8 @@ def s2_direct_target(s2: Optional[dict[str, Any]], targets: Targets) -> None:
     """ipc lossless with S2_CAMERAS cameras, judged on its largest lossless step, and at >= S2_DIRECT_SHARE_PCT of
     the direct-write limit, judged on its largest lossless step that ended its window with the backlog within
     ``max_cache_size`` (a step that ended it deep in the stall reserve was lossless only for as long as the reserve
-    lasts: not a rate the recorder sustains). Below a
-    target they fail only when ipc did lose messages at the next step (a ramp capped below proves nothing)."""
+    lasts: not a rate the recorder sustains). Below a target they fail only when ipc did lose messages at the
+    next step (a ramp capped below proves nothing)."""
     cameras_name = f"S2 ipc lossless with {S2_CAMERAS} cameras"
     name = f"S2 ipc lossless within its cache at >= {S2_DIRECT_SHARE_PCT} % of the direct-write limit"
     steps = [step for step in (s2 or {}).get("steps", []) if step["mode"] == "ipc" and good(step)]

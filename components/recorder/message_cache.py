@@ -4,8 +4,8 @@ The intake side (the executor, or a publisher's thread for intra-process message
 disk: it only appends to this cache. The cache holds ``max_cache_size`` bytes in steady state, counting both
 queued messages and those the writer holds until it has written them (so the bound is the recorder's whole
 buffer, not one half of a double buffer; the writer frees small messages' room a mebibyte at a time, and the
-storage may hold up to three ``GATHER`` (3 x 32 MiB) of written messages until its gathered writes are done). When the
-writer falls behind (a disk that stalls for longer than the cache lasts), the cache grows into the stall
+storage may hold up to three ``GATHER`` (3 x 32 MiB) of written messages until its gathered writes are done).
+When the writer falls behind (a disk that stalls for longer than the cache lasts), the cache grows into the stall
 ``reserve`` before anything is dropped; a message that does not fit even then is dropped and counted for its
 topic (never silently lost). The backlog (bytes, and how far behind the oldest queued message is) is visible
 live. In snapshot mode the cache is a ring
