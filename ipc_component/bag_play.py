@@ -30,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-i", "--input", action="append", nargs="+", default=[], metavar=("URI", "STORAGE_ID"),
                         dest="inputs", help="A bag to play, with its storage id (default: detect); repeat it to "
                                             "play several bags as one timeline (instead of positional bags)")
-    parser.add_argument("-s", "--storage", default="", choices=("", "mcap", "sqlite3"),
+    parser.add_argument("-s", "--storage", default="", choices=("mcap", "sqlite3"),
                         help="Storage identifier of the positional bags (default: detect)")
     parser.add_argument("-r", "--rate", type=float, default=1.0, help="Rate at which to play back messages")
     parser.add_argument("-l", "--loop", action="store_true", help="Enables loop playback")
