@@ -9,7 +9,10 @@ the side of not hanging and of clearer errors:
   moment its participant exists, then ends as soon as every container found has answered;
 * ``--log-level`` takes a level name (DEBUG, INFO, WARN, ERROR, FATAL; any case) or its number;
 * a ``-p``/``-e`` argument without ``:=``, a ``-r`` rule without ``:=`` and a unique id that is not a
-  non-negative integer are refused before anything is sent, with exit code 1.
+  non-negative integer are refused before anything is sent, with exit code 1;
+* ``unload`` tries every id given and reports each failure (ros2 component stops at the first);
+* a search that finds no container says which ROS_DOMAIN_ID and discovery range it searched, and ``load``
+  prints the warning a successful load may carry (parameters the component does not declare).
 
 ROS arguments may follow ``--ros-args`` (ended by ``--``) and apply to the command's own node, which is
 hidden (``_ipc_component_<pid>``) so that it is never taken for a container.
