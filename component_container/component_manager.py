@@ -39,6 +39,7 @@ from component_container.intra_process import IntraProcessManager
 from component_container.plugin_registry import PluginError, PluginRegistry
 from component_container.publish_counts import UPTIME, publication_values
 from component_container.supervisor import ComponentFailure, ExitRequest, Supervisor
+from component_container.undeclared_parameters import undeclared_parameters, warning_text
 
 TYPE_DESCRIPTION_SERVICE_PARAMETER = "start_type_description_service"
 # rclcpp_components gives load and unload a deep queue so that bursts of launch requests are not lost.
@@ -57,6 +58,7 @@ class LoadedComponent:
     plugin_name: str
     full_name: str  # taken at load: a component that destroyed its own node can no longer say it
     logger_level_set: bool = False
+    warning: str = ""  # what the loader should know although the load succeeded (undeclared parameters)
 
 
 @dataclass
@@ -141,7 +143,8 @@ class ComponentManager(Node):
             self.get_logger().error("".join(traceback.format_exception(exc)))
         else:
             response.success, response.full_node_name = True, loaded.full_name
-            response.unique_id = loaded.unique_id
+            # rclcpp leaves it empty on success and ros2 component ignores it then; ipc-component shows it.
+            response.unique_id, response.error_message = loaded.unique_id, loaded.warning
             return response
         self.get_logger().error(f"Failed to load component {request.plugin_name}: {response.error_message}")
         return response
@@ -209,6 +212,10 @@ class ComponentManager(Node):
         try:
             loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name,
                                      node.get_fully_qualified_name(), options.log_level is not None)
+            undeclared = undeclared_parameters(node, (p.name for p in request.parameters))
+            if undeclared:
+                loaded.warning = warning_text(loaded.full_name, undeclared)
+                node.get_logger().warning(loaded.warning)
             if options.log_level is not None:
                 node.get_logger().set_level(options.log_level)
             with self._lock:

@@ -3,13 +3,14 @@
 rclcpp_components looks a plugin up in the ament index resource of a package and loads it from a shared
 library. Here a Python distribution registers its components as entry points in the ``rclpy_components``
 group (``"components::CameraDriver" = "components.camera_driver:CameraDriver"``); the package a component
-belongs to is the top-level Python package of the entry point's module. The error strings are rclcpp's, so
-users and tools that match on them keep working.
+belongs to is the top-level Python package of the entry point's module. The error strings start as rclcpp's, so
+users and tools that match on them keep working; what follows says what they mean here.
 """
 from __future__ import annotations
 
 import fnmatch
 import importlib
+import sys
 from collections.abc import Sequence
 from importlib.metadata import EntryPoint, entry_points
 
@@ -66,7 +67,10 @@ class PluginRegistry:
             return self._resolve_module_plugin(package_name, plugin_name)
         in_package = [ep for ep in self._entry_points() if _package_of(ep) == package_name]
         if not in_package:
-            raise PluginError(UNKNOWN_PACKAGE)
+            raise PluginError(
+                f"{UNKNOWN_PACKAGE}: package '{package_name}' is not installed in the Python environment "
+                f"{sys.prefix} (no entry point of the group '{ENTRY_POINT_GROUP}' belongs to it); "
+                "'ipc-component types' run in that environment lists the packages it has")
         matches = [ep for ep in in_package if ep.name == plugin_name]
         if not matches:
             raise PluginError(UNKNOWN_PLUGIN)
@@ -83,7 +87,7 @@ class PluginRegistry:
                 "started with --allow-module-plugins")
         module_name, _, class_name = plugin_name.partition(":")
         if module_name.split(".")[0] != package_name:
-            raise PluginError(UNKNOWN_PACKAGE)
+            raise PluginError(f"{UNKNOWN_PACKAGE}: module '{module_name}' is not in package '{package_name}'")
         try:
             module = importlib.import_module(module_name)
         except Exception as exc:  # report import failures of user code to the caller

@@ -2,19 +2,19 @@
 
 The recorder and the player both take dozens of dotted parameters (``record.*``, ``play.*``, ``storage.*``)
 from a LoadNode request. rclpy would accept any value of any type for a parameter declared with dynamic
-typing, and silently ignore a misspelled name; these helpers turn both into clear errors or warnings.
+typing; these helpers turn that into clear errors. (A misspelled name is warned about by the container for
+every component: component_container.undeclared_parameters.)
 """
 from __future__ import annotations
 
-import difflib
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-__all__ = ["clean", "declare_defaults", "given_values", "typed", "warn_unknown"]
+__all__ = ["clean", "declare_defaults", "given_values", "typed"]
 
 
 def clean(values: list[str]) -> list[str]:
@@ -63,16 +63,3 @@ def declare_defaults(node: Node, defaults: Mapping[str, Any],
         kind = (kinds or {}).get(name, type(default))
         values[name] = default if value is None else typed(kind, value, f"'{name}'")
     return values
-
-
-def warn_unknown(node: Node, given: Iterable[str], known: Iterable[str]) -> None:
-    """One warning for parameters nobody declared: a misspelled one would otherwise silently mean its default."""
-    names = list(known)
-    unknown = [name for name in given if not node.has_parameter(name) and not name.startswith("qos_overrides.")]
-    if unknown:
-        node.get_logger().warning("Unknown parameters, ignored: " + ", ".join(_suggest(n, names) for n in unknown))
-
-
-def _suggest(name: str, known: list[str]) -> str:
-    close = difflib.get_close_matches(name, known, n=1, cutoff=0.75)
-    return f"{name} (did you mean {close[0]}?)" if close else name

@@ -10,13 +10,13 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from ipc_component.verb_arguments import add_verb
+
 
 def register(bag_verbs: Any) -> None:
     """Add the ``merge`` verb to ``ipc-component bag``'s sub-parsers."""
-    parser = bag_verbs.add_parser(
-        "merge", help="Merge several bags into one, every message in log-time order",
-        description="Merge bags (e.g. the per-container bags of a fleet recording) into one new bag, every "
-                    "message in log-time order, streamed.")
+    parser = add_verb(bag_verbs, "merge", "Merge several bags into one, every message in log-time order",
+                      "For example the per-container bags of a fleet recording; streamed.")
     add_arguments(parser)
     parser.set_defaults(handler=run_bag_merge)
 

@@ -4,13 +4,15 @@ Several bags (positional, or rosbag2 Kilted's ``-i BAG [STORAGE_ID]`` repeated; 
 
 The command runs a container in its own process (no separate container to start) and loads the player by
 plugin name, with the command's options as the player's rosbag2 parameters; while it plays, a terminal shows
-one progress line (bag position / duration, rate, state), updated in place. The player's services
+one progress line (bag position / duration, rate, state), updated in place; a log line clears it and takes its
+place, so the two never share a line. The player's services
 (``/rosbag2_player/pause``...) work as with ``ros2 bag play``. It exits when playback ends (never with
 ``--loop``) or on Ctrl-C, which stops playback and unloads the player within the shutdown timeout.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import signal
 import sys
@@ -20,6 +22,10 @@ from typing import Any, TextIO
 
 PLAYER_PLUGIN = "components::Player"
 PROGRESS_PERIOD = 0.25
+#: Back to the start of the terminal line, then erase it (ANSI).
+CLEAR_LINE = "\r\033[K"
+#: rcutils' console format when RCUTILS_CONSOLE_OUTPUT_FORMAT is not set.
+DEFAULT_LOG_FORMAT = "[{severity}] [{time}] [{name}]: {message}"
 _NS_PER_S = 1_000_000_000
 
 
@@ -30,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-i", "--input", action="append", nargs="+", default=[], metavar=("URI", "STORAGE_ID"),
                         dest="inputs", help="A bag to play, with its storage id (default: detect); repeat it to "
                                             "play several bags as one timeline (instead of positional bags)")
-    parser.add_argument("-s", "--storage", default="", choices=("", "mcap", "sqlite3"),
+    parser.add_argument("-s", "--storage", default="", choices=("mcap", "sqlite3"),
                         help="Storage identifier of the positional bags (default: detect)")
     parser.add_argument("-r", "--rate", type=float, default=1.0, help="Rate at which to play back messages")
     parser.add_argument("-l", "--loop", action="store_true", help="Enables loop playback")
@@ -133,6 +139,20 @@ def progress_line(stats: dict[str, Any]) -> str:
             f"rate {stats['rate']:.2f}  {published} msgs")
 
 
+def logs_clear_the_progress_line() -> None:
+    """Make every log line of this process start by clearing the terminal line it is written on.
+
+    The progress line is redrawn in place and never ended while playing; a log line (the player's warnings, on
+    stderr, the same terminal) would be appended to it. With the clearing prefix a log line replaces the progress
+    line and ends it, and the next progress update draws on the line below. rcutils reads its console format
+    once, when rclpy first configures logging, so this runs before ``rclpy.init``; a format of the user's own is
+    kept behind the prefix.
+    """
+    line_format = os.environ.get("RCUTILS_CONSOLE_OUTPUT_FORMAT") or DEFAULT_LOG_FORMAT
+    if not line_format.startswith(CLEAR_LINE):
+        os.environ["RCUTILS_CONSOLE_OUTPUT_FORMAT"] = CLEAR_LINE + line_format
+
+
 def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO = sys.stdout) -> int:
     """Play a bag in this process; returns the exit status."""
     import rclpy
@@ -149,6 +169,9 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
         print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
         return 1
     bags = [path for path, _ in input_bags(args)]
+    show = out.isatty() and not args.no_progress
+    if show and sys.stderr.isatty():
+        logs_clear_the_progress_line()
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     apply_low_latency()  # this process is a player's own container: tune it for replay timing
@@ -166,7 +189,6 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
         except Exception as exc:  # noqa: BLE001 - the player's own message names what is wrong
             print(f"Cannot play {', '.join(bags)}: {exc}", file=sys.stderr, flush=True)
             return 1
-        show = out.isatty() and not args.no_progress
         while not stop.wait(PROGRESS_PERIOD):
             stats = player.stats()
             if show:

@@ -24,8 +24,9 @@ import time
 from typing import Any, Sequence
 
 from baglib.format import fleet_keys
-from ipc_component.cli import BUDGET, CALL_TIMEOUT, CliError, RosSession, parameter_msgs
 from ipc_component.fleet_link import ContainerLink, Fleet
+from ipc_component.ros_session import BUDGET, CALL_TIMEOUT, CliError, RosSession
+from ipc_component.verb_arguments import add_verb, parameter_msgs
 
 RECORDER_PLUGIN = ("components", "components::Recorder")
 NODE_PREFIX = "record_"
@@ -131,7 +132,8 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         found = _discover(ros, args.spin_time)
         containers, missing = _select(sorted(found), args.containers)
         if not containers:
-            raise CliError("No container found" + (f" matching {' '.join(args.containers)}" if args.containers else ""))
+            raise CliError("No container found" + (f" matching {' '.join(args.containers)}" if args.containers else "")
+                           + f"\n    {ros.where_searched()}")
         busy = [c for c in containers
                 if any(name == recorder_full_name(c, session) for _id, name in found[c] or [])]
         if busy:
@@ -312,14 +314,17 @@ def _add_timing(p: argparse.ArgumentParser, default_in: float) -> None:
                       help="the instant, in seconds since the epoch on this computer's clock")
 
 
-def add_record_parser(verbs: Any) -> None:
-    from ipc_component import record_status
-
-    p = verbs.add_parser("record", help="Record every container of the domain as one (fleet recording)",
-                         description=__doc__.split("\n\n")[1])
+def add_record_parser(verbs: Any) -> Any:
+    """Add ``record`` and its verbs start, stop and split; returns its sub-parsers, for more verbs."""
+    p = add_verb(verbs, "record", "Record every container of the domain as one (fleet recording)",
+                 "start loads a recorder into every matching container, on every computer DDS discovery "
+                 "reaches, and gives them all one start instant, corrected by each container's measured clock "
+                 "offset. Each writes <session>/<host>_<container> under its container's bag root. stop "
+                 "schedules the end the same way, waits for every bag to be finalized, prints what each "
+                 "recorder wrote and unloads them; split schedules a split; status shows every recorder.")
     record_verbs = p.add_subparsers(dest="record_verb", title="commands")
     record_verbs.required = True
-    p = record_verbs.add_parser("start", help="Load a recorder into every container; all start at one instant")
+    p = add_verb(record_verbs, "start", "Load a recorder into every container; all start at one instant")
     p.add_argument("containers", nargs="*", metavar="CONTAINER_PATTERN",
                    help="full container names or fnmatch patterns (default: every container)")
     p.add_argument("--session", help="session name (default: fleet_<date>_<time>)")
@@ -336,9 +341,9 @@ def add_record_parser(verbs: Any) -> None:
     p.set_defaults(handler=run_start)
     for verb, handler, what in (("stop", run_stop, "Stop the session's recorders at one instant and unload them"),
                                 ("split", run_split, "Split every bag of the session at one instant")):
-        p = record_verbs.add_parser(verb, help=what)
+        p = add_verb(record_verbs, verb, what)
         p.add_argument("--session", help="session name (default: every fleet session)")
         _add_timing(p, STOP_AHEAD)
         p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")
         p.set_defaults(handler=handler)
-    record_status.add_arguments(record_verbs)
+    return record_verbs

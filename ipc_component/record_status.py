@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from baglib.format import fleet_keys
-from ipc_component.cli import BUDGET, CliError, RosSession
 from ipc_component.fleet_link import ContainerLink, Fleet
 from ipc_component.record_fleet import recorder_full_name
+from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.text_table import format_table
+from ipc_component.verb_arguments import add_verb
 
 RECORDER_SERVICES = {"get_stats": "std_srvs/srv/Trigger", "split_bagfile": "rosbag2_interfaces/srv/SplitBagfile"}
 HEADER = ("HOST", "CONTAINER", "SESSION", "BAG", "ELAPSED", "MB/S", "MESSAGES", "DROPS", "FREE", "TO FULL")
@@ -108,7 +109,7 @@ def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
 
 
 def add_arguments(record_verbs: Any) -> None:
-    p = record_verbs.add_parser("status", help="One table of every recorder in the domain")
+    p = add_verb(record_verbs, "status", "One table of every recorder in the domain")
     p.add_argument("--session", help="only this fleet session's recorders")
     p.add_argument("--watch", action="store_true", help="refresh the table until interrupted (Ctrl-C)")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between refreshes with --watch")

@@ -17,7 +17,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from ipc_component.cli import BUDGET, CliError, RosSession
+from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.top_view import ContainerView, parse_reports, render
 
 REFRESH = 1.0          # s between two frames of the live view
@@ -110,8 +110,8 @@ def run_top(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         model = TopModel(ros.node, args.container_node_name)  # subscribed first: reports come in while listing
         _list(ros, model, start + BUDGET, time.monotonic() + args.spin_time)
         if not model.listed:
-            raise CliError(f"Unable to find container node '{args.container_node_name}'"
-                           if args.container_node_name else "No container found")
+            raise CliError((f"Unable to find container node '{args.container_node_name}'"
+                            if args.container_node_name else "No container found") + f"\n    {ros.where_searched()}")
         if not args.once and sys.stdout.isatty():
             _live(ros, model)
             return 0

@@ -13,11 +13,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosbag2_interfaces.srv import Resume
+from rosbag2_interfaces.srv import PlayNext, Resume
 from std_msgs.msg import String
 
 from baglib.format.cdr_fast import serialize
@@ -95,6 +96,45 @@ def test_progress_line_on_a_terminal_and_ctrl_c(tmp_path: Path) -> None:
             process.wait()
         os.close(controller)
     assert b" / 9.900 s  rate 1.00" in output
+
+
+def read_until(controller: int, done: Any, timeout: float = 20.0) -> bytes:
+    """What the terminal shows until ``done(output)`` holds (or ``timeout`` passes)."""
+    output = b""
+    deadline = time.monotonic() + timeout
+    while not done(output) and time.monotonic() < deadline:
+        if select.select([controller], [], [], 0.5)[0]:
+            output += os.read(controller, 4096)
+    return output
+
+
+def test_log_lines_never_share_the_progress_line(probe: Node, tmp_path: Path) -> None:
+    # A user's terminal: stdout and stderr both on it. A play_next request while playing makes the player log a
+    # warning (as rosbag2's does) while the progress line is drawn.
+    bag = chatter_bag(tmp_path / "bag", 100, 100)  # 10 s
+    controller, terminal = pty.openpty()
+    process = subprocess.Popen([CLI, "bag", "play", str(bag), "--topics", "/chatter"], stdout=terminal,
+                               stderr=terminal)
+    os.close(terminal)
+    play_next = probe.create_client(PlayNext, "/rosbag2_player/play_next")
+    try:
+        output = read_until(controller, lambda out: out.count(b"\r[PLAYING]") >= 2)
+        assert output.count(b"\r[PLAYING]") >= 2, output
+        assert not call(probe, play_next, PlayNext.Request(), 30.0, again=True).success
+        output += read_until(controller, lambda out: b"Called play next" in out and out.count(b"\r[PLAYING]") >= 4)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=20) == 0
+    finally:
+        probe.destroy_client(play_next)
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        os.close(controller)
+    # what each terminal line ends up showing (the terminal sends "\r\n" for a newline)
+    shown = [line.rstrip(b"\r").rsplit(b"\r", 1)[-1] for line in output.split(b"\n")]
+    warnings = [line for line in shown if b"Called play next" in line]
+    assert warnings and all(b"[PLAYING]" not in line for line in warnings), output
+    assert any(line.startswith(b"[PLAYING]") for line in shown), output
 
 
 def test_a_bag_that_cannot_be_played_is_named(tmp_path: Path) -> None:

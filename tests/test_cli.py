@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import re
 import shutil
 import subprocess
 import sys
@@ -113,6 +114,12 @@ def assert_fails(result: subprocess.CompletedProcess, stderr: str, stdout: str =
     assert (result.returncode, result.stderr, result.stdout) == (1, stderr, stdout), result
 
 
+def searched(domain: str | None = None) -> str:
+    """The line that says where a search that found nothing looked (the suite's discovery range is LOCALHOST)."""
+    return (f"    Searched ROS_DOMAIN_ID={domain or os.environ['ROS_DOMAIN_ID']}, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: "
+            "a container started with other values is not seen, check them in both shells.")
+
+
 def read_report(path: pathlib.Path, timeout: float = 20.0) -> dict[str, Any]:
     assert wait_until(path.exists, timeout), f"the probe component never wrote {path}"
     return json.loads(path.read_text())
@@ -205,6 +212,13 @@ def test_list_container_without_components_prints_nothing(clients: dict[str, Con
     assert_ok(cli("list", OTHER), "")
 
 
+def test_list_that_finds_no_container_says_where_it_looked() -> None:
+    # Domain 230 is outside the suite's range of domains (conftest): no container can be there.
+    result = cli("list", "--spin-time", "0.3", env={"ROS_DOMAIN_ID": "230"})
+    assert (result.returncode, result.stdout, result.stderr) == (
+        0, "", lines("No container found", searched("230"))), result  # stdout stays as ros2 component's: empty
+
+
 # --- unknown containers -------------------------------------------------------------------------------------
 def test_unknown_container_for_every_verb(clients: dict[str, ContainerClient]) -> None:
     results = cli_parallel(
@@ -213,7 +227,7 @@ def test_unknown_container_for_every_verb(clients: dict[str, ContainerClient]) -
         # the full name is required, as with ros2 component
         ("list", "ComponentManager"))
     for result, name in zip(results, ["/nowhere"] * 4 + ["ComponentManager"]):
-        assert_fails(result, lines(f"Unable to find container node '{name}'"))  # gave up: no hang
+        assert_fails(result, lines(f"Unable to find container node '{name}'", searched()))  # gave up: no hang
     assert len(clients[MAIN].list().unique_ids) == 0
 
 
@@ -222,7 +236,7 @@ def test_a_node_without_the_container_services_is_no_container(
     talker = load(clients[MAIN], TALKER, name="not_a_container")
     listed, loaded = cli_parallel(LIST_ALL, ("load", "/not_a_container", "components", TALKER))
     assert_ok(listed, lines(MAIN, f"  {talker[0]}  /not_a_container", OTHER))
-    assert_fails(loaded, lines("Unable to find container node '/not_a_container'"))
+    assert_fails(loaded, lines("Unable to find container node '/not_a_container'", searched()))
 
 
 # --- load -------------------------------------------------------------------------------------------------
@@ -287,7 +301,12 @@ def test_load_log_level_names_and_numbers(clients: dict[str, ContainerClient], t
 def test_load_unknown_package_and_plugin(clients: dict[str, ContainerClient]) -> None:
     package, plugin = cli_parallel(("load", MAIN, "no_such_package", TALKER),
                                    ("load", MAIN, "components", "components::NoSuchThing"))
-    assert_fails(package, lines("Failed to load component: Could not find requested resource in ament index"))
+    assert package.returncode == 1 and package.stdout == "", package
+    assert package.stderr.startswith(
+        "Failed to load component: Could not find requested resource in ament index: package 'no_such_package' is "
+        "not installed in the Python environment "), package.stderr
+    assert "(no entry point of the group 'rclpy_components' belongs to it); 'ipc-component types' run in that " \
+           "environment lists the packages it has\n" in package.stderr, package.stderr
     assert_fails(plugin, lines("Failed to load component: Failed to find class with the requested plugin name."))
     assert len(clients[MAIN].list().unique_ids) == 0
 
@@ -297,6 +316,17 @@ def test_load_extra_argument_must_be_a_boolean(clients: dict[str, ContainerClien
     assert_fails(result, lines(
         "Failed to load component: Extra component argument 'use_intra_process_comms' must be a boolean"))
     assert len(clients[MAIN].list().unique_ids) == 0
+
+
+def test_load_warns_about_parameters_the_component_does_not_declare(clients: dict[str, ContainerClient]) -> None:
+    result = cli("load", MAIN, "components", "components::ImuDriver", "-p", "no_such_param:=1", "-p", "rat:=50.0")
+    (unique_id,) = clients[MAIN].list().unique_ids
+    assert (result.returncode, result.stdout, result.stderr) == (0, lines(
+        f"Loaded component {unique_id} into '{MAIN}' container node as '/imu'"), lines(
+        "Warning: /imu does not declare the parameters 'no_such_param', 'rat' (did you mean 'rate'?): ignored")), \
+        result
+    declared = cli("load", MAIN, "components", TALKER, "-p", "rate:=5.0")  # nothing to say
+    assert declared.returncode == 0 and declared.stderr == "", declared
 
 
 def test_load_constructor_failure(clients: dict[str, ContainerClient]) -> None:
@@ -350,15 +380,18 @@ def test_unload_unknown_id(clients: dict[str, ContainerClient]) -> None:
         "    No node found with unique_id: 4242"))
 
 
-def test_unload_stops_at_the_first_failure(clients: dict[str, ContainerClient]) -> None:
+def test_unload_tries_every_id_and_reports_each_failure(clients: dict[str, ContainerClient]) -> None:
     first, _ = load(clients[MAIN], TALKER)
     second, _ = load(clients[MAIN], LISTENER)
-    result = cli("unload", MAIN, str(first), "4242", str(second))
+    result = cli("unload", MAIN, str(first), "4242", str(second), "4343")
     assert_fails(result,
                  lines(f"Failed to unload component 4242 from '{MAIN}' container node",
-                       "    No node found with unique_id: 4242"),
-                 stdout=lines(f"Unloaded component {first} from '{MAIN}' container node"))
-    assert list(clients[MAIN].list().unique_ids) == [second]
+                       "    No node found with unique_id: 4242",
+                       f"Failed to unload component 4343 from '{MAIN}' container node",
+                       "    No node found with unique_id: 4343"),
+                 stdout=lines(f"Unloaded component {first} from '{MAIN}' container node",
+                              f"Unloaded component {second} from '{MAIN}' container node"))
+    assert list(clients[MAIN].list().unique_ids) == []
 
 
 def test_unload_invalid_id() -> None:
@@ -389,7 +422,10 @@ def test_types_of_one_package() -> None:
 
 
 def test_types_unknown_package() -> None:
-    assert_fails(cli("types", "no_such_package"), lines("Unable to find package 'no_such_package'"))
+    result = cli("types", "no_such_package")
+    assert_fails(result, lines(f"Unable to find package 'no_such_package': it is not installed in the Python "
+                               f"environment {sys.prefix} (no entry point of the group 'rclpy_components' "
+                               "belongs to it)"))
 
 
 # --- command line -----------------------------------------------------------------------------------------
@@ -430,3 +466,72 @@ def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: pathlib.Path) -> No
     missing = cli("bag", "info", str(tmp_path / "nothing"))
     assert missing.returncode == 1
     assert f"'{tmp_path / 'nothing'}' does not exist" in missing.stderr
+
+
+def info_bag(path: pathlib.Path, topics: int = 1) -> pathlib.Path:
+    """A small finished bag with ``topics`` topics and three messages on the first one."""
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from baglib.format.metadata import TopicInfo
+    from baglib.write.writer import BagWriter
+
+    with BagWriter(path) as writer:
+        for n in range(topics):
+            writer.add_topic(TopicInfo(f"/topic_{n}", "std_msgs/msg/String"))
+        for i in range(3):
+            writer.write("/topic_0", serialize_message(String(data=str(i))), 1_700_000_000_000_000_000 + i, 1_700_000_000_000_000_000 + i)
+    return path
+
+
+@pytest.mark.parametrize("verb", [["bag", "info", "{bag}"], ["types"]])
+def test_a_closed_pipe_ends_the_command_quietly(tmp_path: pathlib.Path, verb: list[str]) -> None:
+    # `... | head`: head exits after its lines and the command's next write finds the pipe closed.
+    bag = info_bag(tmp_path / "bag", topics=200)
+    reader, writer = os.pipe()
+    os.close(reader)
+    try:
+        result = subprocess.run([IPC_COMPONENT, *(word.format(bag=bag) for word in verb)], stdout=writer,
+                                stderr=subprocess.PIPE, text=True, timeout=60)
+    finally:
+        os.close(writer)
+    assert (result.returncode, result.stderr) == (141, ""), result  # 128 + SIGPIPE, as the shell reports cat's
+
+
+def verb_paths(parser: Any, path: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], Any]]:
+    """Every verb of the parser (``("bag", "info")``...) with its own parser, sub-verbs after their parent."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield (*path, name), sub
+                yield from verb_paths(sub, (*path, name))
+
+
+def test_every_verb_has_plain_help_of_its_own(capsys: pytest.CaptureFixture[str]) -> None:
+    from ipc_component.cli import build_parser, main
+
+    paths = [path for path, _ in verb_paths(build_parser())]
+    assert {("load",), ("record", "start"), ("bag", "reindex"), ("bag", "merge")} <= set(paths)
+    for path in paths:
+        with pytest.raises(SystemExit) as exit_:
+            main([*path, "-h"])
+        text = capsys.readouterr().out
+        assert exit_.value.code == 0, path
+        assert text.startswith(f"usage: ipc-component {' '.join(path)} "), text  # not another verb's usage
+        assert "`" not in text and not re.search(r"\w\.py\b", text), text        # no markup, no source paths
+        assert not re.search(r"\{,|,\}|,,", text), text                           # no empty choice
+
+
+def test_the_docs_synopsis_lists_every_verb() -> None:
+    from ipc_component.cli import build_parser
+
+    text = (pathlib.Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    synopsis = text.split("```sh\n", 1)[1].split("```", 1)[0]
+    parser = build_parser()
+    leaves = [path for path, sub in verb_paths(parser) if not any(p[:len(path)] == path and p != path
+                                                                  for p, _ in verb_paths(parser))]
+    missing = [" ".join(path) for path in leaves
+               if not re.search(rf"^ipc-component {re.escape(' '.join(path))}( |$)", synopsis, re.MULTILINE)]
+    assert missing == []

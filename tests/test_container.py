@@ -268,16 +268,19 @@ def error_container(ros: None) -> Iterator[tuple[ContainerProcess, ContainerClie
 
 
 LOAD_ERRORS = {
-    "unknown package": (dict(plugin=TALKER, package="no_such_package"), UNKNOWN_PACKAGE, None),
+    "unknown package": (dict(plugin=TALKER, package="no_such_package"), None,
+                        f"{UNKNOWN_PACKAGE}: package 'no_such_package' is not installed in the Python environment "),
     "unknown plugin": (dict(plugin="components::NoSuchComponent"), UNKNOWN_PLUGIN, None),
-    "plugin of another package": (dict(plugin=TALKER, package="tests"), UNKNOWN_PACKAGE, None),
+    "plugin of another package": (dict(plugin=TALKER, package="tests"), None,
+                                  f"{UNKNOWN_PACKAGE}: package 'tests' is not installed"),
     "module import raises": (
         dict(plugin="tests.container_test_broken_plugin:Anything", package="tests"),
         "Failed to load library: ImportError: container_test_broken_plugin refuses to be imported", None),
     "module missing": (dict(plugin="tests.no_such_module:Anything", package="tests"),
                        None, "Failed to load library: ModuleNotFoundError: "),
     "module plugin under another package": (dict(plugin=f"{PLUGINS}:LoggingComponent", package="components"),
-                                            UNKNOWN_PACKAGE, None),
+                                            f"{UNKNOWN_PACKAGE}: module '{PLUGINS}' is not in package "
+                                            "'components'", None),
     "class missing in module": (dict(plugin=f"{PLUGINS}:NoSuchClass", package="tests"), UNKNOWN_PLUGIN, None),
     "class is not a node": (dict(plugin=f"{PLUGINS}:NotANode", package="tests"), None, UNKNOWN_PLUGIN),
     "constructor raises": (dict(plugin=f"{PLUGINS}:ThrowingComponent", package="tests"),

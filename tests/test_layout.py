@@ -118,3 +118,55 @@ def test_component_node_is_importable_as_the_docs_say() -> None:
     from component_container.component_node import ComponentNode as Defined
 
     assert ComponentNode is Defined
+
+
+def import_cycles(modules: dict[str, set[str]]) -> list[list[str]]:
+    """The import cycles among ``modules`` within one top-level package (each as its modules, sorted), imports
+    inside functions included: a function-level import only postpones the circle to the first call."""
+    edges = {module: {target for name in imported for target in modules
+                      if target != module and name == target and _package(target) == _package(module)}
+             for module, imported in modules.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(module: str) -> None:  # Tarjan's strongly connected components
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        for target in edges[module]:
+            if target not in index:
+                visit(target)
+                low[module] = min(low[module], low[target])
+            elif target in stack:
+                low[module] = min(low[module], index[target])
+        if low[module] == index[module]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == module:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for module in sorted(edges):
+        if module not in index:
+            visit(module)
+    return sorted(cycles)
+
+
+def _package(module: str) -> str:
+    return module.split(".")[0]
+
+
+def test_no_import_cycle_within_a_package() -> None:
+    assert import_cycles(all_modules()) == []
+
+
+def test_the_cycle_rule_catches_a_circle() -> None:
+    modules = {"ipc_component.cli": {"ipc_component.top", "ipc_component.top.run_top"},
+               "ipc_component.top": {"ipc_component.cli.RosSession", "ipc_component.cli"},
+               "ipc_component.text_table": set(),
+               "components.a": {"ipc_component.cli"}}
+    assert import_cycles(modules) == [["ipc_component.cli", "ipc_component.top"]]

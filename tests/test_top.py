@@ -158,7 +158,10 @@ def test_top_without_a_container_named_shows_every_container(rig: ContainerProce
 def test_top_of_a_missing_container_fails() -> None:
     result = top("/no_such_container", "--once")
     assert result.returncode == 1
-    assert result.stderr.strip() == "Unable to find container node '/no_such_container'"
+    assert result.stderr.splitlines() == [
+        "Unable to find container node '/no_such_container'",
+        f"    Searched ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: a container "
+        "started with other values is not seen, check them in both shells."]
 
 
 class Tmux:

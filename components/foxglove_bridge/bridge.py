@@ -51,12 +51,11 @@ class FoxgloveBridge(ComponentNode):
     """A Foxglove WebSocket server for the ROS graph, fed zero-copy from the container (module docstring)."""
 
     def __init__(self, **kwargs: Any) -> None:
-        overrides = {p.name: p for p in kwargs.get("parameter_overrides") or []}
         super().__init__("foxglove_bridge", **kwargs)
         self._server: Any = None
         self._forwarder: Forwarder | None = None
         try:
-            self._options: BridgeOptions = declare_options(self, overrides)
+            self._options: BridgeOptions = declare_options(self)
             self._sim_time = bool(self.get_parameter("use_sim_time").value)
             self._fox_context = foxglove.Context()
             self._forwarder = Forwarder(lambda: self._registry.channels(), self._warn,

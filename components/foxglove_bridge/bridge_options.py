@@ -35,10 +35,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
-from components.node_parameters import clean, declare_defaults, given_values, warn_unknown
+from components.node_parameters import clean, declare_defaults
 
 DEFAULTS: dict[str, Any] = {
     "port": 8765,
@@ -106,10 +105,9 @@ class BridgeOptions:
         return any(pattern.fullmatch(name) for pattern in self.param_whitelist)
 
 
-def declare_options(node: Node, overrides: dict[str, Parameter]) -> BridgeOptions:
+def declare_options(node: Node) -> BridgeOptions:
     """Declare the parameters on ``node`` and return them checked; ValueError naming the parameter otherwise."""
     values = declare_defaults(node, DEFAULTS)
-    warn_unknown(node, given_values(overrides), DEFAULTS)
     PORT.check("'port'", values["port"])
     for name in ("min_qos_depth", "max_qos_depth"):
         QOS_DEPTH.check(f"'{name}'", values[name])

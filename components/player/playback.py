@@ -14,7 +14,10 @@ playback thread wakes up for a due message.
 
 Falling behind: a message that goes out more than :data:`BEHIND_NS` after its scheduled time moves the whole
 schedule back by that lateness instead of publishing the following messages in a catch-up burst; the shifts
-are counted and logged (once a second at most), so a player that cannot keep up slows down smoothly and says so.
+are counted and logged, so a player that cannot keep up slows down smoothly and says so: the first time at
+once, then at most every :data:`BEHIND_WARN_EVERY_NS` with what happened since, and once more at the end of the run
+if anything is left unsaid (a busy machine falls behind every second; a line per second would bury everything
+else).
 """
 from __future__ import annotations
 
@@ -38,6 +41,8 @@ PREPARE_MARGIN_NS = 500_000
 #: Publish-time errors kept for the percentiles (the newest ones).
 TIMING_SAMPLES = 100_000
 _WARN_EVERY_NS = 1_000_000_000
+#: How often falling behind is reported at most, after its first report.
+BEHIND_WARN_EVERY_NS = 10_000_000_000
 
 
 @dataclass
@@ -106,6 +111,8 @@ class Playback:
         self.behind_count = 0
         self.behind_ns = 0                  # total schedule shift, steady ns
         self._last_warning = 0
+        self._behind_reported: tuple[int, int] | None = None  # (steady ns, behind_count) of the last report
+        self._latest_late_ns = 0
 
     # --- runs ---------------------------------------------------------------------------------------------
     @property
@@ -164,6 +171,7 @@ class Playback:
         except Exception as exc:  # noqa: BLE001 - rosbag2 logs "Failed to play" and ends the run
             self._log.error(f"Failed to play: {exc}")
         finally:
+            self._report_behind(time.monotonic_ns(), final=True)
             try:
                 self._on_run_end()
             finally:
@@ -242,13 +250,21 @@ class Playback:
         self.clock.jump(log_time)  # the message just published is "now": the rest keep their spacing
         self.behind_count += 1
         self.behind_ns += late_ns
-        now = time.monotonic_ns()
-        if now - self._last_warning > _WARN_EVERY_NS:
-            self._last_warning = now
-            self._log.warning(
-                f"Playback is {late_ns / 1e6:.1f} ms behind schedule at rate {self.clock.rate:g} (reading or "
-                f"publishing cannot keep up); the schedule moves back instead of catching up "
-                f"({self.behind_count} times so far, {self.behind_ns / 1e9:.3f} s in all)")
+        self._latest_late_ns = late_ns
+        self._report_behind(time.monotonic_ns(), final=False)
+
+    def _report_behind(self, now: int, final: bool) -> None:
+        """Log falling behind: the first time, then at most every BEHIND_WARN_EVERY_NS, and at the run's end."""
+        last = self._behind_reported
+        unsaid = self.behind_count - (last[1] if last else 0)
+        if not unsaid or (last is not None and not final and now - last[0] < BEHIND_WARN_EVERY_NS):
+            return
+        self._behind_reported = (now, self.behind_count)
+        since = "" if last is None else f"{unsaid} more times in the last {(now - last[0]) / 1e9:.0f} s, "
+        self._log.warning(
+            f"Playback is {self._latest_late_ns / 1e6:.1f} ms behind schedule at rate {self.clock.rate:g} "
+            f"(reading or publishing cannot keep up); the schedule moves back instead of catching up "
+            f"({since}{self.behind_count} times so far, {self.behind_ns / 1e9:.3f} s in all)")
 
     # --- take-overs (rosbag2: play_next, burst, seek) -----------------------------------------------------
     def play_next(self) -> bool:

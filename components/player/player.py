@@ -80,13 +80,12 @@ class Player(ComponentNode):
     """Plays a rosbag2 bag (see module docstring)."""
 
     def __init__(self, **kwargs: Any) -> None:
-        overrides = {p.name: p for p in kwargs.get("parameter_overrides") or []}
         super().__init__("rosbag2_player", **kwargs)
         self._reader: Timeline | None = None
         self._read_ahead: ReadAhead | None = None
         self._read_error: str | None = None
         try:
-            self._options = declare_play_options(self, overrides)
+            self._options = declare_play_options(self)
             self._reader = self._open_bag(self._options)
             self._senders = self._make_publishers()
             self._clock_publisher = None

@@ -17,11 +17,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from baglib.format.service_events import event_topic
 from components.bounds import Bounds
-from components.node_parameters import clean, declare_defaults, given_values, warn_unknown
+from components.node_parameters import clean, declare_defaults
 
 _DURATIONS = {  # name -> (default sec, default nsec), from get_play_options_from_node_params
     "play.delay": (0, 0),
@@ -101,11 +100,9 @@ class PlayOptions:
     publish_service_requests: bool
 
 
-def declare_play_options(node: Node, overrides: dict[str, Parameter]) -> PlayOptions:
+def declare_play_options(node: Node) -> PlayOptions:
     """Declare every parameter on ``node`` and return the validated options; ValueError names a bad one."""
-    given = given_values(overrides)
     values = declare_defaults(node, DEFAULTS)
-    warn_unknown(node, given, DEFAULTS)
     if clean(values["play.topic_remapping_options"]):
         node.get_logger().warning("Remappings shall be applied through standard CLI/Launch options. "
                                   "'topic_remapping_options' content will be ignored.")

@@ -27,7 +27,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
-from components.node_parameters import clean, declare_defaults, given_values, typed, warn_unknown
+from components.node_parameters import clean, declare_defaults, given_values, typed
 from components.recorder.schedule import duration_ns, instant_ns
 
 RECORD_DEFAULTS: dict[str, Any] = {
@@ -197,8 +197,8 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
     """Declare every parameter on ``node`` and return the validated options; ValueError on bad input.
 
     Errors name the parameter as the user gave it (an alias, or the rosbag2 name); a parameter given as
-    NOT_SET means its default. Names the recorder does not know get one warning: a misspelled parameter would
-    otherwise be ignored without a word, and the recording would silently use the default.
+    NOT_SET means its default. An alias is declared when given, so the container's warning about undeclared
+    parameters (component_container.undeclared_parameters) names only what the recorder does not know.
     """
     given = given_values(overrides)
     values = declare_defaults(node, DEFAULTS, _KINDS)
@@ -217,7 +217,6 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
         node.declare_parameter(alias, given[alias], ParameterDescriptor(dynamic_typing=True))
         # Mirror the value to the rosbag2 name, so `ros2 param get <node> storage.uri` shows what is used.
         node.set_parameters([Parameter(target, value=values[target])])
-    warn_unknown(node, given, [*DEFAULTS, *ALIASES])
     return _validate(values, {name: _label(name, source) for name, source in sources.items()})
 
 

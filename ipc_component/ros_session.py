@@ -1,0 +1,145 @@
+"""What the verbs that talk to containers share: one rclpy session per command, its time budgets, and CliError.
+
+Its own module so that every verb module can use it without importing ``ipc_component.cli``, which imports the
+verb modules to build the parser.
+"""
+from __future__ import annotations
+
+import os
+import time
+from typing import Any, Sequence
+
+BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
+CALL_TIMEOUT = 60.0      # s: waiting for a LoadNode / UnloadNode reply (component constructors may be slow)
+GONE_GRACE = 2.0         # s: a container whose service stays absent this long while we wait has left
+
+
+class CliError(Exception):
+    """A failure to report on stderr; the command exits with 1."""
+
+
+class RosSession:
+    """rclpy set up for one command: its own context, a hidden node and an executor; shut down on exit."""
+
+    def __init__(self, ros_args: Sequence[str]) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.parameter import Parameter
+
+        self.context = Context()
+        rclpy.init(args=["ipc-component", *ros_args], context=self.context)
+        try:
+            self.node = Node(
+                f"_ipc_component_{os.getpid()}", context=self.context, start_parameter_services=False,
+                enable_rosout=False,
+                parameter_overrides=[Parameter("start_type_description_service", value=False)])
+            self.executor = SingleThreadedExecutor(context=self.context)
+            self.executor.add_node(self.node)
+        except BaseException:
+            rclpy.try_shutdown(context=self.context)
+            raise
+
+    def __enter__(self) -> "RosSession":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        import rclpy
+
+        try:
+            self.executor.shutdown(timeout_sec=1.0)
+            self.node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=self.context)
+
+    def find_container(self, container: str, deadline: float) -> None:
+        """Wait (until ``deadline``) for ``container`` to show up as a container; CliError if it does not."""
+        from ipc_component.container_discovery import list_containers
+
+        found = list_containers(self.node, self.executor, deadline=deadline, discovery_until=deadline,
+                                container=container, list_components=False)
+        if not found:
+            raise CliError(f"Unable to find container node '{container}'\n    {self.where_searched()}")
+
+    def where_searched(self) -> str:
+        """The discovery settings a search used, for a message that found nothing.
+
+        A container in another ROS domain, or beyond the automatic discovery range, is invisible; naming both
+        tells a user who started the container in another shell what to compare.
+        """
+        def setting(name: str, used: object) -> str:
+            return f"{name}={used}" + ("" if os.environ.get(name) else " (not set)")
+
+        searched = [setting("ROS_DOMAIN_ID", self.context.get_domain_id()),
+                    setting("ROS_AUTOMATIC_DISCOVERY_RANGE",
+                            os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "SUBNET")]
+        if os.environ.get("ROS_STATIC_PEERS"):
+            searched.append(f"ROS_STATIC_PEERS={os.environ['ROS_STATIC_PEERS']}")
+        return (f"Searched {', '.join(searched)}: a container started with other values is not seen, check "
+                "them in both shells.")
+
+    def container_client(self, srv_type: Any, container: str, service: str, deadline: float) -> Any:
+        """A client of ``<container>/_container/<service>``, found, ready and able to get replies.
+
+        Both clients (this one, then the harmless ListNodes one) are created before anything is waited for,
+        so that they are announced in this participant's first discovery exchange with the container
+        instead of a second one after it. The order matters: endpoints are announced in creation order over
+        one reliable, ordered discovery stream, so once the container answers ListNodes it has also matched
+        this client's reply reader.
+        """
+        from composition_interfaces.srv import ListNodes
+
+        from ipc_component.repeated_call import RepeatedCall
+
+        client = self.node.create_client(srv_type, f"{container}/_container/{service}")
+        harmless = RepeatedCall(self.node.create_client(ListNodes, f"{container}/_container/list_nodes"),
+                                ListNodes.Request)
+        try:
+            self.find_container(container, deadline)
+            self.ensure_replies(harmless, deadline)
+        finally:
+            harmless.close()
+            self.node.destroy_client(harmless.client)
+        while not client.service_is_ready():
+            if time.monotonic() >= deadline:
+                raise CliError(f"No '{service}' service found for '{container}' container")
+            self.executor.spin_once(timeout_sec=0.02)
+        return client
+
+    def ensure_replies(self, harmless: Any, deadline: float) -> None:
+        """Make sure the container can answer this process before sending a request that must not be lost.
+
+        A service is "ready" once this side has matched it; the container may not have discovered this
+        process's reply readers yet, and Fast DDS then drops the reply. A harmless ListNodes call, repeated
+        until one is answered (``harmless``, a ipc_component.repeated_call.RepeatedCall), waits out
+        that discovery (at most until ``deadline``; then the real call goes ahead and its own timeout applies).
+        """
+        while harmless.reply is None and time.monotonic() < deadline:
+            harmless.step(time.monotonic())
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def call(self, client: Any, request: Any, container: str, timeout: float = CALL_TIMEOUT) -> Any:
+        """Call a service and wait for the reply, at most ``timeout`` s; CliError text is the reason."""
+        future = client.call_async(request)
+        deadline = time.monotonic() + timeout
+        absent_since: float | None = None
+        try:
+            while not future.done():
+                now = time.monotonic()
+                if now >= deadline:
+                    raise CliError(f"No reply from '{container}' container within {timeout:g} s")
+                self.executor.spin_once(timeout_sec=min(0.1, deadline - now))
+                if future.done():
+                    break
+                if client.service_is_ready():
+                    absent_since = None
+                elif absent_since is None:
+                    absent_since = now
+                elif now - absent_since > GONE_GRACE:
+                    raise CliError(f"'{container}' container left before replying")
+        finally:
+            if not future.done():
+                future.cancel()
+                client.remove_pending_request(future)
+        return future.result()
