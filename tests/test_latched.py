@@ -38,7 +38,7 @@ from ipc_testing import wait_until
 TOPIC = "/robot_description"
 DESCRIPTION, UPDATED = "<robot name='r1'/>", "<robot name='r1' version='2'/>"
 # The race: this many subscriptions join while a publisher keeping RACE_DEPTH messages publishes.
-RACE_DEPTH, RACE_JOINS = 1000, 150
+RACE_DEPTH, RACE_JOINS = 1000, 250
 
 
 def latched(depth: int) -> QoSProfile:
