@@ -241,7 +241,7 @@ class IntraProcessPublisher:
         transient_local publisher makes it even with no subscriber yet: it keeps it for late joiners.
         """
         local = 0
-        if self._always_dds or self._manager.subscription_count(self._publication):
+        if self._publication.history is not None or self._manager.subscription_count(self._publication):
             local = self._manager.deliver(self._publication, make_message())
         if self._always_dds or self._dds_readers() > local:
             data = serialized if isinstance(serialized, bytes) else bytes(serialized)  # rclpy publishes bytes only

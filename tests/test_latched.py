@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import pytest
 import rclpy
@@ -33,7 +33,7 @@ from component_container.component_manager import ComponentManager
 from component_container.component_node import ComponentNode
 from component_container.intra_process import IntraProcessManager, IntraProcessSubscription
 from component_container.startup_file import load_request
-from ipc_testing import wait_until
+from test_intra_process import spin_until
 
 TOPIC = "/robot_description"
 DESCRIPTION, UPDATED = "<robot name='r1'/>", "<robot name='r1' version='2'/>"
@@ -60,15 +60,6 @@ def container() -> Iterator[tuple[Context, IntraProcessManager]]:
     rclpy.init(context=context)
     yield context, IntraProcessManager()
     rclpy.try_shutdown(context=context)
-
-
-def spin_until(executor: Any, condition: Callable[[], bool], timeout: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        executor.spin_once(timeout_sec=0.05)
-    return condition()
 
 
 def dds_witness(context: Context, topic: str, qos: QoSProfile) -> tuple[Node, list[str]]:
@@ -100,12 +91,12 @@ def test_a_recorder_loaded_after_a_latched_publisher_records_its_message(kind: s
         witness, seen = dds_witness(context, TOPIC, latched(1))
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(witness)
-        assert spin_until(executor, lambda: seen == [DESCRIPTION]), seen
+        assert spin_until(executor, lambda: seen == [DESCRIPTION], timeout=20), seen
         robot.publisher.publish(String(data=UPDATED))
-        assert spin_until(executor, lambda: seen == [DESCRIPTION, UPDATED]), seen
+        assert spin_until(executor, lambda: seen == [DESCRIPTION, UPDATED], timeout=20), seen
         executor.shutdown()
-        stats = manager.unload(loaded.unique_id)
-        assert stats.found and not stats.error, stats
+        unloaded = manager.unload(loaded.unique_id)
+        assert unloaded.found and not unloaded.error, unloaded
     finally:
         if witness is not None:
             witness.destroy_node()
@@ -140,9 +131,9 @@ def test_a_late_subscriber_gets_the_kept_messages_once_newest_up_to_its_depth(co
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(late)
     executor.add_node(witness)
-    assert spin_until(executor, lambda: seen == ["3", "4", "5", "6", "7"]), seen
+    assert spin_until(executor, lambda: seen == ["3", "4", "5", "6", "7"], timeout=20), seen
     publisher.publish(String(data="8"))
-    assert spin_until(executor, lambda: "8" in shallow and "8" in everything and "8" in seen)
+    assert spin_until(executor, lambda: "8" in shallow and "8" in everything and "8" in seen, timeout=20)
     assert shallow == ["5", "6", "7", "8"]
     assert everything == ["3", "4", "5", "6", "7", "8"]
     assert shallow_sub.dropped_count == 0
