@@ -237,10 +237,11 @@ class IntraProcessPublisher:
         """Publish a message that exists as CDR bytes (a bag's): in-process subscribers get the object
         ``make_message()`` builds, made only if one exists, and DDS readers get ``serialized`` as it is.
 
-        The object is new and never held by the caller, so the reuse rule does not apply to it.
+        The object is new and never held by the caller, so the reuse rule does not apply to it. A
+        transient_local publisher makes it even with no subscriber yet: it keeps it for late joiners.
         """
         local = 0
-        if self._manager.subscription_count(self._publication):
+        if self._publication.history is not None or self._manager.subscription_count(self._publication):
             local = self._manager.deliver(self._publication, make_message())
         if self._always_dds or self._dds_readers() > local:
             data = serialized if isinstance(serialized, bytes) else bytes(serialized)  # rclpy publishes bytes only

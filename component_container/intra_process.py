@@ -13,10 +13,17 @@ outside the container. When a local publisher also writes to DDS, the local subs
 that sample too; it is recognised (writer sequence number and source timestamp recorded at write time, see
 :class:`LocalPublicationLog`) and dropped, so no in-process subscriber sees a message twice.
 
+A transient_local publisher keeps its last ``depth`` delivered messages; a transient_local subscription that
+joins later gets them once, in publish order, before any later message of that publisher (see
+:meth:`IntraProcessManager.add_subscription`). Its DDS reader gets the same samples from the DDS history and
+drops them as local ones.
+
 Ownership rule: after ``publish()`` the message belongs to the subscribers; the publisher must not mutate it.
 """
 from __future__ import annotations
 
+import contextlib
+import heapq
 import threading
 import time
 from collections import deque
@@ -218,10 +225,24 @@ def rough_size(message: Any) -> int:
     return 256 + (len(data) if hasattr(data, "__len__") else 0)
 
 
+def is_transient_local(qos: QoSProfile) -> bool:
+    return qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+
+
+def kept_messages(qos: QoSProfile) -> int:
+    """How many messages a transient_local endpoint keeps: its depth, or a keep_all reader's message limit."""
+    return KEEP_ALL_MAX_MESSAGES if qos.history == HistoryPolicy.KEEP_ALL else max(qos.depth, 1)
+
+
 @dataclass(eq=False)
 class IntraProcessPublication:
     """A local publisher's registration: its QoS, its DDS write log and, if transient_local, its history.
 
+    ``history`` holds ``(message, publish time)`` of the last delivered messages, the very objects the
+    subscribers got (so the reuse rule covers them as it covers theirs); it goes with the publication when
+    the publisher is destroyed, as a DDS writer's history does. ``lock`` (transient_local only) makes keeping
+    and handing out a message one step with a late subscription's replay: each message reaches a late
+    joiner once, from the history or live, never both and never out of order.
     ``targets`` caches its QoS-compatible subscriptions as of registry ``generation`` (deliver runs per message).
     """
 
@@ -229,6 +250,7 @@ class IntraProcessPublication:
     qos: QoSProfile
     log: LocalPublicationLog
     history: deque | None
+    lock: threading.RLock | None = None
     targets: list[IntraProcessSubscription] = field(default_factory=list)
     generation: int = -1
 
@@ -249,23 +271,63 @@ class IntraProcessManager:
         self._generation = 0  # changes with every subscription added or removed
 
     def add_publication(self, topic: str, qos: QoSProfile) -> IntraProcessPublication:
-        transient = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
-        publication = IntraProcessPublication(topic, qos, LocalPublicationLog(qos.depth),
-                                              deque(maxlen=max(qos.depth, 1)) if transient else None)
+        if is_transient_local(qos):
+            # The log covers the whole history: every kept sample a late DDS reader gets is known as local.
+            kept = kept_messages(qos)
+            publication = IntraProcessPublication(topic, qos, LocalPublicationLog(kept), deque(maxlen=kept),
+                                                  threading.RLock())
+        else:
+            publication = IntraProcessPublication(topic, qos, LocalPublicationLog(qos.depth), None)
         with self._lock:
             self._publications.setdefault(topic, []).append(publication)
         return publication
 
     def add_subscription(self, subscription: IntraProcessSubscription) -> None:
-        """Register a subscription; transient_local publishers hand it their stored messages at once."""
-        with self._lock:
-            self._subscriptions.setdefault(subscription.topic, []).append(subscription)
-            self._generation += 1
-            late = [(message, stamps) for p in self._publications.get(subscription.topic, [])
-                    if p.history is not None and qos_compatible(p.qos, subscription.qos)
-                    for message, stamps in p.history]
-        for message, stamps in sorted(late, key=lambda item: item[1][0]):
-            subscription.offer(message, stamps)
+        """Register a subscription. A transient_local one gets the messages the compatible transient_local
+        publishers keep, at once, as a late-joining DDS reader gets a writer's history.
+
+        As rclcpp's intra-process manager does: both ends must be transient_local (a volatile subscription
+        gets nothing kept), and the subscription gets at most its own depth of them (keep_last), the newest,
+        in publish order. Their receive stamp is the replay's time, their source stamp the publish time.
+        Each such publisher's lock is held from before the registration until the replay is done, so a
+        message published meanwhile is either kept and replayed or delivered live after the replay.
+        """
+        if not is_transient_local(subscription.qos):
+            with self._lock:
+                self._register(subscription)
+            return
+        while True:
+            with self._lock:
+                latched = self._latched_publications(subscription)
+            with contextlib.ExitStack() as held:
+                for publication in latched:
+                    held.enter_context(publication.lock)  # type: ignore[arg-type]  # transient_local: set
+                with self._lock:
+                    if self._latched_publications(subscription) != latched:
+                        continue  # a latched publisher came or went meanwhile: lock the current set
+                    self._register(subscription)
+                self._replay(subscription, latched)
+                return
+
+    def _register(self, subscription: IntraProcessSubscription) -> None:
+        self._subscriptions.setdefault(subscription.topic, []).append(subscription)
+        self._generation += 1
+
+    def _latched_publications(self, subscription: IntraProcessSubscription) -> list[IntraProcessPublication]:
+        """The transient_local publications that serve ``subscription`` their history, in the order their
+        locks are taken (caller holds ``_lock``)."""
+        return sorted((p for p in self._publications.get(subscription.topic, ())
+                       if p.history is not None and qos_compatible(p.qos, subscription.qos)), key=id)
+
+    @staticmethod
+    def _replay(subscription: IntraProcessSubscription, latched: list[IntraProcessPublication]) -> None:
+        # Merged by publish time; each publisher's own messages stay in the order it published them.
+        kept = list(heapq.merge(*(publication.history for publication in latched),  # type: ignore[misc]
+                                key=lambda item: item[1]))
+        if subscription.qos.history != HistoryPolicy.KEEP_ALL:
+            kept = kept[-max(subscription.qos.depth, 1):]
+        for message, published_ns in kept:
+            subscription.offer(message, (published_ns, time.time_ns()))
 
     def remove_publication(self, publication: IntraProcessPublication) -> None:
         with self._lock:
@@ -294,13 +356,18 @@ class IntraProcessManager:
 
     def deliver(self, publication: IntraProcessPublication, message: Any) -> int:
         """Hand ``message`` to every compatible in-process subscription; returns how many got it."""
+        if publication.lock is None:
+            return self._offer(publication, message)
+        with publication.lock:  # one step with a late subscription's replay (add_subscription)
+            return self._offer(publication, message)
+
+    def _offer(self, publication: IntraProcessPublication, message: Any) -> int:
         now = time.time_ns()
-        stamps = (now, now)
         if publication.history is not None:
-            publication.history.append((message, stamps))
+            publication.history.append((message, now))
         targets = self._targets(publication)
         for subscription in targets:
-            subscription.offer(message, stamps)
+            subscription.offer(message, (now, now))
         return len(targets)
 
     def has_publication(self, topic: str) -> bool:
