@@ -2,7 +2,7 @@
 miscounted, in either storage (the recorder loaded after each unload alternates between them).
 
 Two busy CPU loops (processes of their own) compete with an in-process container where two IMU drivers publish
-at 1 kHz each to a recorder that takes their messages inline, in the drivers' thread. The test cycles through
+at 2 kHz each to a recorder that takes their messages inline, in the drivers' thread. The test cycles through
 stop + start, split, and unload + load, each once enough new messages were written, ending bags while intake
 callbacks are running. Every bag is then read back with rosbags: its final counts must report no drop, and every
 message counted as received must be in it, in an unbroken sequence for each driver.
@@ -30,8 +30,10 @@ from component_container.startup_file import load_request
 from ipc_testing import call, wait_until
 
 TOPICS = ("/imu_a/imu", "/imu_b/imu")
-#: New messages per topic written before the next cycle: ~10 ms at 1 kHz.
-PER_CYCLE = 10
+#: New messages per topic written before the next cycle: ~10 ms at 2 kHz.
+PER_CYCLE = 20
+#: What each cycle does, in turn: three of four end a bag, where the intake races the end.
+CYCLE = ("stop", "split", "unload", "stop")
 #: The storage of each recorder loaded, in turn: every unload + load changes it.
 STORAGES = ("mcap", "sqlite3")
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -102,12 +104,12 @@ class Recording:
     def cycle(self, n: int) -> None:
         """One of: stop (from this thread, racing the drivers) + start, a split, an unload + a load."""
         self.wait_for_more()
-        kind = n % 3
-        if kind == 0:
+        kind = CYCLE[n % len(CYCLE)]
+        if kind == "stop":
             self._keep(self.recorder.stop_recording())
             start = self.service("start_recording")
             assert start.success, start.message
-        elif kind == 1:
+        elif kind == "split":
             self.service("split_bagfile")  # the next file, while the intake goes on
         else:
             assert not self.manager.unload(self.loaded.unique_id).error
@@ -137,7 +139,7 @@ def test_stop_start_split_unload_under_load_lose_nothing(manager: ComponentManag
     for topic in TOPICS:
         loaded = manager.load(load_request({"package": "components", "plugin": "components::ImuDriver",
                                             "name": topic.split("/")[1],
-                                            "parameters": {"rate": 1000.0, "topic": topic}}, 1))
+                                            "parameters": {"rate": 2000.0, "topic": topic}}, 1))
         assert loaded.node is not None
     recording = Recording(manager, tmp_path)
     for n in range(cycles):
@@ -152,7 +154,7 @@ def test_stop_start_split_unload_under_load_lose_nothing(manager: ComponentManag
                     or seqs != list(range(seqs[0], seqs[0] + len(seqs))):
                 problems.append(f"{Path(bag).name} {topic}: {json.dumps(counts)}, {len(seqs)} in the bag, "
                                 f"reasons {stats['drop_reasons'].get(topic)}")
-    bags = 1 + sum(1 for n in range(cycles) if n % 3 != 1)  # each stop and unload ends one, and the last
+    bags = 1 + sum(1 for n in range(cycles) if CYCLE[n % len(CYCLE)] != "split")  # and the last one
     assert len(recording.finished) == bags and not problems, problems
     assert {stats["current_file"] == "" for stats in recording.finished.values()} == {True}
     assert {Path(bag, "metadata.yaml").read_text().count("storage_identifier: sqlite3") > 0
