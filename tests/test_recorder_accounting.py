@@ -34,7 +34,7 @@ from component_container.startup_file import load_request
 from components.recorder import recording_session
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.recorder import Recorder
-from ipc_testing import wait_until
+from ipc_testing import in_process_manager, wait_until
 
 IMU = "/imu/imu"
 CAMERA = "/camera/image_raw"
@@ -43,18 +43,13 @@ CAMERA = "/camera/image_raw"
 @pytest.fixture(params=[2.0])
 def manager(request: pytest.FixtureRequest) -> Iterator[ComponentManager]:
     """An in-process container; its shutdown timeout (the recorder's bound on finishing a bag) is the param."""
-    context = Context()
-    rclpy.init(context=context)
-    manager = ComponentManager("single", use_intra_process_comms=True, allow_module_plugins=True,
-                               node_name="accounting_test", context=context, shutdown_timeout=request.param)
     SlowBagWriter.DISK_UP.set()
     try:
-        yield manager
+        with in_process_manager("accounting_test", use_intra_process_comms=True, allow_module_plugins=True,
+                                shutdown_timeout=request.param) as manager:
+            yield manager
     finally:
-        SlowBagWriter.DISK_UP.set()
-        manager.shutdown()
-        manager.destroy_node()
-        rclpy.try_shutdown(context=context)
+        SlowBagWriter.DISK_UP.set()  # a writer left waiting on it finishes
 
 
 def load(manager: ComponentManager, plugin: str, package: str = "components", **parameters: Any) -> Any:

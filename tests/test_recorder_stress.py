@@ -17,8 +17,6 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.node import Node
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
@@ -27,7 +25,7 @@ from std_srvs.srv import Trigger
 
 from component_container.component_manager import ComponentManager
 from component_container.startup_file import load_request
-from ipc_testing import call, wait_until
+from ipc_testing import call, in_process_manager, wait_until
 
 TOPICS = ("/imu_a/imu", "/imu_b/imu")
 #: New messages per topic written before the next cycle: ~10 ms at 2 kHz.
@@ -53,15 +51,8 @@ def busy_loops() -> Iterator[None]:
 
 @pytest.fixture()
 def manager() -> Iterator[ComponentManager]:
-    context = Context()
-    rclpy.init(context=context)
-    manager = ComponentManager("single", use_intra_process_comms=True, node_name="stress_test", context=context)
-    try:
+    with in_process_manager("stress_test", use_intra_process_comms=True) as manager:
         yield manager
-    finally:
-        manager.shutdown()
-        manager.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 class Recording:
