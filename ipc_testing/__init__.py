@@ -7,6 +7,7 @@ rosbag2's ``rosbag2_test_common``).
   ListNodes services;
 * :mod:`~ipc_testing.calls`: one service call (optionally sent again until answered), and waiting on a condition
   while spinning;
+* :func:`~ipc_testing.in_process.in_process_manager`: a container's manager in the test process;
 * :mod:`~ipc_testing.foxglove_client`: Foxglove's own WebSocket client (node, from a checkout's
   tests/foxglove_client), driven over its stdin and stdout.
 
@@ -14,6 +15,7 @@ Nothing in the product imports it (``tests/test_layout.py``).
 """
 from ipc_testing.calls import call, spin_for, wait_until
 from ipc_testing.client import ContainerClient
+from ipc_testing.in_process import in_process_manager
 from ipc_testing.process import ContainerProcess, stop_process
 
-__all__ = ["ContainerClient", "ContainerProcess", "call", "spin_for", "stop_process", "wait_until"]
+__all__ = ["ContainerClient", "ContainerProcess", "call", "in_process_manager", "spin_for", "stop_process", "wait_until"]

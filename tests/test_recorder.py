@@ -108,10 +108,13 @@ class Recorder:
         self.clients = {service: rig.probe.create_client(srv_type, f"/{name}/{service}")
                         for service, srv_type in SERVICES.items()}
 
-    def service(self, srv_type: Any, service: str, request: Any = None) -> Any:
+    def service(self, srv_type: Any, service: str, request: Any = None, *, once: bool = False) -> Any:
+        """Call one of the recorder's services; an idempotent one is sent again until answered, unless
+        ``once`` (a resent request may be served after a later one from another client, see
+        test_pause_resume_toggle)."""
         client = self.clients[service]
         assert client.srv_type is srv_type
-        return call(self.rig.probe, client, request, again=service in IDEMPOTENT)
+        return call(self.rig.probe, client, request, again=service in IDEMPOTENT and not once)
 
     def destroy_clients(self) -> None:
         for client in self.clients.values():
@@ -248,13 +251,18 @@ def start_rig(name: str, log_dir: Path, probe: Node, *, prefix: str = "", fsize_
 
 
 # --- reference drivers: what the drivers publish, rebuilt by their own code -----------------------------------
+#: The first of the domains the reference drivers use (up to 231, the last one Fast DDS can give ports to).
+REFERENCE_DOMAINS = 200
+
+
 class References:
     """Driver instances in a private context on another domain, used only for make_image & co."""
 
     def __init__(self) -> None:
         self.context = Context()
         own = int(os.environ.get("ROS_DOMAIN_ID", "0"))
-        rclpy.init(context=self.context, domain_id=101 + own % 100)  # never the test session's domain
+        # Never a test session's domain: those are 1..160 plus the worker index (conftest.py), these above.
+        rclpy.init(context=self.context, domain_id=REFERENCE_DOMAINS + own % 32)
         self._drivers: dict[tuple, Any] = {}
 
     def driver(self, cls: type, **params: Any) -> Any:
@@ -702,7 +710,9 @@ def test_stop_and_start_recording_make_a_second_bag(rig: Rig, tmp_path: Path) ->
 
 def test_pause_resume_toggle(rig: Rig, tmp_path: Path) -> None:
     """What is published while paused is skipped, what is published before and after is all recorded. The
-    witnesses tell which messages were published in which phase (see :class:`Witness`)."""
+    witnesses tell which messages were published in which phase (see :class:`Witness`). Each state change is
+    sent once: a resent ~/pause could be served after the ~/toggle_paused that follows it (another client), and
+    pause the recorder again. The clients were created at load, so the recorder has long matched them."""
     uri = tmp_path / "paused"
     topics = {"/imu/imu": Imu, "/camera/image_raw": Image}
     minimums = {"/imu/imu": 20, "/camera/image_raw": 3}
@@ -718,15 +728,15 @@ def test_pause_resume_toggle(rig: Rig, tmp_path: Path) -> None:
         while_start_paused = captured_after(loaded)
         assert all(t["written"] == 0 for t in recorder.stats()["current"]["topics"].values())
         resume_sent = time.time_ns()
-        recorder.service(Resume, "resume")
+        recorder.service(Resume, "resume", once=True)
         resumed = time.time_ns()
         assert recorder.is_paused() is False
         while_recording = captured_after(resumed)
         recorder.wait_written(minimums)
-        recorder.service(Pause, "pause")
+        recorder.service(Pause, "pause", once=True)
         paused_at = time.time_ns()
         assert recorder.is_paused() is True
-        recorder.service(Pause, "pause")  # pausing twice is harmless
+        recorder.service(Pause, "pause", once=True)  # pausing twice is harmless
         while_paused = captured_after(paused_at)
         toggle_sent = time.time_ns()
         recorder.service(TogglePaused, "toggle_paused")

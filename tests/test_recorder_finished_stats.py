@@ -15,30 +15,21 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from component_container.component_manager import ComponentManager
 from component_container.startup_file import load_request
 from components.recorder.recorder import FINISHED_STATS_KEPT
-from ipc_testing import call
+from ipc_testing import call, in_process_manager
 
 RECORDER = "finished_stats_recorder"
 
 
 @pytest.fixture()
 def manager() -> Iterator[ComponentManager]:
-    context = Context()
-    rclpy.init(context=context)
-    manager = ComponentManager("single", node_name="finished_stats_test", context=context)
-    try:
+    with in_process_manager("finished_stats_test") as manager:
         yield manager
-    finally:
-        manager.shutdown()
-        manager.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 @pytest.fixture()

@@ -160,7 +160,9 @@ def test_a_writer_given_up_on_closes_the_bag_when_it_gets_to_its_end(manager: Co
     topics = lambda: recorder.stats()["current"]["topics"]  # noqa: E731
     assert wait_until(lambda: topics().get("/camera/image_raw", {}).get("written", 0) >= 3, 10.0)
     StallingBagWriter.DISK_UP.clear()
-    assert wait_until(lambda: recorder.stats()["current"]["backlog_bytes"] > 0, 10.0)
+    # a frame queued (backlog_s counts from the oldest one), which the writer must write before it can end;
+    # backlog_bytes alone also counts frames written whose room is not released yet
+    assert wait_until(lambda: recorder.stats()["current"]["backlog_s"] > 0, 10.0)
     final = recorder.stop_recording()
     assert "did not finish" in final["error"] and not (bag / "metadata.yaml").exists()
     StallingBagWriter.DISK_UP.set()

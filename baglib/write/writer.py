@@ -158,7 +158,8 @@ class BagWriter:
         self._preset = storage_preset_profile
         self._max_bag_files = int(max_bag_files)
         self._gather_bytes = gather_bytes
-        #: Files deleted by circular recording (max_bag_files), oldest first, and their messages per topic.
+        #: Files deleted by circular recording (max_bag_files), oldest first, and their messages per topic. The
+        #: list is replaced, never changed, so that it can be read without the lock.
         self.deleted_files: list[str] = []
         self._deleted_counts: dict[str, int] = {}
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the current file
@@ -199,6 +200,7 @@ class BagWriter:
         for directory in created:  # its name (and a new parent's) must survive a power loss too
             with contextlib.suppress(OSError):  # best effort: a parent we may not read still takes the bag
                 fsync_directory(directory.parent)
+        self._current_path: Path | None = None
         try:
             self._storage: _Storage | None = self._open_storage()
         except BagWriteError:
@@ -215,8 +217,10 @@ class BagWriter:
 
     @property
     def current_file(self) -> Path | None:
-        """The storage file being written (``None`` once closed or after a failure)."""
-        return self._storage.path if self._storage is not None else None
+        """The storage file being written (``None`` once closed or after a failure). Readable without the lock
+        (by a stats reader while a write holds it): during a split it is the previous file until the next one
+        is open, never ``None``."""
+        return self._current_path
 
     @property
     def files(self) -> list[Path]:
@@ -424,7 +428,7 @@ class BagWriter:
             self._discard_prepared()
             if self._storage is not None:
                 self._storage.close()
-                self._storage = None
+                self._storage = self._current_path = None
             shutil.rmtree(self._path, ignore_errors=True)
 
     def check_files(self) -> None:
@@ -508,6 +512,7 @@ class BagWriter:
         self._file_first_ns = self._file_last_ns = None
         status = os.stat(storage.path)
         self._identity = (status.st_dev, status.st_ino)
+        self._current_path = storage.path
         return storage
 
     def _create_storage(self, path: Path) -> _Storage:
@@ -575,6 +580,7 @@ class BagWriter:
         try:
             self._storage = self._open_storage()
         except BagWriteError as open_error:
+            self._current_path = None
             self._list_closed(storage, storage.close(closing_metadata.to_yaml()))
             self._failure = open_error
             self._write_metadata_quietly()
@@ -637,7 +643,7 @@ class BagWriter:
             self._stop(error, closing.storage.path)
         dropped = {info.path for info in closing.dropped}
         self._metadata.files = [info for info in self._metadata.files if info.path not in dropped]
-        self.deleted_files.extend(info.path for info in closing.dropped)
+        self.deleted_files = [*self.deleted_files, *(info.path for info in closing.dropped)]  # one atomic swap
         for info in closing.dropped:
             for name, count in info.topic_message_counts.items():
                 self._deleted_counts[name] = self._deleted_counts.get(name, 0) + count
@@ -669,6 +675,7 @@ class BagWriter:
     def _close_storage(self) -> OSError | None:
         """Close the current file, record it in the metadata; return the storage's error, if any."""
         storage, _, closing = self._detach_storage()
+        self._current_path = None
         return self._list_closed(storage, storage.close(closing.to_yaml()))
 
     def _fail(self, error: OSError) -> NoReturn:

@@ -96,9 +96,10 @@ class MessageCache:
         self._queue: deque[CachedMessage] = deque()
         self._bytes = 0
         self._closed = False
-        self.received: Counter[str] = Counter()  # every push, counted under the lock (pushers may race)
+        self._failed = False  # closed by a storage failure: what is offered after it is lost, and counted
+        self.received: Counter[str] = Counter()  # every push accepted or lost, counted under the lock
         self.dropped: Counter[str] = Counter()  # refused because the cache was full
-        self.refused: Counter[str] = Counter()  # refused because the cache was closed
+        self.refused: Counter[str] = Counter()  # refused because the recording had failed
         self.evicted: Counter[str] = Counter()
         # The hot paths (push, release) take the bare lock, a C-level context manager; waits use the condition.
         self._mutex = threading.Lock()
@@ -120,13 +121,18 @@ class MessageCache:
         with self._mutex:
             return Counter(self.received), Counter(self.dropped), Counter(self.refused)
 
-    def push(self, message: CachedMessage) -> bool:
-        """Queue a message; False (and counted) if it was dropped because the cache is full or closed."""
+    def push(self, message: CachedMessage) -> bool | None:
+        """Queue a message: True when taken; False when dropped (and counted) because the cache is full or the
+        recording failed; None when offered after a :meth:`close` that ended the recording (the bag's cut
+        point: the message belongs to no bag, and is not counted)."""
         with self._mutex:
-            self.received[message.topic] += 1
             if self._closed:
+                if not self._failed:
+                    return None
+                self.received[message.topic] += 1
                 self.refused[message.topic] += 1
                 return False
+            self.received[message.topic] += 1
             if self._ring:
                 while self._queue and self._bytes + message.size > self.max_bytes:
                     old = self._queue.popleft()
@@ -186,9 +192,12 @@ class MessageCache:
             if not self._ring:  # a ring's bytes were handed over with the snapshot
                 self._bytes -= size
 
-    def close(self) -> None:
-        """Refuse new messages (counted in ``refused``) and wake the writer for its final flush."""
+    def close(self, failed: bool = False) -> None:
+        """The cut point of the bag: what was pushed before is the writer's to write, nothing pushed after is
+        taken; wakes the writer for its final flush. After a ``failed`` close (the storage failed) later pushes
+        are real losses, counted in ``received`` and ``refused``; after an ordinary one they are not counted."""
         with self._condition:
+            self._failed = self._failed or (failed and not self._closed)
             self._closed = True
             self._condition.notify_all()
 

@@ -21,7 +21,6 @@ and never silently stops the recording (see RecordingSession).
 """
 from __future__ import annotations
 
-import collections
 import functools
 import json
 import os
@@ -46,6 +45,7 @@ from baglib.write.writer import BagWriter
 from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
+from components.recorder.finished_bags import FinishedBags
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import custom_data_pairs, declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
@@ -90,7 +90,7 @@ class Recorder(ComponentNode):
             self._finalizer: threading.Thread | None = None
             self._qos_overrides = self._load_qos_overrides()
             self._split_events = self.create_publisher(WriteSplitEvent, SPLIT_EVENT_TOPIC, 10)
-            self._loss_events = LossEvents(self, self._drops_of_current_bag)
+            self._loss_events = LossEvents(self, lambda: self._session)
             self._filter = TopicFilter(self._options, {self._split_events.topic_name,
                                                        self.resolve_topic_name(MESSAGES_LOST_TOPIC)})
             self._paused = self._options.start_paused
@@ -98,8 +98,10 @@ class Recorder(ComponentNode):
             self._topic_subscriptions: dict[str, Any] = {}
             self._ignored: set[str] = set()
             self._bag_count = 0
-            self._finished_stats: collections.deque[dict[str, Any]] = collections.deque(maxlen=FINISHED_STATS_KEPT)
-            self._finished_bags = 0
+            self._finished = FinishedBags(FINISHED_STATS_KEPT)
+            # The bag the end of the recording window closed, and that window: a message received inside it
+            # that reaches the intake after the close is counted as lost in that bag (see _intake).
+            self._window_bag: tuple[RecordingSession, int, int] | None = None
             self._start_session()
         except Exception:
             self.stop_recording()  # no half-built node or open bag is left behind
@@ -151,27 +153,34 @@ class Recorder(ComponentNode):
                                    writer_class=self.writer_class)
         for info in self._topics.values():
             session.add_topic(info)
-        self._loss_events.reset()
+        self._window_bag = None
         self._session = session
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
                                + (" paused" if self._paused else ""))
         return session
 
-    def stop_recording(self) -> dict[str, Any] | None:
+    def stop_recording(self, window_ended: bool = False) -> dict[str, Any] | None:
         """Finalize the current bag (flush, summary, metadata.yaml); returns its final counts. Idempotent.
+
+        Closing the bag's cache is its cut point: every message offered before is written or counted as
+        dropped, nothing offered after is counted (see MessageCache.close). With ``window_ended`` (the
+        recording window's end closes the bag) a message received inside the window that a busy executor hands
+        over only after the close is counted as lost in this bag (``recording_stopped``).
 
         Bounded by the container's shutdown_timeout: a writer stuck on a hung disk is abandoned (and its bag
         left unfinalized, see RecordingSession.finish) rather than blocking an unload or a shutdown forever.
+        The losses of the bag's last second are published on ``events/messages_lost`` before this returns.
         """
         with self._lock:
             session, self._session = self._session, None
+            if session is not None and window_ended:
+                self._window_bag = (session, self._schedule.start_ns, self._schedule.end_ns)
         if session is None:
             return None
-        session.finish(timeout=FINISH_SHARE * self.shutdown_timeout)
-        stats = session.stats()
-        self._finished_stats.append(stats)
-        self._finished_bags += 1
-        return stats
+        session.finish(timeout=FINISH_SHARE * self.shutdown_timeout,
+                       on_late_close=functools.partial(self._finished.changed, session))
+        self._loss_events.close_bag(session)
+        return self._finished.add(session, may_change=window_ended or session.writing_after_finish)
 
     def _publish_split(self, closed_file: str, opened_file: str) -> None:
         if self.context.ok():
@@ -237,15 +246,27 @@ class Recorder(ComponentNode):
         """Hand the message (object or CDR bytes) to the writer thread, nothing more.
 
         Runs on the executor for DDS messages and in the publisher's thread for intra-process ones, so it
-        must stay thread-safe, non-blocking and exception-free (MessageCache.push is all three).
+        must stay thread-safe, non-blocking and exception-free (MessageCache.push is all three). A message
+        offered after its bag's cut point belongs to no bag (see stop_recording), unless it was received
+        inside a window that has ended meanwhile (:meth:`_missed`).
         """
+        if self._paused:
+            return
         session = self._session
-        if session is None or self._paused:
-            return
         received = info.get("received_timestamp") or time.time_ns()
-        if not self._schedule.admits(received):
+        if session is not None and self._schedule.admits(received) and \
+                session.offer(topic, message, received, info.get("source_timestamp") or received) is not None:
             return
-        session.offer(topic, message, received, info.get("source_timestamp") or received)
+        if self._window_bag is not None:
+            self._missed(topic, received)
+
+    def _missed(self, topic: str, received_ns: int) -> None:
+        """A message that reached the intake after the window's bag closed; lost there if received inside it
+        (DDS decides by the receive time, so a busy executor may hand it over well after the instant)."""
+        window = self._window_bag
+        if window is not None and window[1] <= received_ns < window[2]:
+            window[0].missed(topic)
+            self._finished.changed(window[0])
 
     # --- the schedule ---------------------------------------------------------------------------------------
     def _run_schedule(self) -> None:
@@ -256,7 +277,8 @@ class Recorder(ComponentNode):
             session.split()
         if session is not None and self._schedule.finalize_due(now) and self._finalizer is None:
             self.get_logger().info(f"Recording window ended at {self._schedule.end_ns / 1e9:.3f}: finalizing")
-            self._finalizer = threading.Thread(target=self.stop_recording, name="recorder-finalize", daemon=True)
+            self._finalizer = threading.Thread(target=self.stop_recording, args=(True,), name="recorder-finalize",
+                                               daemon=True)
             self._finalizer.start()
 
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -286,19 +308,16 @@ class Recorder(ComponentNode):
         return {topic: getattr(subscription, "dropped_count", 0) - baseline.get(topic, 0)
                 for topic, subscription in list(self._topic_subscriptions.items())}
 
-    def _drops_of_current_bag(self) -> dict[str, dict[str, int]]:
-        session = self._session
-        return session.drop_reasons() if session is not None else {}
-
     def stats(self) -> dict[str, Any]:
         """Live counts of the current bag, the final counts of the last FINISHED_STATS_KEPT bags closed (oldest
-        first) and how many bags were closed in all."""
-        session = self._session
+        first) and how many bags were closed in all. Every count is read under the lock of whatever writes it,
+        or from a value replaced whole (never waiting on the storage)."""
+        session, schedule = self._session, self._schedule
         return {"recording": session is not None, "paused": self._paused,
-                "window_ns": [self._schedule.start_ns, self._schedule.end_ns],
+                "window_ns": [schedule.start_ns, schedule.end_ns],
                 "custom_data": dict(self._options.custom_data),
                 "current": session.stats() if session else None,
-                "finished": list(self._finished_stats), "finished_bags": self._finished_bags}
+                "finished": self._finished.stats(), "finished_bags": self._finished.count}
 
     def health(self) -> Health:
         """For /diagnostics: OK while recording, WARN when not (or dropping), ERROR after a storage failure."""
@@ -376,6 +395,10 @@ class Recorder(ComponentNode):
         return response
 
     def destroy_node(self) -> None:
+        # The intake first: once the subscriptions are gone (in-process ones after their inline callbacks
+        # running in publishers' threads returned), the bag's last message is written rather than refused.
+        for subscription in getattr(self, "_topic_subscriptions", {}).values():
+            self.destroy_subscription(subscription)
         self.stop_recording()
         # The bag's closing event was just published; a publisher destroyed at once can take it along with it
         # before a (reliable) subscriber has it. Give them a moment to acknowledge it.

@@ -58,8 +58,8 @@ DISK_CHECK_PERIOD = 0.05
 CACHE_FULL = "cache_full"                # the cache was full: the writer fell behind
 QUEUE_FULL = "queue_full"                # a subscription's queue overflowed before the intake
 SERIALIZE_FAILED = "serialize_failed"    # the message object could not be serialized
-STORAGE_FAILED = "storage_failed"        # taken in, but the storage failed (or hung) before it was written
-RECORDING_STOPPED = "recording_stopped"  # arrived after the session had stopped taking messages
+STORAGE_FAILED = "storage_failed"        # taken in (or arriving) after the storage failed or hung, never written
+RECORDING_STOPPED = "recording_stopped"  # received inside the window, but reached the intake after its bag closed
 
 
 def _percentiles(samples_ns: list[int]) -> dict[str, float] | None:
@@ -109,6 +109,7 @@ class RecordingSession:
         self._bytes_written = 0  # the writer's count after its latest batch
         self._stats_lock = threading.Lock()  # the writer thread's drop counts and errors, read by others
         self._writer_drops: defaultdict[str, Counter[str]] = defaultdict(Counter)
+        self._missed: Counter[str] = Counter()  # see missed()
         self.serialize_errors: dict[str, str] = {}  # per topic, the first reason a message could not be serialized
         self.error: str | None = None
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
@@ -136,6 +137,8 @@ class RecordingSession:
         self._abandon_lock = threading.Lock()
         self._abandoned = False
         self._writer_done = False
+        self._on_late_close: Callable[[], None] | None = None
+        self._closed_late = False
         # A daemon: a writer stuck on a hung disk is abandoned by finish() and must not keep the process alive.
         self._thread = threading.Thread(target=self._run, name=f"bag_writer:{self.writer.path.name}",
                                         daemon=True)
@@ -144,6 +147,12 @@ class RecordingSession:
     @property
     def active(self) -> bool:
         return not self._finished and self.error is None
+
+    @property
+    def writing_after_finish(self) -> bool:
+        """finish() gave up on the writer and it has not got to its end yet (its counts may still change)."""
+        with self._abandon_lock:
+            return self._abandoned and not self._writer_done
 
     def add_topic(self, info: TopicInfo) -> None:
         """Declare a topic in the bag (listed even if it never gets a message).
@@ -157,9 +166,16 @@ class RecordingSession:
             self._fail(exc)
         self._topics.add(info.name)
 
-    def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> None:
-        """Intake: hand one message to the writer thread. Never blocks on I/O, never raises."""
-        self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
+    def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> bool | None:
+        """Intake: hand one message to the writer thread. Never blocks on I/O, never raises. True: taken;
+        False: dropped and counted; None: offered after the bag's cut point (see MessageCache.push)."""
+        return self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
+
+    def missed(self, topic: str) -> None:
+        """A message received inside this bag's window reached the intake after the bag was closed (a busy
+        executor took it late): received, and dropped as ``recording_stopped``."""
+        with self._stats_lock:
+            self._missed[topic] += 1
 
     def snapshot(self) -> str | None:
         """Snapshot mode: write what the ring cache holds now. None when taken, else why it was refused.
@@ -214,24 +230,28 @@ class RecordingSession:
                 if self._snapshot is batch:
                     self._snapshot = None  # written: the next snapshot may be taken
                 if closed and not batch:
-                    self._end_of_writing()
-                    return
+                    break
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
             self._release_written()
             self._discard(batch[written:], STORAGE_FAILED)
             self._close_writer()  # the bag is finalized now, not only at unload
+        self._end_of_writing()
 
     def _end_of_writing(self) -> None:
         """The writer thread's last step: if finish() gave up on it meanwhile, the bag is still closed now
-        (summary, metadata.yaml: readable without a repair) and its file descriptors released."""
+        (summary, metadata.yaml: readable without a repair), its file descriptors released, and whoever kept
+        the final counts is told that they changed (what the writer wrote after all)."""
         with self._abandon_lock:
             self._writer_done = True
-            late = self._abandoned
+            late, on_late_close = self._abandoned, self._on_late_close
         if late:
             self._close_writer()
+            self._closed_late = True  # the writer's lock is free for good: its counts may be read
             self._logger.warning(f"Recording to {self.writer.path}: the writer finished after all; the bag is "
                                  "closed with what it wrote")
+            if on_late_close is not None:
+                on_late_close()
 
     def _check_storage(self) -> None:
         """At most every DISK_CHECK_PERIOD: the free-space guard, and whether the bag file is still ours on
@@ -340,7 +360,7 @@ class RecordingSession:
         else:
             self._logger.error(f"Recording to {self.writer.path} stopped: {reason}. The bag is closed with what "
                                "was written; later messages are counted as dropped.\n" + traceback.format_exc())
-        self.cache.close()
+        self.cache.close(failed=True)
 
     def _close_writer(self) -> None:
         """Close the bag (summary, metadata.yaml); a failure to do so is recorded like any storage failure."""
@@ -350,13 +370,15 @@ class RecordingSession:
             self._fail(exc)
 
     # --- end --------------------------------------------------------------------------------------------
-    def finish(self, timeout: float | None = None) -> None:
+    def finish(self, timeout: float | None = None, on_late_close: Callable[[], None] | None = None) -> None:
         """Flush the cache, close the bag (summary, metadata.yaml) and log the counts. Idempotent.
 
         Waits at most ``timeout`` seconds (None: as long as it takes) for the writer thread. One still busy
-        then is stuck on its storage: it is abandoned with the bag unfinalized, and nothing that would wait on
-        that storage (closing the bag, its counts) is attempted here. Should it get to its end after all, it
-        closes the bag itself (:meth:`_end_of_writing`).
+        then is slow or stuck on its storage: it is abandoned with the bag unfinalized, what was still queued is
+        given up (``storage_failed``), and nothing that would wait on that storage (closing the bag, its counts)
+        is attempted here. The messages the writer holds count as given up too until it gets to its end, if it
+        ever does: it then closes the bag itself (:meth:`_end_of_writing`) and calls ``on_late_close``, after
+        which :meth:`stats` are what the bag holds.
         """
         with self._finish_lock:
             if self._finished:
@@ -369,6 +391,7 @@ class RecordingSession:
         self._discard(self.cache.drain(), STORAGE_FAILED)  # left behind by a failed or stuck writer
         with self._abandon_lock:
             self._abandoned = not self._writer_done and self._thread.is_alive()
+            self._on_late_close = on_late_close
         if self._abandoned:
             self._fail(f"the writer did not finish within {timeout:.1f} s (a hung disk?): the bag was not "
                        "finalized; it can be repaired (ipc-component bag recover)")
@@ -378,20 +401,27 @@ class RecordingSession:
 
     def _counts(self) -> _Counts:
         """Per topic: written, received, queue drops and the reasons of every drop; never waits on the storage."""
-        idle = not self._thread.is_alive()  # only then is the writer's lock free for sure
+        idle = self._closed_late or not self._thread.is_alive()  # only then is the writer's lock free for sure
         handed = dict(self.handed)
         written = self.writer.written_message_counts if idle else handed
         received, cache_full, refused = self.cache.counts()
         queue = Counter(self._queue_drops() if self._queue_drops else {})
         with self._stats_lock:
             reasons = defaultdict(Counter, {t: Counter(c) for t, c in self._writer_drops.items()})
+            missed = Counter(self._missed)
             error = self.error
+        with self._abandon_lock:
+            given_up = self._abandoned and not self._writer_done
         # Only a failure loses accepted messages (the writer thread has stopped then, so the counts are still).
         lost_in_storage = {t: n - written.get(t, 0) for t, n in handed.items()} if error and idle else {}
-        for reason, counts in ((CACHE_FULL, cache_full), (RECORDING_STOPPED, refused), (QUEUE_FULL, queue),
-                               (STORAGE_FAILED, lost_in_storage)):
+        if given_up:  # what the abandoned writer holds (the queue was given up already): lost, unless it ends
+            lost_in_storage = {t: n - cache_full[t] - refused[t] - handed.get(t, 0) - sum(reasons[t].values())
+                               for t, n in received.items()}
+        received += missed
+        for reason, counts in ((CACHE_FULL, cache_full), (STORAGE_FAILED, refused), (QUEUE_FULL, queue),
+                               (STORAGE_FAILED, lost_in_storage), (RECORDING_STOPPED, missed)):
             for topic, count in counts.items():
-                if count:
+                if count > 0:
                     reasons[topic][reason] += count
         topics = sorted(set(written) | self._topics | set(received) | set(queue))
         return _Counts(idle, written, received, queue, reasons, topics)
