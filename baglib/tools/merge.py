@@ -12,8 +12,9 @@ recorder writes (MCAP, or SQLite3) and memory does not grow with the inputs' siz
   ``/<host>/<container>``.
 * Rigs are never mixed silently: a topic that inputs recorded by different containers (their ``ipc.host`` and
   ``ipc.container`` differ) would feed is refused, naming the topics, unless ``interleave`` names it (exact names
-  or fnmatch patterns: a topic the containers share on purpose, as ``/tf``) or a prefix keeps them apart. An
-  input that does not say which container recorded it (no ``ipc.container``) is merged by name.
+  or fnmatch patterns: a topic the containers share on purpose, as ``/tf``) or a prefix keeps them apart.
+  :data:`NODE_TOPICS` are always one topic: every node publishes them, and each message names its node. An input
+  that does not say which container recorded it (no ``ipc.container``) is merged by name.
 * Types: the output describes each type once, with the first definition an input recorded for it (else the
   installed one), and every topic of that type carries the type description hash that goes with that
   definition: the hash recorded with it (empty for a bag of a rosbag2 older than Iron), or the installed type's
@@ -51,7 +52,10 @@ from baglib.read.storage_reader import BagReadError
 from baglib.read.timeline import Timeline, TopicSources
 from baglib.write.writer import BagExistsError, BagWriter
 
-__all__ = ["MergeError", "MergeReport", "merge_bags"]
+__all__ = ["MergeError", "MergeReport", "NODE_TOPICS", "merge_bags"]
+
+#: Topics every ROS node publishes, each message naming its node: interleaved whichever containers recorded them.
+NODE_TOPICS = ("/rosout", "/parameter_events")
 
 
 class MergeError(Exception):
@@ -173,13 +177,15 @@ def _origin(bag: BagReader) -> str | None:
 
 
 def _refuse_mixed_containers(timeline: Timeline, topics: TopicSources, interleave: Sequence[str]) -> None:
-    """MergeError naming every output topic that inputs of different containers feed, unless ``interleave``
-    names it."""
+    """MergeError naming every output topic that inputs of different containers feed, unless it (or, prefixed,
+    the inputs' own name of it) is one of :data:`NODE_TOPICS` or ``interleave`` names it."""
     origins = [_origin(bag) for bag in timeline.bags]
     mixed = {}
     for name, sources in topics.items():
         containers = sorted({origin for index, _ in sources if (origin := origins[index]) is not None})
-        if len(containers) > 1 and not any(fnmatch.fnmatchcase(name, pattern) for pattern in interleave):
+        names = {name, *(_plain_name(index, connection) for index, connection in sources)}
+        shared = any(fnmatch.fnmatchcase(each, pattern) for each in names for pattern in (*NODE_TOPICS, *interleave))
+        if len(containers) > 1 and not shared:
             mixed[name] = containers
     if mixed:
         listed = "; ".join(f"{name} (from {', '.join(containers)})" for name, containers in sorted(mixed.items()))
