@@ -138,6 +138,7 @@ def main() -> int:
     install_client()
     report: dict[str, Any] = {**run_header("foxglove_proxy_bench.py", sys.argv[1:]), "seconds": args.seconds,
                               "load_before": os.getloadavg()[0], "windows": []}
+    started = time.monotonic()
     for _ in range(args.repeat):
         for rate in RATES:
             for mode in ("direct", "proxy"):
@@ -145,6 +146,7 @@ def main() -> int:
                 print({key: round(value, 3) if isinstance(value, float) else value for key, value in window.items()},
                       flush=True)
                 report["windows"].append(window)
+    report["elapsed_s"] = time.monotonic() - started
     report["load_after"] = os.getloadavg()[0]
     if args.results:
         print(f"results: {save(report, 'foxglove_proxy', Path(args.results))}")
