@@ -32,6 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix-host", action="store_true",
                         help="Keep each bag's topics apart under /<host> (its ipc.host, else its directory name) "
                              "instead of merging topics of the same name and type")
+    parser.add_argument("--prefix-container", action="store_true",
+                        help="Keep each bag's topics apart under the full name of the container that recorded it "
+                             "(its ipc.container, e.g. /front/container; else its directory name): two rigs on one "
+                             "computer. With --prefix-host: /<host>/<container>")
+    parser.add_argument("--interleave", action="append", default=[], metavar="TOPIC",
+                        help="A topic (name or fnmatch pattern; repeatable) that bags of different containers may "
+                             "feed as one, e.g. /tf. Any other topic of the same name from different containers "
+                             "is refused unless a prefix keeps them apart")
 
 
 def run_bag_merge(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
@@ -39,7 +47,8 @@ def run_bag_merge(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     from baglib.tools.merge import MergeError, merge_bags
 
     try:
-        report = merge_bags(args.output, args.bags, args.storage, args.align_clocks, args.prefix_host)
+        report = merge_bags(args.output, args.bags, args.storage, args.align_clocks, args.prefix_host,
+                            args.prefix_container, args.interleave)
     except MergeError as error:
         sys.stdout.flush()
         print(error, file=sys.stderr, flush=True)

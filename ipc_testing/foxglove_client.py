@@ -15,7 +15,7 @@ import shutil
 import signal
 import subprocess
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from ipc_testing.calls import wait_until
 from ipc_testing.process import stop_process
@@ -49,13 +49,18 @@ def bridge_url(output: str) -> str:
 
 
 class FoxgloveClient:
-    """One ``node client.js URL`` process; its events in :attr:`events`, always stopped by its pid."""
+    """One ``node client.js URL`` process; its events in :attr:`events`, always stopped by its pid.
 
-    def __init__(self, url: str) -> None:
+    ``subprotocols``: the WebSocket subprotocol names the client offers; by default only
+    ``foxglove.websocket.v1``, as ``@foxglove/ws-protocol`` ships (its README's client template).
+    """
+
+    def __init__(self, url: str, subprotocols: Sequence[str] = ()) -> None:
         self.url = url
         self.events: list[dict[str, Any]] = []
         self._lock = threading.Lock()
-        self.process = subprocess.Popen(["node", str(CLIENT_DIR / "client.js"), url], stdin=subprocess.PIPE,
+        arguments = [url, ",".join(subprotocols)] if subprotocols else [url]
+        self.process = subprocess.Popen(["node", str(CLIENT_DIR / "client.js"), *arguments], stdin=subprocess.PIPE,
                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()

@@ -25,6 +25,7 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rcl_interfaces.msg import Log
 from rclpy.node import Node
 from std_msgs.msg import Int32, String
 
@@ -245,7 +246,11 @@ def test_prefix_host_keeps_the_inputs_topics_apart(tmp_path: Path) -> None:
     bags = [rosbag2_layout(tmp_path / "robot_a", plans[0]),
             recorder_bag(tmp_path / "b", plans[1], fleet("cam-host.local")),
             recorder_bag(tmp_path / "c", plans[2], fleet("10.0.0.7"))]
-    assert merge(tmp_path / "together", *bags).returncode == 0
+    # b and c were recorded by different containers: one topic of both only when asked for
+    refused = merge(tmp_path / "refused", *bags)
+    assert refused.returncode == 1 and "/chatter (from 10.0.0.7 main, cam-host.local main)" in refused.stderr
+    assert "/count" in refused.stderr and "--prefix-container" in refused.stderr and not (tmp_path / "refused").exists()
+    assert merge(tmp_path / "together", *bags, "--interleave", "/c*").returncode == 0
     assert sorted({topic for topic, _, _ in rosbags_messages(tmp_path / "together")}) == ["/chatter", "/count"]
     done = merge(tmp_path / "apart", *bags, "--prefix-host")
     assert done.returncode == 0, done.stderr
@@ -253,12 +258,47 @@ def test_prefix_host_keeps_the_inputs_topics_apart(tmp_path: Path) -> None:
     assert rosbags_messages(tmp_path / "apart") == merged_order(plans, lambda index, topic: prefixes[index] + topic)
 
 
+def test_two_containers_on_one_computer_are_kept_apart_by_container(tmp_path: Path) -> None:
+    """Two rigs on one computer (containers /front/container and /rear/container) with drivers named alike: their
+    topics are never interleaved silently; --prefix-host cannot part them (one host), --prefix-container does."""
+    plans = [plan_of(index, "/front_camera/image_raw") for index in range(2)]
+    bags = [recorder_bag(tmp_path / rig, plan, {**fleet("bench-pc"), fleet_keys.CONTAINER: f"/{rig}/container"})
+            for rig, plan in zip(("front", "rear"), plans)]
+    for options in ((), ("--prefix-host",)):
+        refused = merge(tmp_path / "refused", *bags, *options)
+        assert refused.returncode == 1 and not (tmp_path / "refused").exists(), refused.stderr
+        prefix = "/bench_pc" if options else ""
+        for topic in ("/chatter", "/front_camera/image_raw"):
+            assert (f"{prefix}{topic} (from bench-pc /front/container, bench-pc /rear/container)"
+                    in refused.stderr), refused.stderr
+        assert "--prefix-container" in refused.stderr and "--interleave" in refused.stderr
+    done = merge(tmp_path / "apart", *bags, "--prefix-container")
+    assert done.returncode == 0, done.stderr
+    prefixes = ["/front/container", "/rear/container"]
+    assert rosbags_messages(tmp_path / "apart") == merged_order(plans, lambda index, topic: prefixes[index] + topic)
+    done = merge(tmp_path / "both", *bags, "--prefix-container", "--prefix-host")
+    assert done.returncode == 0, done.stderr
+    assert {topic for topic, _, _ in rosbags_messages(tmp_path / "both")} == {
+        f"/bench_pc{prefix}{topic}" for prefix in prefixes for topic in ("/chatter", "/front_camera/image_raw")}
+
+
+def test_bags_of_one_container_and_bags_that_do_not_say_merge_by_name(tmp_path: Path) -> None:
+    """A container's bags of two sessions are one rig; a bag without fleet keys names no container."""
+    plans = [plan_of(index, "/count") for index in range(3)]
+    bags = [recorder_bag(tmp_path / "monday", plans[0], fleet("bench-pc")),
+            recorder_bag(tmp_path / "tuesday", plans[1], fleet("bench-pc")),
+            rosbags_bag(tmp_path / "plain", plans[2], "MCAP")]
+    done = merge(tmp_path / "merged", *bags)
+    assert done.returncode == 0, done.stderr
+    assert rosbags_messages(tmp_path / "merged") == merged_order(plans)
+
+
 def test_align_clocks_moves_each_input_by_its_offset(tmp_path: Path) -> None:
     plans = [plan_of(index, f"/count{index}") for index in range(2)]
     offsets = [0, 3 * MS + 500]  # input 1's clock runs 3.0005 ms ahead of the commanding host's
     bags = [recorder_bag(tmp_path / f"in{index}", plan, fleet(f"host{index}", offsets[index]))
             for index, plan in enumerate(plans)]
-    done = merge(tmp_path / "aligned", *bags, "--align-clocks")
+    done = merge(tmp_path / "aligned", *bags, "--align-clocks", "--interleave", "/chatter")
     assert done.returncode == 0, done.stderr
     shifted = [[(topic, t - offsets[index], data) for topic, t, data in plan] for index, plan in enumerate(plans)]
     assert mcap_messages(tmp_path / "aligned") == merged_order(shifted)
@@ -414,6 +454,54 @@ def test_a_type_not_installed_here_is_copied_with_its_recorded_definition(tmp_pa
         decoded = [reader.deserialize(data, connection.msgtype) for connection, _, data in reader.messages()
                    if connection.topic == "/thing"]
     assert [(thing.x, thing.note) for thing in decoded] == [(n, f"n{n}") for n in range(5)]
+
+
+LOG = "rcl_interfaces/msg/Log"
+#: A version of rcl_interfaces/msg/Log other than the installed one (its ``line`` an int32): its hash differs.
+OTHER_LOG = ("ros2msg", message_definition(LOG)[1].replace("uint32 line", "int32 line"))
+
+
+def older_talker_bag(path: Path, index: int) -> Path:
+    """A talker's bag as a rosbag2 before Iron wrote it (MCAP, metadata version 5): no type hashes anywhere, and
+    the definitions of the type versions it had (here a /rosout Log that is not the installed version)."""
+    topics = [LegacyTopic("/chatter", STRING, definition=message_definition(STRING)),
+              LegacyTopic("/rosout", LOG, definition=OTHER_LOG)]
+    messages = [message for n in range(10) for message in (
+        ("/chatter", T0 + n * MS + index, T0 + n * MS + index, chatter(f"talker {index} says {n}")),
+        ("/rosout", T0 + n * MS + index, T0 + n * MS + index,
+         bytes(serialize(Log(level=20, name=f"talker{index}", msg=f"Publishing {n}", line=n)))))]
+    path.mkdir()
+    write_mcap(path / f"{path.name}_0.mcap", topics, messages, 5, type_hashes=False)
+    write_metadata(path, metadata_document(5, "mcap", [f"{path.name}_0.mcap"], topics, [messages]))
+    return path
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_type_hashes_agree_with_the_definitions_the_merged_bag_carries(tmp_path: Path, storage: str) -> None:
+    """The hash of each topic is the one of the definition written: the input's (none from an older rosbag2) or,
+    for the installed definition, the installed type's. rosbags checks them and opens the bag."""
+    talkers = [older_talker_bag(tmp_path / f"talker{index}", index) for index in range(2)]
+    done = merge(tmp_path / "merged", *talkers, "-s", storage)
+    assert done.returncode == 0, done.stderr
+    hashes = {entry["topic_metadata"]["name"]: entry["topic_metadata"]["type_description_hash"]
+              for entry in metadata(tmp_path / "merged")["topics_with_message_count"]}
+    assert hashes == {"/chatter": type_hash(STRING), "/rosout": ""}
+    with AnyReader([tmp_path / "merged"]) as reader:
+        logs = [reader.deserialize(data, connection.msgtype) for connection, _, data in reader.messages()
+                if connection.topic == "/rosout"]
+    assert sorted((log.name, log.line) for log in logs) == [(f"talker{i}", n) for i in range(2) for n in range(10)]
+    # A Jazzy bag of the same type (installed definition and hash) merged after them: the older definition
+    # describes the type, so its topics carry that definition's hash (none), not the Jazzy one.
+    with BagWriter(tmp_path / "jazzy") as writer:
+        writer.add_topic(TopicInfo("/rosout", LOG))
+        writer.write("/rosout", bytes(serialize(Log(level=30, name="jazzy", msg="hi", line=7))), T0 + 50 * MS,
+                     T0 + 50 * MS)
+    done = merge(tmp_path / "mixed", *talkers, tmp_path / "jazzy", "-s", storage)
+    assert done.returncode == 0, done.stderr
+    with AnyReader([tmp_path / "mixed"]) as reader:
+        names = {reader.deserialize(data, connection.msgtype).name for connection, _, data in reader.messages()
+                 if connection.topic == "/rosout"}
+    assert names == {"talker0", "talker1", "jazzy"}
 
 
 def test_a_type_nobody_describes_is_refused(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ a container that does not answer at start, a recording whose stop never comes, a
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -50,13 +51,14 @@ def rig(tmp_path: Path):
             process.kill()
 
 
-def sequences(bag: Path) -> list[tuple[int, int]]:
-    """(receive time, IMU sequence number) of every message, read with rosbags."""
+def sequences(bag: Path, topic: str = "") -> list[tuple[int, int]]:
+    """(receive time, IMU sequence number) of every message (of ``topic``, else of every IMU topic), read with
+    rosbags."""
     from rosbags.typesys import Stores, get_typestore
 
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
-        imu = [c for c in reader.connections if c.topic.endswith("/imu/imu")]
+        imu = [c for c in reader.connections if (c.topic == topic if topic else c.topic.endswith("/imu/imu"))]
         return [(t, int(typestore.deserialize_cdr(data, c.msgtype).orientation_covariance[1]))
                 for c, t, data in reader.messages(connections=imu)]
 
@@ -117,7 +119,7 @@ def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Pat
     assert received[-1][0] >= killed_ns - 1_000_000_000, (killed_ns - received[-1][0]) / 1e9
 
     # merge then takes the recovered bag with the other container's: every message of both, once
-    merge = cli("bag", "merge", str(merged), str(bag), str(other), "--align-clocks")
+    merge = cli("bag", "merge", str(merged), str(bag), str(other), "--align-clocks", "--prefix-container")
     assert merge.returncode == 0, merge.stdout + merge.stderr
     both = sorted(seq for _t, seq in received) + sorted(seq for _t, seq in sequences(other))
     assert sorted(seq for _t, seq in sequences(merged)) == sorted(both)
@@ -140,3 +142,49 @@ def test_containers_sharing_a_name_are_refused(tmp_path: Path) -> None:
     finally:
         for process in twins:
             process.kill()
+
+
+def recorded_messages(session: str) -> dict[str, int]:
+    """Messages so far per container of ``session``, from ``record status``."""
+    counts = {}
+    for line in cli("record", "status", "--session", session).stdout.splitlines()[1:]:
+        row = re.search(r"\s(/\S+)\s.*\s[\d.]+ s\s+[\d.]+\s+(\d+)\s+\d+\s", line)  # CONTAINER ... ELAPSED MB/S MESSAGES
+        if row:
+            counts[row[1]] = int(row[2])
+    return counts
+
+
+def test_two_rigs_on_one_computer_are_merged_apart(rig, tmp_path: Path) -> None:
+    """Two containers on this computer (``-r __ns:=/fa``, ``/fb``), each with an IMU driver named ``imu``,
+    recorded with ``record start``: ``bag merge`` refuses to interleave their ``/imu/imu`` (``--prefix-host``
+    cannot part them: one host), and ``--prefix-container`` keeps each rig's under its container's name."""
+    both = ("/fa/container", "/fb/container")
+    started = cli("record", "start", *both, "--session", "rigs", "--in", "0.5")
+    assert started.returncode == 0, started.stdout + started.stderr
+    deadline = time.monotonic() + 60
+    while not (counts := recorded_messages("rigs")) or min(counts.get(name, 0) for name in both) < 100:
+        assert time.monotonic() < deadline, f"not recording: {counts}"
+    stopped = cli("record", "stop", "--session", "rigs")
+    assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+
+    host = os.uname().nodename
+    bags = [str(tmp_path / name / "rigs" / f"{host}_{name}_container") for name in ("fa", "fb")]
+    for option in ((), ("--prefix-host",)):
+        refused = cli("bag", "merge", str(tmp_path / "refused"), *bags, *option)
+        assert refused.returncode == 1 and not (tmp_path / "refused").exists(), refused.stdout + refused.stderr
+        topic = f"/{host.replace('-', '_').replace('.', '_')}/imu/imu" if option else "/imu/imu"
+        assert f"{topic} (from {host} /fa/container, {host} /fb/container)" in refused.stderr, refused.stderr
+        assert "--prefix-container" in refused.stderr, refused.stderr
+        assert "parameter_events" not in refused.stderr  # every node's: one topic, each message names its node
+
+    merged = tmp_path / "merged"
+    done = cli("bag", "merge", str(merged), *bags, "--prefix-container")
+    assert done.returncode == 0, done.stdout + done.stderr
+    with Reader(merged) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert {"/fa/container/imu/imu", "/fb/container/imu/imu"} <= topics, topics
+    assert "/imu/imu" not in topics
+    for name, bag in zip(("fa", "fb"), bags):
+        own = [seq for t, seq in sequences(Path(bag))]
+        apart = [seq for t, seq in sequences(merged, f"/{name}/container/imu/imu")]
+        assert apart == own and len(own) >= 100, name

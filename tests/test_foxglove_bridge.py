@@ -140,6 +140,49 @@ def test_streams_in_process_and_dds_topics_and_subscribes_only_while_wanted(rig,
         assert rig[1].unload(unique_id).success
 
 
+@pytest.mark.parametrize("offered, chosen", [
+    ((), "foxglove.websocket.v1"),  # @foxglove/ws-protocol as it ships, Lichtblick, Foxglove before the SDK
+    (("foxglove.sdk.v1",), "foxglove.sdk.v1"),  # clients of the Foxglove SDK
+    (("foxglove.websocket.v1", "foxglove.sdk.v1"), "foxglove.sdk.v1"),  # the Foxglove app offers both
+])
+def test_clients_of_either_protocol_name_get_the_same_frames(rig, offered: tuple[str, ...], chosen: str) -> None:
+    """A client offering only the older subprotocol name connects (the SDK's server alone answers it HTTP 400);
+    next to a client of the SDK's name it decodes the same camera frames."""
+    unique_id, url = load_bridge(rig)
+    try:
+        with FoxgloveClient(url, offered) as client, FoxgloveClient(url, ["foxglove.sdk.v1"]) as reference:
+            assert client.wait_for("open")["protocol"] == chosen
+            for each in (client, reference):
+                each.subscribe(CAMERA)
+            reference.wait_messages(CAMERA, 1)
+            first = reference.sequences(CAMERA)[0]
+            client.wait_for("message", lambda e: e["sequence"] >= first + 30)
+            reference.wait_for("message", lambda e: e["sequence"] >= first + 30)
+            for each in (client, reference):
+                assert_contiguous(each.sequences(CAMERA), CAMERA)
+            sizes = {e["size"] for each in (client, reference) for e in each.of("message")}
+            assert len(sizes) == 1 and sizes.pop() > 640 * 480 * 3, "the frames differ between the clients"
+            assert client.of("error") == [] and reference.of("error") == []
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
+def test_a_client_offering_neither_name_gets_the_servers_refusal(rig) -> None:
+    unique_id, url = load_bridge(rig)
+    try:
+        host, port = url.removeprefix("ws://").rsplit(":", 1)
+        with socket.create_connection((host, int(port)), timeout=10.0) as connection:
+            connection.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                               b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+                               b"Sec-WebSocket-Protocol: something.else\r\n\r\n")
+            answer = b""
+            while chunk := connection.recv(4096):
+                answer += chunk
+        assert answer.startswith(b"HTTP/1.1 400") and b"Missing expected sec-websocket-protocol" in answer, answer
+    finally:
+        assert rig[1].unload(unique_id).success
+
+
 def test_a_stalled_client_costs_the_recorder_and_the_other_client_nothing(rig, probe: Node, tmp_path: Path) -> None:
     """Client A stops reading (SIGSTOP) for five seconds while B watches the same camera and IMU and a
     recorder records them: B's runs stay contiguous, the recorder drops nothing, the bridge's own queues drop

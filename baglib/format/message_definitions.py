@@ -24,6 +24,7 @@ __all__ = [
     "message_definition",
     "service_definitions",
     "type_hash",
+    "type_hash_of_definition",
 ]
 
 #: The line rosbag2 puts between the root definition and each dependency.
@@ -255,6 +256,17 @@ def type_hash(type_name: str) -> str:
                     if entry["type_name"] == full_name)
     except (KeyError, TypeError, StopIteration):
         raise MessageDefinitionNotFoundError(f"{path} holds no type hash for {full_name}") from None
+
+
+def type_hash_of_definition(type_name: str, definition: tuple[str, str], recorded: str = "") -> str:
+    """The type hash that agrees with ``definition`` (``(encoding, text)``) of ``type_name``: the installed type's
+    when ``definition`` is the installed one, else ``recorded`` (the hash that came with the definition, e.g. from
+    another bag; empty when it had none, as in bags of rosbag2 before Iron). Readers such as ``rosbags`` check a
+    topic's hash against the definition its bag carries."""
+    try:
+        return type_hash(type_name) if message_definition(type_name) == definition else recorded
+    except (MessageDefinitionNotFoundError, ValueError):
+        return recorded
 
 
 def message_class(type_name: str) -> Any:

@@ -7,7 +7,18 @@ recorder writes (MCAP, or SQLite3) and memory does not grow with the inputs' siz
 * Topics: a name and type found in several inputs is one topic of the output (its QoS offers are the union of
   the inputs'); a name with two types (or serialization formats, or type description hashes) is refused,
   naming both inputs. ``prefix_host`` keeps each input's topics apart under ``/<host>``: its ``ipc.host``
-  (:mod:`baglib.format.fleet_keys`), else the input's own name.
+  (:mod:`baglib.format.fleet_keys`), else the input's own name; ``prefix_container`` under the full name of the
+  container that recorded it (``ipc.container``, e.g. ``/front/container``), else the input's own name; both:
+  ``/<host>/<container>``.
+* Rigs are never mixed silently: a topic that inputs recorded by different containers (their ``ipc.host`` and
+  ``ipc.container`` differ) would feed is refused, naming the topics, unless ``interleave`` names it (exact names
+  or fnmatch patterns: a topic the containers share on purpose, as ``/tf``) or a prefix keeps them apart.
+  :data:`NODE_TOPICS` are always one topic: every node publishes them, and each message names its node. An input
+  that does not say which container recorded it (no ``ipc.container``) is merged by name.
+* Types: the output describes each type once, with the first definition an input recorded for it (else the
+  installed one), and every topic of that type carries the type description hash that goes with that
+  definition: the hash recorded with it (empty for a bag of a rosbag2 older than Iron), or the installed type's
+  when it is the installed definition. Readers that check the hash against the definition (rosbags) open it.
 * Clocks: ``align_clocks`` moves each input's log and publish times onto the commanding host's clock by its
   recorded ``ipc.clock_offset_ns`` (an input without one is refused); the messages' data are not touched.
 * ``custom_data``: input ``n``'s keys are kept as ``input.<n>.<key>``, with ``input.<n>.path`` (its absolute
@@ -19,6 +30,7 @@ recorder writes (MCAP, or SQLite3) and memory does not grow with the inputs' siz
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import os
 import re
 import shutil
@@ -29,14 +41,21 @@ from pathlib import Path
 
 from baglib.format import fleet_keys
 from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
-from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition
+from baglib.format.message_definitions import (
+    MessageDefinitionNotFoundError,
+    message_definition,
+    type_hash_of_definition,
+)
 from baglib.format.metadata import TopicInfo
 from baglib.read.reader import BagReader, Connection
 from baglib.read.storage_reader import BagReadError
 from baglib.read.timeline import Timeline, TopicSources
 from baglib.write.writer import BagExistsError, BagWriter
 
-__all__ = ["MergeError", "MergeReport", "merge_bags"]
+__all__ = ["MergeError", "MergeReport", "NODE_TOPICS", "merge_bags"]
+
+#: Topics every ROS node publishes, each message naming its node: interleaved whichever containers recorded them.
+NODE_TOPICS = ("/rosout", "/parameter_events")
 
 
 class MergeError(Exception):
@@ -61,12 +80,13 @@ class MergeReport:
 
 
 def merge_bags(output: str | os.PathLike[str], inputs: Sequence[str | os.PathLike[str]], storage_id: str = "mcap",
-               align_clocks: bool = False, prefix_host: bool = False) -> MergeReport:
+               align_clocks: bool = False, prefix_host: bool = False, prefix_container: bool = False,
+               interleave: Sequence[str] = ()) -> MergeReport:
     """Merge ``inputs`` (bag directories or single storage files) into the new bag ``output`` (see module doc).
 
     Raises:
-        MergeError: an input is unreadable or unfinished, the topics conflict, a type has no definition,
-            ``output`` exists or cannot be written.
+        MergeError: an input is unreadable or unfinished, the topics conflict, topics of different containers
+            would be interleaved, a type has no definition, ``output`` exists or cannot be written.
     """
     started = time.monotonic()
     output = Path(output)
@@ -80,19 +100,18 @@ def merge_bags(output: str | os.PathLike[str], inputs: Sequence[str | os.PathLik
         _refuse_unfinished(timeline)
         if timeline.starting_time_ns < 0:
             raise MergeError("the clock offsets move messages before 1970: check the inputs' ipc.clock_offset_ns")
+        prefixes = _prefixes(timeline, prefix_host, prefix_container)
         try:
-            if prefix_host:
-                prefixes = _host_prefixes(timeline)
-                topics = timeline.topics(lambda index, connection: prefixes[index] + _plain_name(index, connection))
-            else:
-                topics = timeline.topics(_plain_name)
+            topics = timeline.topics(lambda index, connection: prefixes[index] + _plain_name(index, connection))
         except BagReadError as error:
             raise MergeError(f"cannot merge: {error}") from error
-        definitions = {name: _definition(sources) for name, sources in topics.items()}
+        _refuse_mixed_containers(timeline, topics, interleave)
+        descriptions = _type_descriptions(topics)
         writer = _create(output, storage_id, _custom_data(timeline, align_clocks))
         try:
             for name, sources in topics.items():
-                writer.add_topic(_topic_info(name, sources), definitions[name])
+                definition, digest = descriptions[sources[0][1].msgtype]
+                writer.add_topic(_topic_info(name, sources, digest), definition)
             written = _copy_messages(timeline, topics, writer)
             writer.close()
         except BaseException as error:
@@ -128,39 +147,82 @@ def _plain_name(bag_index: int, connection: Connection) -> str:
     return connection.topic if connection.topic.startswith("/") else "/" + connection.topic
 
 
-def _host_prefixes(timeline: Timeline) -> list[str]:
-    """Each input's ``/<host>``: its ``ipc.host``, else its own name, as a valid ROS name token."""
+def _token(text: str) -> str:
+    """``text`` as one valid ROS name token."""
+    token = re.sub(r"[^A-Za-z0-9_]", "_", text) or "_"
+    return "_" + token if token[0].isdigit() else token
+
+
+def _prefixes(timeline: Timeline, by_host: bool, by_container: bool) -> list[str]:
+    """Each input's prefix: ``/<host>`` and / or the container's full name (their fallback: the input's own name,
+    once), or nothing."""
     prefixes = []
     for bag in timeline.bags:
-        host = bag.custom_data.get(fleet_keys.HOST) or (bag.path.name if bag.path.is_dir() else bag.path.stem)
-        token = re.sub(r"[^A-Za-z0-9_]", "_", host) or "_"
-        prefixes.append("/" + ("_" + token if token[0].isdigit() else token))
+        own = _token(bag.path.name if bag.path.is_dir() else bag.path.stem)
+        host, container = bag.custom_data.get(fleet_keys.HOST), bag.custom_data.get(fleet_keys.CONTAINER)
+        parts = [_token(host) if host else own] if by_host else []
+        if by_container:
+            if container:
+                parts += [_token(part) for part in container.split("/") if part]
+            elif own not in parts:
+                parts.append(own)
+        prefixes.append("".join("/" + part for part in parts))
     return prefixes
 
 
-def _definition(sources: list[tuple[int, Connection]]) -> tuple[str, str] | None:
-    """The first definition an input recorded for the topic's type; else the installed one must exist."""
-    recorded = next((connection.message_definition for _, connection in sources if connection.message_definition),
-                    None)
-    if recorded is None:
+def _origin(bag: BagReader) -> str | None:
+    """Which container recorded the bag (``host container``), from its fleet keys; None when it does not say."""
+    container = bag.custom_data.get(fleet_keys.CONTAINER)
+    return f"{bag.custom_data.get(fleet_keys.HOST) or '?'} {container}" if container else None
+
+
+def _refuse_mixed_containers(timeline: Timeline, topics: TopicSources, interleave: Sequence[str]) -> None:
+    """MergeError naming every output topic that inputs of different containers feed, unless it (or, prefixed,
+    the inputs' own name of it) is one of :data:`NODE_TOPICS` or ``interleave`` names it."""
+    origins = [_origin(bag) for bag in timeline.bags]
+    mixed = {}
+    for name, sources in topics.items():
+        containers = sorted({origin for index, _ in sources if (origin := origins[index]) is not None})
+        names = {name, *(_plain_name(index, connection) for index, connection in sources)}
+        shared = any(fnmatch.fnmatchcase(each, pattern) for each in names for pattern in (*NODE_TOPICS, *interleave))
+        if len(containers) > 1 and not shared:
+            mixed[name] = containers
+    if mixed:
+        listed = "; ".join(f"{name} (from {', '.join(containers)})" for name, containers in sorted(mixed.items()))
+        raise MergeError(f"cannot merge: topics of the same name were recorded by different containers and would be "
+                         f"interleaved into one: {listed}. Add --prefix-container to keep each container's topics "
+                         f"apart under its name, or --interleave TOPIC for a topic the containers share on purpose "
+                         f"(e.g. /tf)")
+
+
+def _type_descriptions(topics: TopicSources) -> dict[str, tuple[tuple[str, str] | None, str]]:
+    """Per type: the definition the output describes it with (None: the installed one) and the type description
+    hash that goes with that definition (see module doc)."""
+    chosen: dict[str, tuple[tuple[str, str] | None, str]] = {}
+    for sources in topics.values():
+        for _, connection in sources:
+            msgtype, definition = connection.msgtype, connection.message_definition
+            if definition and chosen.get(msgtype, (None, ""))[0] is None:
+                chosen[msgtype] = (definition, type_hash_of_definition(msgtype, definition, connection.type_description_hash))
+    for sources in topics.values():
         msgtype = sources[0][1].msgtype
-        try:
-            message_definition(msgtype)
-        except (MessageDefinitionNotFoundError, ValueError):
-            raise MergeError(f"cannot merge: no input records the definition of {msgtype} (topic "
-                             f"{sources[0][1].topic}) and it is not installed here") from None
-    return recorded
+        if msgtype not in chosen:
+            try:
+                message_definition(msgtype)
+            except (MessageDefinitionNotFoundError, ValueError):
+                raise MergeError(f"cannot merge: no input records the definition of {msgtype} (topic "
+                                 f"{sources[0][1].topic}) and it is not installed here") from None
+            chosen[msgtype] = (None, "")  # the writer describes it with the installed definition and hash
+    return chosen
 
 
-def _topic_info(name: str, sources: list[tuple[int, Connection]]) -> TopicInfo:
-    """The output topic: the first input's type, every input's QoS offers (each once), the first known hash."""
+def _topic_info(name: str, sources: list[tuple[int, Connection]], digest: str) -> TopicInfo:
+    """The output topic: the first input's type, every input's QoS offers (each once), the type's hash."""
     first = sources[0][1]
     profiles: list[dict] = []
     for _, connection in sources:
         profiles += [dict(profile) for profile in connection.offered_qos_profiles if profile not in profiles]
-    type_hash = next((connection.type_description_hash for _, connection in sources
-                      if connection.type_description_hash), "")
-    return TopicInfo(name, first.msgtype, first.serialization_format, profiles, type_hash)
+    return TopicInfo(name, first.msgtype, first.serialization_format, profiles, digest)
 
 
 def _custom_data(timeline: Timeline, align_clocks: bool) -> dict[str, str]:

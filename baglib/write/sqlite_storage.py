@@ -15,7 +15,7 @@ import sqlite3
 from pathlib import Path
 
 from baglib.format.cdr_fast import CdrData
-from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
+from baglib.format.message_definitions import type_hash_of_definition
 from baglib.format.durable import fsync_directory
 from baglib.format.metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
@@ -158,11 +158,7 @@ class SqliteStorage:
         if topic.name in self._topic_ids:
             return
         encoding, text = definition
-        try:
-            installed = message_definition(topic.type) == definition
-            definition_hash = type_hash(topic.type) if installed else topic.type_description_hash
-        except MessageDefinitionNotFoundError:
-            definition_hash = topic.type_description_hash
+        definition_hash = type_hash_of_definition(topic.type, definition, topic.type_description_hash)
         try:
             with self._db:
                 self._db.execute("BEGIN")

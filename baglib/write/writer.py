@@ -24,7 +24,7 @@ from typing import NoReturn, Protocol
 
 from baglib.write.mcap_storage import McapStorage
 from baglib.format.cdr_fast import CdrData
-from baglib.format.message_definitions import MessageDefinitionNotFoundError, message_definition, type_hash
+from baglib.format.message_definitions import message_definition, type_hash_of_definition
 from baglib.format.durable import fsync_directory
 from baglib.format.metadata import BagMetadata, FileInfo, TopicInfo
 from baglib.write.sqlite_storage import SqliteStorage
@@ -286,7 +286,9 @@ class BagWriter:
         """Make a topic known; it is listed in the bag even if no message is ever written.
 
         Adding a topic again is a no-op; adding its name with another type is an error. An empty
-        ``type_description_hash`` is filled in from the locally installed type. ``definition`` is the
+        ``type_description_hash`` is filled in from the locally installed type when the type is described with
+        the installed definition (another definition keeps the hash it came with, which readers check it
+        against; empty when it had none). ``definition`` is the
         type's ``(encoding, text)`` as another bag recorded it (a merge copies its inputs'); without
         it, the locally installed one. A type is described once, by its first topic's definition.
 
@@ -305,10 +307,9 @@ class BagWriter:
                         f"topic {info.name} already recorded as {existing.type}, not {info.type}"
                     )
                 return
-            if not info.type_description_hash:
-                with contextlib.suppress(MessageDefinitionNotFoundError):
-                    info = dataclasses.replace(info, type_description_hash=type_hash(info.type))
             definition = self._definitions.get(info.type) or definition or message_definition(info.type)
+            if not info.type_description_hash:
+                info = dataclasses.replace(info, type_description_hash=type_hash_of_definition(info.type, definition))
             assert self._storage is not None
             try:
                 self._storage.add_topic(info, definition)

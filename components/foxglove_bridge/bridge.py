@@ -15,8 +15,9 @@ with ``use_sim_time``, ``/clock`` as the server's time.
 
 A slow client never slows the container: each channel's queue in the bridge is bounded (newest kept, drops
 counted), the SDK keeps a bounded outbox per client (``message_backlog_size`` messages, oldest dropped), and
-``rate_limits`` caps chosen channels. Parameters: bridge_options. The server binds 127.0.0.1 unless
-``address`` says otherwise (docs/security.md).
+``rate_limits`` caps chosen channels. Parameters: bridge_options. The bridge listens on 127.0.0.1 unless
+``address`` says otherwise (docs/security.md), for clients of both names of the protocol (subprotocol_proxy);
+the SDK's server itself listens on an ephemeral loopback port behind it.
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ from components.foxglove_bridge.graph_view import Graph, connection_graph, read_
 from components.foxglove_bridge.ros_parameters import RosParameters
 from components.foxglove_bridge.ros_services import RosServices
 from components.foxglove_bridge.server_listener import BridgeListener
+from components.foxglove_bridge.subprotocol_proxy import SubprotocolProxy
 from components.foxglove_bridge.topic_subscriptions import TopicSubscriptions
 
 #: s between the housekeeping ticks on the executor (subscribe / unsubscribe, parameter requests)
@@ -53,6 +55,7 @@ class FoxgloveBridge(ComponentNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("foxglove_bridge", **kwargs)
         self._server: Any = None
+        self._proxy: SubprotocolProxy | None = None
         self._forwarder: Forwarder | None = None
         try:
             self._options: BridgeOptions = declare_options(self)
@@ -67,6 +70,7 @@ class FoxgloveBridge(ComponentNode):
             self._ros_parameters = RosParameters(self, self._options, self._work, self._publish_parameters)
             self._listener = BridgeListener(self._registry, self._ros_parameters)
             self._server = self._start_server()
+            self._proxy = self._listen()
             self._ros_services = RosServices(self, self._options, self._work, self._server, self._warn)
             self._forwarder.start()
             self._last_time_ns = 0
@@ -86,22 +90,30 @@ class FoxgloveBridge(ComponentNode):
         self.get_logger().info(f"Foxglove bridge listening on {self.url}")
 
     def _start_server(self) -> Any:
+        """The SDK's server, on an ephemeral loopback port: clients reach it through :meth:`_listen`'s proxy."""
         capabilities = [Capability.Parameters, Capability.ConnectionGraph, Capability.Services]
         if self._sim_time:
             capabilities.append(Capability.Time)
+        return foxglove.start_server(
+            name=self.get_fully_qualified_name(), host="127.0.0.1", port=0, capabilities=capabilities,
+            server_listener=self._listener, supported_encodings=["cdr"], context=self._fox_context,
+            message_backlog_size=self._options.message_backlog_size)
+
+    def _listen(self) -> SubprotocolProxy:
+        """The socket clients connect to, on ``address``:``port``, for both names of the protocol
+        (subprotocol_proxy)."""
         try:
-            return foxglove.start_server(
-                name=self.get_fully_qualified_name(), host=self._options.address, port=self._options.port,
-                capabilities=capabilities, server_listener=self._listener, supported_encodings=["cdr"],
-                context=self._fox_context, message_backlog_size=self._options.message_backlog_size)
-        except Exception as exc:  # the SDK raises RuntimeError for an address or port it cannot bind
+            return SubprotocolProxy(self._options.address, self._options.port, self._server.port,
+                                    name=f"foxglove:{self.get_name()}")
+        except OSError as exc:
             raise ValueError(f"parameters 'address'/'port': cannot listen on {self._options.address}:"
                              f"{self._options.port} ({exc})") from None
 
     @property
     def url(self) -> str:
+        assert self._proxy is not None
         host = self._options.address
-        return f"ws://{f'[{host}]' if ':' in host else host}:{self._server.port}"
+        return f"ws://{f'[{host}]' if ':' in host else host}:{self._proxy.port}"
 
     def _clock_ns(self) -> int:
         return self.get_clock().now().nanoseconds if self._sim_time else time.time_ns()
@@ -181,6 +193,8 @@ class FoxgloveBridge(ComponentNode):
         """Stop the server (clients are disconnected), the subscriptions, the thread; close the channels."""
         if self._server is not None:
             self._server.stop()
+        if self._proxy is not None:
+            self._proxy.stop()
         for part in ("_topic_subscriptions", "_ros_parameters", "_ros_services"):
             if hasattr(self, part):
                 getattr(self, part).close()

@@ -2,7 +2,10 @@
 // of @foxglove/ws-protocol and the ROS 2 CDR reader of @foxglove/rosmsg2-serialization, which decodes each
 // message with the ros2msg schema the server advertised (parsed by @foxglove/rosmsg).
 //
-// Usage: node client.js ws://127.0.0.1:PORT
+// Usage: node client.js ws://127.0.0.1:PORT [SUBPROTOCOL,...]
+// Without a subprotocol list the client connects exactly as @foxglove/ws-protocol's README template does,
+// offering only FoxgloveClient.SUPPORTED_SUBPROTOCOL ("foxglove.websocket.v1", as Lichtblick does); a list
+// (e.g. "foxglove.sdk.v1", the name the Foxglove SDK's server accepts) replaces it.
 // Commands, one JSON object per line on stdin:
 //   {"op": "subscribe", "topic": T}        subscribe to the channel of topic T (once it is advertised)
 //   {"op": "unsubscribe", "topic": T}
@@ -26,9 +29,8 @@ const { parse } = require("@foxglove/rosmsg");
 const { MessageReader, MessageWriter } = require("@foxglove/rosmsg2-serialization");
 
 const url = process.argv[2];
-// The Foxglove SDK's server speaks the same protocol under the subprotocol name "foxglove.sdk.v1" (what the
-// Foxglove app offers next to "foxglove.websocket.v1"); the client offers both, as the app does.
-const ws = new WebSocket(url, [FoxgloveClient.SUPPORTED_SUBPROTOCOL, "foxglove.sdk.v1"]);
+const subprotocols = process.argv[3] ? process.argv[3].split(",") : [FoxgloveClient.SUPPORTED_SUBPROTOCOL];
+const ws = new WebSocket(url, subprotocols);
 const client = new FoxgloveClient({ ws });
 
 const channelsByTopic = new Map();
@@ -103,7 +105,7 @@ let opened = false;
 const queuedCommands = [];
 client.on("open", () => {
   opened = true;
-  emit({ event: "open" });
+  emit({ event: "open", protocol: ws.protocol });
   for (const command of queuedCommands.splice(0)) run(command);
 });
 client.on("error", (error) => emit({ event: "error", error: String(error) }));
