@@ -13,9 +13,12 @@ Parameters (validated at construction; a bad value raises ValueError naming the 
 ``frame_id``    ``'camera'``     header.frame_id of image and camera_info
 ``topic``       ``'~/image_raw'``  image topic; camera_info goes to the sibling topic (``~/camera_info``)
 ``qos``         ``'reliable'``   ``'reliable'`` or ``'sensor_data'`` (best effort), for both topics
+``content``     ``'random'``     ``'random'`` (below) or ``'photo'``: a window panning and zooming across a
+                                 real photograph, with sensor noise (:mod:`components.photo_content`;
+                                 rgb8, bgr8 or mono8)
 ==============  ===============  =====================================================================
 
-Frame contents: random bytes. A pool of random bytes (the frame size plus a few KiB) is generated once;
+Random content: random bytes. A pool of random bytes (the frame size plus a few KiB) is generated once;
 frame ``n`` is the slice of the pool at offset ``(n % FRAME_SLOTS) * OFFSET_STRIDE``, so consecutive frames
 differ. Its buffer is an ``array.array('B')``, which the message keeps as is (never a numpy array: assigning
 one to a ``uint8[]`` field is ~200x slower), taken from :class:`~components.frame_buffers.FrameBuffers`: the
@@ -37,6 +40,7 @@ from std_msgs.msg import Header
 
 from components.bounds import Bounds
 from components.frame_buffers import FRAME_SLOTS, FrameBuffers
+from components.photo_content import PhotoContent
 from components.sensor_driver import FIXED_GEOMETRY, MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
 #: Named encodings: bytes per pixel, and the (width, height) divisors the image size must respect.
@@ -59,6 +63,8 @@ SIDE = Bounds(1, 16384, "pixels")
 FRAME_BYTES = Bounds(8, MAX_FRAME_BYTES, "bytes")
 #: Offset in the pool, in bytes, between the frames of two consecutive slots.
 OFFSET_STRIDE = 4099
+#: Values of the ``content`` parameter.
+CONTENTS = ("random", "photo")
 #: Horizontal field of view of the simulated pinhole camera, used for CameraInfo.
 HORIZONTAL_FOV_DEG = 60.0
 
@@ -83,7 +89,7 @@ def camera_info_topic_for(image_topic: str) -> str:
 
 
 class CameraDriver(SensorDriver):
-    """Simulated camera publishing random-content images and a matching CameraInfo."""
+    """Simulated camera publishing random or photographic images and a matching CameraInfo."""
 
     DEFAULT_TOPIC = "~/image_raw"
     DEFAULT_FRAME_ID = "camera"
@@ -121,9 +127,17 @@ class CameraDriver(SensorDriver):
         self.check_topic_name("topic", self.camera_info_topic)
         self.is_bigendian = 1 if sys.byteorder == "big" else 0
 
-        self._pool = np.random.default_rng(0x5EED).bytes(self.frame_bytes + (FRAME_SLOTS - 1) * OFFSET_STRIDE)
-        self._pool_view = memoryview(self._pool)  # immutable bytes: nothing ever writes into the pool
-        self._frames = FrameBuffers(FRAME_SLOTS, self._fill_frame)
+        self.content = self.declare_choice_parameter(
+            "content", "random", CONTENTS, "frame content: 'random' bytes, or 'photo' (a window panning across a "
+            "photograph, with sensor noise)", fixed=FIXED_GEOMETRY)
+        if self.content == "photo":
+            self._photo: PhotoContent | None = PhotoContent(self.width, self.height, self.encoding)
+            self._frames = FrameBuffers(FRAME_SLOTS, self._blank_frame)
+        else:
+            self._photo = None
+            self._pool = np.random.default_rng(0x5EED).bytes(self.frame_bytes + (FRAME_SLOTS - 1) * OFFSET_STRIDE)
+            self._pool_view = memoryview(self._pool)  # immutable bytes: nothing ever writes into the pool
+            self._frames = FrameBuffers(FRAME_SLOTS, self._fill_frame)
 
         fx = self.width / (2.0 * np.tan(np.radians(HORIZONTAL_FOV_DEG) / 2.0))
         cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
@@ -145,9 +159,15 @@ class CameraDriver(SensorDriver):
         data.frombytes(self._pool_view[slot * OFFSET_STRIDE:slot * OFFSET_STRIDE + self.frame_bytes])
         return data
 
+    def _blank_frame(self, slot: int) -> array:
+        """A buffer for photo frames, which are written whole on every take."""
+        return array("B", bytes(self.frame_bytes))
+
     def make_image(self, sequence: int, stamp_ns: int) -> Image:
         """A fresh Image whose data buffer nobody else holds; sequence number in data[0:8] (uint64 LE)."""
         data = self._frames.take(sequence)
+        if self._photo is not None:
+            self._photo.fill(sequence, memoryview(data))
         data[0:8] = array("B", (sequence & 0xFFFFFFFFFFFFFFFF).to_bytes(8, "little"))
         # check_fields=True: the uint8[] setter then keeps an array.array('B') as is; without it, it copies
         # the whole frame again (array.array('B', value)), ~3 ms per 1080p frame under the GIL.

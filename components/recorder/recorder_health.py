@@ -41,6 +41,7 @@ class HealthMonitor:
             "received": str(sum(t["received"] for t in topics)),
             "written": str(sum(t["written"] for t in topics)),
             DROPPED: str(dropped),
+            "rate limited": str(sum(t["rate_limited"] for t in topics)),
             FREE_DISK_MB: f"{stats['free_bytes'] / 1e6:.0f}",
             "time to min_free_space (s)": ("not writing" if stats["seconds_until_min_free"] is None
                                            else f"{stats['seconds_until_min_free']:.0f}"),

@@ -28,6 +28,7 @@ from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
 from components.node_parameters import clean, declare_defaults, given_values, typed
+from components.recorder.rate_limits import parse_max_rates
 from components.recorder.schedule import duration_ns, instant_ns
 
 RECORD_DEFAULTS: dict[str, Any] = {
@@ -54,6 +55,8 @@ RECORD_DEFAULTS: dict[str, Any] = {
     "split_at": 0.0,
     "max_duration": 0.0,
     "local_only": False,
+    # Not in rosbag2: per-topic rate limits, "PATTERN:RATE" strings (components/recorder/rate_limits.py).
+    "max_rates": [""],
 }
 STORAGE_DEFAULTS: dict[str, Any] = {
     "uri": "",
@@ -191,6 +194,8 @@ class RecordOptions:
     max_duration_ns: int = 0
     #: record only what publishers of this container publish (in-process), never the same topic from elsewhere
     local_only: bool = False
+    #: per-topic rate limits, validated ``"PATTERN:RATE"`` strings (see components/recorder/rate_limits.py)
+    max_rates: list[str] = field(default_factory=list)
 
 
 def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOptions:
@@ -262,6 +267,8 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
             re.compile(values[name])
         except re.error as exc:
             raise ValueError(f"parameter {labels[name]} is not a valid regular expression: {exc}") from None
+    max_rates = clean(values["record.max_rates"])
+    parse_max_rates(max_rates, labels["record.max_rates"])
     interval = values["record.topic_polling_interval.sec"] + values["record.topic_polling_interval.nsec"] / 1e9
     POLLING_INTERVAL.check("'record.topic_polling_interval' (.sec + .nsec)", interval)
     return RecordOptions(
@@ -298,4 +305,5 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         split_ns=instant_ns("record.split_at", float(values["record.split_at"])),
         max_duration_ns=duration_ns("record.max_duration", float(values["record.max_duration"])),
         local_only=values["record.local_only"],
+        max_rates=max_rates,
     )

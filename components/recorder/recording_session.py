@@ -19,6 +19,8 @@ The writer thread is supervised, so one bad message or one bad disk never silent
   unfinalized (repairable) and the error recorded.
 
 Every drop is counted per topic and reason (``drop_reasons`` in :meth:`stats`). ``finish`` is idempotent.
+Messages that ``record.max_rates`` leaves out are not drops: they are counted apart, as ``rate_limited`` per topic
+and in ``dropped_by_design`` (a bag holds what was asked for; ``dropped`` and ``drop_reasons`` are losses).
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from baglib.write.writer import BagWriteError, BagWriter
 from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
+from components.recorder.rate_limits import RATE_LIMITED, RateLimiter, parse_max_rates
 from baglib.format.metadata import TopicInfo
 from components.recorder.recorder_options import RecordOptions
 
@@ -60,6 +63,8 @@ QUEUE_FULL = "queue_full"                # a subscription's queue overflowed bef
 SERIALIZE_FAILED = "serialize_failed"    # the message object could not be serialized
 STORAGE_FAILED = "storage_failed"        # taken in (or arriving) after the storage failed or hung, never written
 RECORDING_STOPPED = "recording_stopped"  # received inside the window, but reached the intake after its bag closed
+#: The key of ``custom_data`` in a bag's metadata that lists its ``record.max_rates``.
+MAX_RATES_KEY = "record.max_rates"
 
 
 def _percentiles(samples_ns: list[int]) -> dict[str, float] | None:
@@ -88,9 +93,13 @@ class RecordingSession:
         self._queue_drops = queue_drops
         self._last_log_time = 0
         self._monotonic_log_times = options.storage_preset_profile == "fastwrite"
+        self._rate_limiter = RateLimiter(parse_max_rates(options.max_rates)) if options.max_rates else None
+        custom_data = dict(options.custom_data)
+        if options.max_rates:  # the bag says what it holds: metadata.yaml's custom_data names the limits
+            custom_data.setdefault(MAX_RATES_KEY, ", ".join(options.max_rates))
         self.writer = writer_class(uri, options.storage_id, options.max_bagfile_size,
                                    options.max_bagfile_duration, options.storage_preset_profile,
-                                   options.custom_data or None, on_split, options.max_bag_files,
+                                   custom_data or None, on_split, options.max_bag_files,
                                    gather_bytes=GATHER)
         try:  # after the writer: a location that cannot hold a bag at all is reported as such first
             self.disk = DiskGuard(self.writer.path, options.min_free_space)
@@ -168,7 +177,11 @@ class RecordingSession:
 
     def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> bool | None:
         """Intake: hand one message to the writer thread. Never blocks on I/O, never raises. True: taken;
-        False: dropped and counted; None: offered after the bag's cut point (see MessageCache.push)."""
+        False: dropped or rate limited, and counted; None: offered after the bag's cut point (see
+        MessageCache.push)."""
+        if self._rate_limiter is not None and not self.cache.closed and \
+                not self._rate_limiter.admits(topic, log_time_ns):
+            return False
         return self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
 
     def missed(self, topic: str) -> None:
@@ -417,14 +430,15 @@ class RecordingSession:
         if given_up:  # what the abandoned writer holds (the queue was given up already): lost, unless it ends
             lost_in_storage = {t: n - cache_full[t] - refused[t] - handed.get(t, 0) - sum(reasons[t].values())
                                for t, n in received.items()}
-        received += missed
+        rate_limited = self._rate_limiter.left_out() if self._rate_limiter is not None else Counter()
+        received += missed + rate_limited
         for reason, counts in ((CACHE_FULL, cache_full), (STORAGE_FAILED, refused), (QUEUE_FULL, queue),
                                (STORAGE_FAILED, lost_in_storage), (RECORDING_STOPPED, missed)):
             for topic, count in counts.items():
                 if count > 0:
                     reasons[topic][reason] += count
         topics = sorted(set(written) | self._topics | set(received) | set(queue))
-        return _Counts(idle, written, received, queue, reasons, topics)
+        return _Counts(idle, written, received, queue, reasons, topics, rate_limited)
 
     def drop_reasons(self) -> dict[str, dict[str, int]]:
         """Per topic, per reason: messages dropped so far (what events/messages_lost reports the change of)."""
@@ -450,8 +464,10 @@ class RecordingSession:
             "serialize_errors": serialize_errors,
             "write_latency_ms": _percentiles(list(self._latencies)),
             "topics": {t: {"received": counts.received[t], "written": counts.written.get(t, 0),
-                           "dropped": sum(reasons[t].values()), "queue_dropped": queue[t]} for t in counts.topics},
+                           "dropped": sum(reasons[t].values()), "queue_dropped": queue[t],
+                           RATE_LIMITED: counts.rate_limited[t]} for t in counts.topics},
             "drop_reasons": {t: dict(reasons[t]) for t in counts.topics if reasons[t]},
+            "dropped_by_design": {t: {RATE_LIMITED: n} for t, n in sorted(counts.rate_limited.items()) if n},
         }
 
     def _backlog(self) -> dict[str, Any]:
@@ -472,7 +488,8 @@ class RecordingSession:
                  f"{stats['bytes_written']} bytes" + (f", error: {stats['error']}" if stats["error"] else "")]
         for topic, counts in stats["topics"].items():
             lines.append(f"  {topic}: received {counts['received']}, written {counts['written']}, "
-                         f"dropped {counts['dropped']}")
+                         f"dropped {counts['dropped']}"
+                         + (f", rate limited {counts[RATE_LIMITED]}" if counts[RATE_LIMITED] else ""))
         if stats["peak_backlog_bytes"] > stats["max_cache_size"]:
             lines.append(f"  the writer fell behind: backlog peaked at {stats['peak_backlog_bytes'] / 1e6:.0f} MB, "
                          f"{(stats['peak_backlog_bytes'] - stats['max_cache_size']) / 1e6:.0f} MB of the "
@@ -494,6 +511,8 @@ class _Counts:
     queue: Counter[str]
     reasons: defaultdict[str, Counter[str]]
     topics: list[str]
+    #: per topic: messages left out by record.max_rates (received, not lost)
+    rate_limited: Counter[str]
 
 
 def _log_time(message: CachedMessage) -> int:

