@@ -80,9 +80,9 @@ def choose(codec: str, preset: str, quality: int, bitrate: int, keyframe_interva
         except Exception:  # PyAV raises UnknownCodecError (and others for odd names)
             raise ValueError(f"parameter 'codec': {codec!r} is neither jpeg, png, {', '.join(VIDEO_ENCODERS)} "
                              "nor an FFmpeg video encoder this installation has") from None
-        video_format = VIDEO_FORMATS.get(found.name, "")
+        video_format = VIDEO_FORMATS.get(found.canonical_name, "")
         if found.type != "video" or not video_format:
-            raise ValueError(f"parameter 'codec': encoder {encoder!r} writes {found.name}, which "
+            raise ValueError(f"parameter 'codec': encoder {encoder!r} writes {found.canonical_name}, which "
                              f"foxglove_msgs/CompressedVideo cannot carry (it takes {', '.join(VIDEO_FORMATS)})")
     kind = codec if codec in QUALITY else video_format
     if quality != -1:

@@ -162,7 +162,10 @@ class ImageEncoder(ComponentNode):
 
 
 def _subscriber_count(publisher: Any) -> int:
-    """Readers of an output topic, in-process and over DDS: a new one gets a keyframe at once."""
+    """Readers of an output topic; when it grows, the next frame is a keyframe.
+
+    The larger of the in-process and the DDS count: an in-process subscription also has a DDS reader, matched
+    later by discovery, which must not count as a second newcomer (nor ask for a second keyframe).
+    """
     local = publisher.local_subscription_count() if hasattr(publisher, "local_subscription_count") else 0
-    inner = getattr(publisher, "publisher", publisher)
-    return local + inner.get_subscription_count()
+    return max(local, getattr(publisher, "publisher", publisher).get_subscription_count())

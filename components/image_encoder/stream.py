@@ -39,6 +39,7 @@ class StreamCounts:
     bytes: int = 0
 
     def as_dict(self, waiting: int) -> dict[str, int]:
+        """The counts, and ``waiting``: frames received and not yet done (in the mailbox or being encoded)."""
         return {**self.__dict__, "waiting": waiting}
 
 
@@ -60,6 +61,7 @@ class EncodeStream:
         self._queue: collections.deque[Any] = collections.deque()
         self._wake = threading.Condition()
         self._keyframe_requested = False
+        self._in_hand = 0  # 1 while the worker encodes a frame it took from the mailbox
         self._stopping = False
         self._reported: set[str] = set()
         self.counts = StreamCounts()
@@ -84,7 +86,7 @@ class EncodeStream:
 
     def stats(self) -> dict[str, int]:
         with self._wake:
-            return self.counts.as_dict(len(self._queue))
+            return self.counts.as_dict(len(self._queue) + self._in_hand)
 
     def stop(self, timeout: float) -> None:
         with self._wake:
@@ -102,6 +104,7 @@ class EncodeStream:
                     return
                 image = self._queue.popleft()
                 keyframe, self._keyframe_requested = self._keyframe_requested, False
+                self._in_hand = 1
             try:
                 self._encode(image, keyframe)
             except Exception as exc:  # a frame it cannot take, or the codec failed: counted, the stream goes on
@@ -109,6 +112,9 @@ class EncodeStream:
                     self.counts.rejected += 1
                 self._video = None  # the next frame opens a fresh encoder, starting with a keyframe
                 self._report(str(exc))
+            finally:
+                with self._wake:
+                    self._in_hand = 0
 
     def _report(self, text: str) -> None:
         """Log each distinct problem once (a camera of odd width would otherwise log 30 lines a second)."""
