@@ -62,7 +62,7 @@ def test_every_package_folder_of_the_tree_is_in_the_wheel(installed_env: Install
     expected = source_package_folders()
     assert {"components.player", "components.recorder", "baglib.read", "ipc_component"} <= expected
     assert expected - in_wheel == set()
-    assert {"composition_interfaces.srv", "rosbag2_interfaces.srv"} <= in_wheel  # generated at build time
+    assert {"composition_interfaces.srv", "rosbag2_interfaces.srv", "foxglove_msgs.msg"} <= in_wheel  # generated
 
 
 def test_the_rule_sees_a_missing_folder(tmp_path: Path) -> None:
