@@ -25,9 +25,11 @@ from installed import REPO, InstalledEnv
 #: sources (shipped as the generated packages) and docs.
 NOT_SHIPPED = {"tests", "benchmarks", "examples", "srv", "docs", "build", "dist"}
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-#: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port.
+#: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port, a topic and codec.
 PLUGIN_ARGUMENTS = {"Recorder": ("-p", "storage.uri:=bag"), "Player": ("-p", "storage.uri:=missing_bag"),
-                    "FoxgloveBridge": ("-p", "port:=0")}
+                    "FoxgloveBridge": ("-p", "port:=0"),
+                    # h264: the installed wheel's foxglove_msgs and PyAV's libx264 (opened at load)
+                    "ImageEncoder": ("-p", "topics:=[/camera/image_raw]", "-p", "codec:=h264")}
 
 
 def source_package_folders() -> set[str]:
