@@ -285,3 +285,18 @@ def test_a_frame_the_codec_cannot_take_is_rejected_and_counted(manager: Componen
     counts = encoder.stats()["topics"][SOURCE]
     assert (counts["received"], counts["rejected"], counts["published"]) == (2, 1, 1)
     assert encoder.health().values[DROPPED] == "1"
+
+
+def test_regex_finds_image_topics_on_the_graph(manager: ComponentManager) -> None:
+    topic = "/enc_regex_test/image"
+    source = Source(manager, topic)
+    text = Node("enc_regex_text", context=manager.context)
+    text.create_publisher(String, "/enc_regex_test/text", 1)  # matches the regex, but is no image
+    try:
+        encoder = load(manager, "ImageEncoder", "enc_regex", regex="^/enc_regex_test/", polling_interval=0.1)
+        assert wait_until(lambda: topic in encoder.stats()["topics"], 20.0)
+        stills = Probe(manager, CompressedImage, f"{topic}/compressed")
+        send_all(source, stills, 2)
+        assert list(encoder.stats()["topics"]) == [topic]  # not the text topic, nor its own output
+    finally:
+        text.destroy_node()
