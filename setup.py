@@ -2,7 +2,7 @@
 
 Everything else about the project is declared in pyproject.toml. The generated Python packages are built
 into ``build/interfaces/python`` and the shared libraries into ``build/interfaces/lib``, then installed as the
-``composition_interfaces`` / ``rosbag2_interfaces`` packages (libraries inside) and ``<prefix>/share`` data
+``composition_interfaces`` / ``rosbag2_interfaces`` / ``foxglove_msgs`` packages (libraries inside) and ``<prefix>/share`` data
 files (definitions, type descriptions, ament index markers), the layout the ROS wheels themselves use.
 """
 from __future__ import annotations

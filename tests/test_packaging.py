@@ -25,9 +25,11 @@ from installed import REPO, InstalledEnv
 #: sources (shipped as the generated packages) and docs.
 NOT_SHIPPED = {"tests", "benchmarks", "examples", "srv", "docs", "build", "dist"}
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-#: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port.
+#: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port, a topic and codec.
 PLUGIN_ARGUMENTS = {"Recorder": ("-p", "storage.uri:=bag"), "Player": ("-p", "storage.uri:=missing_bag"),
-                    "FoxgloveBridge": ("-p", "port:=0")}
+                    "FoxgloveBridge": ("-p", "port:=0"),
+                    # h264: the installed wheel's foxglove_msgs and PyAV's libx264 (opened at load)
+                    "ImageEncoder": ("-p", "topics:=[/camera/image_raw]", "-p", "codec:=h264")}
 
 
 def source_package_folders() -> set[str]:
@@ -62,7 +64,7 @@ def test_every_package_folder_of_the_tree_is_in_the_wheel(installed_env: Install
     expected = source_package_folders()
     assert {"components.player", "components.recorder", "baglib.read", "ipc_component"} <= expected
     assert expected - in_wheel == set()
-    assert {"composition_interfaces.srv", "rosbag2_interfaces.srv"} <= in_wheel  # generated at build time
+    assert {"composition_interfaces.srv", "rosbag2_interfaces.srv", "foxglove_msgs.msg"} <= in_wheel  # generated
 
 
 def test_the_rule_sees_a_missing_folder(tmp_path: Path) -> None:

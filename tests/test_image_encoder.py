@@ -1,0 +1,302 @@
+"""components::ImageEncoder with the real codecs, its output checked by Debian's ``ffmpeg`` program (not PyAV).
+
+In-process: a container's manager with the encoder beside the images' publisher (a CameraDriver, or the test's
+own publisher of smooth pictures where the picture quality is measured: the camera's random bytes are noise that
+no codec compresses), and in-process probes that keep what they get. The probes are inline subscriptions, so
+they see every message without an executor.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import threading
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+from foxglove_msgs.msg import CompressedVideo
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import CompressedImage, Image
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from component_container.component_manager import ComponentConstructionError, ComponentManager
+from component_container.component_node import ComponentNode
+from component_container.health import DROPPED
+from component_container.startup_file import load_request
+from components.image_encoder import codecs
+from components.sensor_driver import stamp_from_ns
+from ipc_testing import call, in_process_manager, wait_until
+
+WIDTH, HEIGHT = 320, 240
+SOURCE = "/enc_test/image"
+IPC = {"use_intra_process_comms": True}
+
+
+def ffmpeg() -> str:
+    """The ffmpeg program; the tests fail (never skip) without it: .ci/run installs Debian's package."""
+    path = shutil.which("ffmpeg")
+    if path is None:
+        pytest.fail("the ffmpeg command-line program is missing: `apt-get install -y ffmpeg` (.ci/run does this)")
+    return path
+
+
+def decode(data: bytes, demuxer: str, width: int, height: int) -> np.ndarray:
+    """Frames of ``data`` decoded by ffmpeg to rgb24: shape (frames, height, width, 3)."""
+    result = subprocess.run([ffmpeg(), "-v", "error", "-f", demuxer, "-i", "pipe:0", "-fps_mode", "passthrough",
+                             "-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"], input=data, capture_output=True,
+                            timeout=60)
+    frame = width * height * 3
+    assert len(result.stdout) % frame == 0, result.stderr
+    return np.frombuffer(result.stdout, np.uint8).reshape(-1, height, width, 3)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
+
+
+def picture(index: int) -> np.ndarray:
+    """A smooth moving picture (gradients and a moving disc): what a codec is made for, unlike random bytes."""
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float32)
+    disc = ((x - 40 - 6 * index) ** 2 + (y - 120) ** 2 < 900) * 120
+    return np.stack([(x * 0.7 + index) % 256, (y + disc) % 256, (x + y) * 0.4 % 256], axis=-1).astype(np.uint8)
+
+
+class Probe(ComponentNode):
+    """Keeps every message of ``topic`` it gets in-process (inline, no executor needed)."""
+
+    def __init__(self, manager: ComponentManager, msg_type: Any, topic: str) -> None:
+        super().__init__(f"probe_{abs(hash(topic))}", intra_process_manager=manager.intra_process_manager,
+                         context=manager.context)
+        self.messages: list[Any] = []
+        self.create_subscription(msg_type, topic, self.messages.append, QoSProfile(depth=100),
+                                 intra_process_inline=True)
+
+
+class Source(ComponentNode):
+    """Publishes the test's pictures as rgb8 Images in-process, one new message per publish."""
+
+    def __init__(self, manager: ComponentManager, topic: str = SOURCE) -> None:
+        super().__init__("enc_test_source", intra_process_manager=manager.intra_process_manager,
+                         context=manager.context)
+        self.publisher = self.create_publisher(Image, topic, QoSProfile(depth=10))
+        self.sent: dict[int, np.ndarray] = {}
+
+    def send(self, index: int, pixels: np.ndarray | None = None) -> None:
+        pixels = picture(index) if pixels is None else pixels
+        msg = Image(height=pixels.shape[0], width=pixels.shape[1], encoding="rgb8", step=pixels.shape[1] * 3)
+        msg.header.stamp = stamp_from_ns(1_000_000_000 + index)
+        msg.data = pixels.tobytes()
+        self.sent[index] = pixels
+        self.publisher.publish(msg)
+
+
+def index_of(stamp: Any) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec - 1_000_000_000
+
+
+@pytest.fixture()
+def manager() -> Iterator[ComponentManager]:
+    with in_process_manager("image_encoder_test") as manager:
+        yield manager
+
+
+def load(manager: ComponentManager, plugin: str, name: str, **parameters: Any) -> Any:
+    return manager.load(load_request({"package": "components", "plugin": f"components::{plugin}", "name": name,
+                                      "parameters": parameters, "extra_arguments": IPC}, 1)).node
+
+
+def send_all(source: Source, probe: Probe, frames: int) -> None:
+    """Publish ``frames`` pictures, each after the previous one's encoding arrived (so none is skipped)."""
+    for index in range(frames):
+        source.send(index)
+        assert wait_until(lambda: len(probe.messages) > index, 20.0), f"no encoding of frame {index}"
+
+
+def test_h264_and_jpeg_decode_with_ffmpeg_in_order_and_close_to_the_raw_frames(manager: ComponentManager) -> None:
+    source = Source(manager)
+    encoders = {codec: load(manager, "ImageEncoder", f"enc_{codec}", topics=[SOURCE], codec=codec,
+                            suffix=codec) for codec in ("h264", "jpeg")}
+    video = Probe(manager, CompressedVideo, f"{SOURCE}/h264")
+    stills = Probe(manager, CompressedImage, f"{SOURCE}/jpeg")
+    frames = 12
+    send_all(source, video, frames)
+    assert wait_until(lambda: len(stills.messages) == frames, 20.0)
+
+    assert [index_of(m.timestamp) for m in video.messages] == list(range(frames))  # each once, in order
+    assert {m.format for m in video.messages} == {"h264"}
+    first = bytes(video.messages[0].data)
+    assert first.startswith(b"\x00\x00\x00\x01\x67")  # Annex B, an SPS first: the stream starts decodable
+    decoded = decode(b"".join(bytes(m.data) for m in video.messages), "h264", WIDTH, HEIGHT)
+    assert len(decoded) == frames
+    quality = [psnr(decoded[i], source.sent[i]) for i in range(frames)]
+    assert min(quality) > 32, quality
+
+    assert [index_of(m.header.stamp) for m in stills.messages] == list(range(frames))
+    assert {m.format for m in stills.messages} == {"rgb8; jpeg compressed bgr8"}  # as image_transport writes
+    jpegs = decode(b"".join(bytes(m.data) for m in stills.messages), "mjpeg", WIDTH, HEIGHT)
+    assert len(jpegs) == frames
+    quality = [psnr(jpegs[i], source.sent[i]) for i in range(frames)]
+    assert min(quality) > 32, quality
+    for encoder in encoders.values():
+        counts = encoder.stats()["topics"][SOURCE]
+        assert (counts["received"], counts["published"], counts["skipped"], counts["rejected"]) == \
+            (frames, frames, 0, 0)
+
+
+@pytest.mark.parametrize(("codec", "demuxer", "first_bytes"), [
+    ("h265", "hevc", b"\x00\x00\x00\x01\x40\x01"),  # Annex B, a VPS first
+    ("av1", "obu", b"\x12\x00\x0a"),                     # a temporal delimiter, then the sequence header
+])
+def test_h265_and_av1_decode_with_ffmpeg(manager: ComponentManager, codec: str, demuxer: str,
+                                         first_bytes: bytes) -> None:
+    source = Source(manager)
+    load(manager, "ImageEncoder", f"enc_{codec}", topics=[SOURCE], codec=codec)
+    video = Probe(manager, CompressedVideo, f"{SOURCE}/video")
+    frames = 6
+    send_all(source, video, frames)
+    assert {m.format for m in video.messages} == {codec}
+    assert bytes(video.messages[0].data).startswith(first_bytes)
+    decoded = decode(b"".join(bytes(m.data) for m in video.messages), demuxer, WIDTH, HEIGHT)
+    assert len(decoded) == frames
+    assert min(psnr(decoded[i], source.sent[i]) for i in range(frames)) > 30
+
+
+def test_a_keyframe_on_request_decodes_on_its_own(manager: ComponentManager) -> None:
+    topic = "/enc_key_test/image"  # a topic of its own: no reader of another test's joins (a new reader gets a
+    source = Source(manager, topic)  # keyframe too, which would spoil the delta frame below)
+    load(manager, "ImageEncoder", "enc_key", topics=[topic], codec="h264", keyframe_interval=1000)
+    video = Probe(manager, CompressedVideo, f"{topic}/video")
+    send_all(source, video, 4)
+    # A delta frame alone decodes to nothing: what makes the check below mean something.
+    assert len(decode(bytes(video.messages[3].data), "h264", WIDTH, HEIGHT)) == 0
+    client = Node("enc_key_client", context=manager.context)
+    try:
+        reply = call(client, client.create_client(Trigger, "/enc_key/request_keyframe"), Trigger.Request())
+    finally:
+        client.destroy_node()
+    assert reply.success, reply.message
+    source.send(4)
+    assert wait_until(lambda: len(video.messages) == 5, 20.0)
+    alone = decode(bytes(video.messages[4].data), "h264", WIDTH, HEIGHT)
+    assert len(alone) == 1 and psnr(alone[0], source.sent[4]) > 32
+    # A new reader (a viewer, a recorder starting) gets a keyframe at once, without asking.
+    late = Probe(manager, CompressedVideo, f"{topic}/video")
+    source.send(5)
+    assert wait_until(lambda: len(late.messages) == 1, 20.0)
+    assert len(decode(bytes(late.messages[0].data), "h264", WIDTH, HEIGHT)) == 1
+
+
+def test_a_slow_encoder_skips_frames_counts_them_and_never_blocks_the_publisher(
+        manager: ComponentManager, monkeypatch: pytest.MonkeyPatch) -> None:
+    entered, release = threading.Event(), threading.Event()
+    real_encode = codecs.StillCodec.encode
+
+    def slow_encode(self: codecs.StillCodec, image: Any) -> bytes:
+        entered.set()
+        release.wait(30.0)  # an encoder far slower than the camera
+        return real_encode(self, image)
+
+    monkeypatch.setattr(codecs.StillCodec, "encode", slow_encode)
+    source = Source(manager)
+    encoder = load(manager, "ImageEncoder", "enc_slow", topics=[SOURCE], codec="jpeg")
+    stills = Probe(manager, CompressedImage, f"{SOURCE}/compressed")
+    raw = Probe(manager, Image, SOURCE)
+    source.send(0)
+    assert entered.wait(20.0)
+    for index in range(1, 10):  # every publish returns while the encoder is stuck on frame 0
+        source.send(index)
+    counts = encoder.stats()["topics"][SOURCE]
+    assert (counts["received"], counts["skipped"], counts["waiting"]) == (10, 7, 3)
+    assert encoder.health().values[DROPPED] == "7"
+    # The frames waiting are the very objects published (no copy; the source's 4th publish on are by reference).
+    waiting = list(encoder._streams[SOURCE]._queue)  # noqa: SLF001 - the mailbox itself is what is checked
+    assert waiting[0] is raw.messages[8] and waiting[1] is raw.messages[9]
+    release.set()
+    assert wait_until(lambda: len(stills.messages) == 3, 20.0)
+    assert [index_of(m.header.stamp) for m in stills.messages] == [0, 8, 9]  # the newest waited
+    client = Node("enc_slow_client", context=manager.context)
+    try:
+        reply = call(client, client.create_client(Trigger, "/enc_slow/get_stats"), Trigger.Request(), again=True)
+    finally:
+        client.destroy_node()
+    assert json.loads(reply.message)["topics"][SOURCE]["skipped"] == 7
+
+
+def test_camera_frames_are_encoded_by_reference_and_accounted_for(manager: ComponentManager) -> None:
+    topic = "/enc_camera/image_raw"
+    encoder = load(manager, "ImageEncoder", "enc_cam", topics=[topic], codec="h264", preset="ultrafast")
+    video = Probe(manager, CompressedVideo, f"{topic}/video")
+    raw = Probe(manager, Image, topic)
+    camera = load(manager, "CameraDriver", "enc_camera", width=WIDTH, height=HEIGHT, fps=60.0)
+    assert wait_until(lambda: len(video.messages) >= 20, 30.0)
+    manager.unload(next(c.unique_id for c in manager.components() if c.node is camera))
+    assert wait_until(lambda: encoder.stats()["topics"][topic]["waiting"] == 0, 20.0)
+    counts = encoder.stats()["topics"][topic]
+    assert counts["received"] == len(raw.messages)
+    assert counts["published"] + counts["skipped"] == counts["received"] and counts["rejected"] == 0
+    stamps = [m.header.stamp for m in raw.messages]
+    published = [m.timestamp for m in video.messages]
+    positions = [stamps.index(s) for s in published]
+    assert positions == sorted(set(positions))  # each once, in order, skips only
+    decoded = decode(b"".join(bytes(m.data) for m in video.messages), "h264", WIDTH, HEIGHT)
+    assert len(decoded) == len(video.messages)
+
+
+BAD = [
+    ({"codec": "nope"}, "'codec'"),
+    ({"codec": "h264_vaapi"}, "'codec'"),       # an encoder this FFmpeg build lacks
+    ({"codec": "h264_nvenc"}, "'codec'"),       # built in, but the machine has no NVIDIA encoder
+    ({"codec": "mjpeg"}, "'codec'"),            # an encoder whose output CompressedVideo cannot carry
+    ({"codec": "h264", "width": 321}, "'width'"),
+    ({"codec": "jpeg", "quality": 101}, "'quality'"),
+    ({"codec": "h264", "quality": 60}, "'quality'"),
+    ({"codec": "h264", "preset": "warp-speed"}, "'preset'"),
+    ({"topics": ["/enc_test/text"]}, "'topics'"),
+    ({"regex": "("}, "'regex'"),
+]
+
+
+def test_bad_parameters_are_load_errors_naming_them_and_the_container_keeps_running(
+        manager: ComponentManager) -> None:
+    text = Node("enc_text", context=manager.context)
+    text.create_publisher(String, "/enc_test/text", 1)
+    try:
+        for parameters, named in BAD:
+            parameters = {"topics": [SOURCE], **parameters}
+            with pytest.raises(ComponentConstructionError, match=named):
+                load(manager, "ImageEncoder", "enc_bad", **parameters)
+            assert not manager.components()
+        assert load(manager, "ImageEncoder", "enc_good", topics=[SOURCE], codec="h264")
+    finally:
+        text.destroy_node()
+
+
+def test_a_frame_the_codec_cannot_take_is_rejected_and_counted(manager: ComponentManager) -> None:
+    source = Source(manager)
+    encoder = load(manager, "ImageEncoder", "enc_odd", topics=[SOURCE], codec="h264")
+    video = Probe(manager, CompressedVideo, f"{SOURCE}/video")
+    source.send(0, picture(0)[:, :WIDTH - 1].copy())  # odd width: 4:2:0 cannot hold it
+    source.send(1)
+    assert wait_until(lambda: len(video.messages) == 1, 20.0)
+    counts = encoder.stats()["topics"][SOURCE]
+    assert (counts["received"], counts["rejected"], counts["published"]) == (2, 1, 1)
+    assert encoder.health().values[DROPPED] == "1"
+
+
+def test_regex_finds_image_topics_on_the_graph(manager: ComponentManager) -> None:
+    topic = "/enc_regex_test/image"
+    source = Source(manager, topic)
+    text = Node("enc_regex_text", context=manager.context)
+    text.create_publisher(String, "/enc_regex_test/text", 1)  # matches the regex, but is no image
+    try:
+        encoder = load(manager, "ImageEncoder", "enc_regex", regex="^/enc_regex_test/", polling_interval=0.1)
+        assert wait_until(lambda: topic in encoder.stats()["topics"], 20.0)
+        stills = Probe(manager, CompressedImage, f"{topic}/compressed")
+        send_all(source, stills, 2)
+        assert list(encoder.stats()["topics"]) == [topic]  # not the text topic, nor its own output
+    finally:
+        text.destroy_node()
