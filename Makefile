@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup demo test sweep bench clean
+.PHONY: setup demo test sweep bench clean ffmpeg
 
 $(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -23,10 +23,15 @@ demo: $(STAMP)
 # Workers of pytest-xdist: more than the 2 cores, since most tests wait on ROS discovery and other processes.
 TEST_WORKERS ?= 4
 
-test: $(STAMP)
+# The image encoder's tests decode its output with Debian's ffmpeg program, a decoder the project does not use.
+ffmpeg:
+	@command -v ffmpeg >/dev/null || { [ "$$(id -u)" = 0 ] && apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; } \
+	  || { echo "make test needs the ffmpeg program: sudo apt-get install ffmpeg" >&2; exit 1; }
+
+test: $(STAMP) ffmpeg
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 tests
 
-sweep: $(STAMP)
+sweep: $(STAMP) ffmpeg
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
 
 bench: $(STAMP)
