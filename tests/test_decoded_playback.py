@@ -1,0 +1,195 @@
+"""Compressed bags on the way back: the player decoding to ``sensor_msgs/Image``, and ``bag export``.
+
+The bags are written here from the image encoder's own codecs (components/image_encoder/codecs.py) over photographic
+frames (components/photo_content.py): a CompressedVideo topic (H.264) and a CompressedImage topic (JPEG), with
+BagWriter, which is what the recorder writes for them without the cost of a recording. The player runs in an
+in-process manager beside inline probes (they see every message without an executor); ``bag play --decode`` and
+``bag export`` run as the commands users run, checked with an rclpy subscriber over Fast DDS and with Debian's
+``ffmpeg`` / ``ffprobe`` programs.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+from foxglove_msgs.msg import CompressedVideo
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from rosbag2_interfaces.srv import Resume
+from sensor_msgs.msg import CompressedImage, Image
+
+from baglib.format.message_definitions import message_definition
+from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.write.writer import BagWriter
+from component_container.component_manager import ComponentConstructionError, ComponentManager
+from component_container.component_node import ComponentNode
+from component_container.startup_file import load_request
+from components.image_encoder import codecs
+from components.photo_content import PhotoContent
+from components.sensor_driver import stamp_from_ns
+from ipc_testing import call, in_process_manager, wait_until
+
+WIDTH, HEIGHT = 320, 240
+FRAMES = 12
+KEYFRAME_INTERVAL = 5
+PERIOD_NS = 20_000_000
+T0 = 1_700_000_000_000_000_000
+VIDEO, STILLS = "/cam/image/video", "/cam2/image/compressed"
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+CLI = str(Path(sys.executable).with_name("ipc-component"))
+#: Decoded against the raw frames: the codecs' defaults on photographic 320x240 frames give 33-40 dB.
+MIN_PSNR_DB = 30.0
+REPO = Path(__file__).resolve().parents[1]
+
+
+def video_definition() -> tuple[str, str]:
+    """CompressedVideo's definition from srv/ (a development install does not put foxglove_msgs' share folder
+    where baglib looks for it)."""
+    text = (REPO / "srv" / "foxglove_msgs" / "msg" / "CompressedVideo.msg").read_text()
+    time = message_definition("builtin_interfaces/msg/Time")[1]
+    return "ros2msg", f"{text}\n{'=' * 80}\nMSG: builtin_interfaces/Time\n{time}"
+
+
+def program(name: str) -> str:
+    """Debian's ffmpeg / ffprobe; the tests fail (never skip) without it: `make test` installs the package."""
+    path = shutil.which(name)
+    if path is None:
+        pytest.fail(f"the {name} program is missing: `apt-get install -y ffmpeg` (`make test` does this)")
+    return path
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
+
+
+class CompressedBag:
+    """A bag of FRAMES photographic frames as H.264 (VIDEO) and JPEG (STILLS), and what went into it."""
+
+    def __init__(self, path: Path, raw_topic: str = "") -> None:
+        self.path = path
+        self.frames: list[np.ndarray] = []
+        self.video: list[bytes] = []
+        self.keyframes: list[bool] = []
+        self.jpegs: list[bytes] = []
+        content = PhotoContent(WIDTH, HEIGHT, "rgb8")
+        video = codecs.VideoCodec(codecs.choose("h264", "", -1, 0, KEYFRAME_INTERVAL), WIDTH, HEIGHT)
+        jpeg = codecs.StillCodec(codecs.choose("jpeg", "", -1, 0, KEYFRAME_INTERVAL), 0)
+        with BagWriter(path) as writer:
+            writer.add_topic(TopicInfo(VIDEO, "foxglove_msgs/msg/CompressedVideo",
+                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]), video_definition())
+            writer.add_topic(TopicInfo(STILLS, "sensor_msgs/msg/CompressedImage",
+                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+            if raw_topic:
+                writer.add_topic(TopicInfo(raw_topic, "sensor_msgs/msg/Image"))
+            for index in range(FRAMES):
+                t = T0 + index * PERIOD_NS
+                buffer = bytearray(WIDTH * HEIGHT * 3)
+                content.fill(index, memoryview(buffer))
+                pixels = np.frombuffer(bytes(buffer), np.uint8).reshape(HEIGHT, WIDTH, 3)
+                image = Image(height=HEIGHT, width=WIDTH, encoding="rgb8", step=WIDTH * 3)
+                image.header.stamp, image.header.frame_id = stamp_from_ns(t), "camera"
+                image.data = pixels.tobytes()
+                self.frames.append(pixels)
+                [(_, keyframe, data)] = video.encode(pixels, "rgb8", False)
+                self.video.append(data)
+                self.keyframes.append(keyframe)
+                frame = CompressedVideo(timestamp=image.header.stamp, frame_id="camera", format="h264")
+                frame.data = data
+                still = CompressedImage(header=image.header, format=jpeg.format_of("rgb8"))
+                still.data = jpeg.encode(image)
+                self.jpegs.append(bytes(still.data))
+                writer.write(VIDEO, serialize_message(frame), t, t)
+                writer.write(STILLS, serialize_message(still), t, t)
+        assert self.keyframes[0] and sum(self.keyframes) == -(-FRAMES // KEYFRAME_INTERVAL)
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> CompressedBag:
+    return CompressedBag(tmp_path_factory.mktemp("decoded") / "bag")
+
+
+@pytest.fixture()
+def manager() -> Iterator[ComponentManager]:
+    with in_process_manager("decoded_playback_test") as manager:
+        yield manager
+
+
+class Probe(ComponentNode):
+    """Keeps every Image of ``topic`` it gets in-process (inline, no executor needed)."""
+
+    def __init__(self, manager: ComponentManager, topic: str) -> None:
+        super().__init__(f"probe_{abs(hash(topic))}", intra_process_manager=manager.intra_process_manager,
+                         context=manager.context)
+        self.messages: list[Image] = []
+        self.create_subscription(Image, topic, self.messages.append, RELIABLE, intra_process_inline=True)
+
+
+def load_player(manager: ComponentManager, uri: Path, **parameters: Any) -> Any:
+    return manager.load(load_request({
+        "package": "components", "plugin": "components::Player", "name": "player",
+        "parameters": {"storage.uri": str(uri), **parameters},
+        "extra_arguments": {"use_intra_process_comms": True}}, 1)).node
+
+
+def pixels_of(image: Image) -> np.ndarray:
+    return np.frombuffer(bytes(image.data), np.uint8).reshape(image.height, image.width, 3)
+
+
+def test_a_compressed_bag_plays_as_images_of_the_original_size_encoding_and_stamps(
+        manager: ComponentManager, bag: CompressedBag) -> None:
+    video, stills = Probe(manager, "/cam/image"), Probe(manager, "/cam2/image")
+    player = load_player(manager, bag.path, **{"play.decode": True})
+    assert wait_until(lambda: len(video.messages) == FRAMES and len(stills.messages) == FRAMES, 30.0), \
+        (len(video.messages), len(stills.messages))
+    assert player._playback.wait_finished(30.0)
+    stamps = [stamp_from_ns(T0 + index * PERIOD_NS) for index in range(FRAMES)]
+    for probe in (video, stills):
+        assert [m.header.stamp for m in probe.messages] == stamps  # one per recorded frame, in order
+        assert {(m.width, m.height, m.encoding, m.step, m.header.frame_id) for m in probe.messages} == {
+            (WIDTH, HEIGHT, "rgb8", WIDTH * 3, "camera")}
+        for got, sent in zip(probe.messages, bag.frames):
+            assert psnr(pixels_of(got), sent) >= MIN_PSNR_DB
+    decoded = player.stats()["decoded"]
+    assert decoded == {VIDEO: {"topic": "/cam/image", "decoded": FRAMES, "skipped": 0, "failed": 0},
+                       STILLS: {"topic": "/cam2/image", "decoded": FRAMES, "skipped": 0, "failed": 0}}
+
+
+def test_a_video_stream_starts_at_a_keyframe_and_counts_the_frames_before_it(
+        manager: ComponentManager, bag: CompressedBag) -> None:
+    video = Probe(manager, "/cam/image")
+    start = 2  # two frames into the first group of pictures
+    player = load_player(manager, bag.path, **{"play.decode_topics": [VIDEO],
+                                               "play.start_offset.nsec": start * PERIOD_NS})
+    assert player._playback.wait_finished(30.0)
+    first = bag.keyframes.index(True, start)
+    assert [m.header.stamp for m in video.messages] == [
+        stamp_from_ns(T0 + index * PERIOD_NS) for index in range(first, FRAMES)]
+    assert player.stats()["decoded"] == {
+        VIDEO: {"topic": "/cam/image", "decoded": FRAMES - first, "skipped": first - start, "failed": 0}}
+
+
+@pytest.mark.parametrize(("parameters", "names"), [
+    ({"play.decode_topics": ["/cam/raw"]}, ["play.decode_topics", "/cam/raw", "sensor_msgs/msg/Image"]),
+    ({"play.decode_topics": ["/nowhere"]}, ["play.decode_topics", "/nowhere", "not a played topic"]),
+    ({"play.decode": True}, ["play.decode", VIDEO, "'/cam/image'"]),
+])
+def test_a_bad_choice_is_a_load_error_naming_it_and_the_container_keeps_running(
+        manager: ComponentManager, tmp_path: Path, parameters: dict[str, Any], names: list[str]) -> None:
+    clashing = CompressedBag(tmp_path / "bag", raw_topic="/cam/image")
+    with BagWriter(tmp_path / "raw") as writer:
+        writer.add_topic(TopicInfo("/cam/raw", "sensor_msgs/msg/Image"))
+        writer.write("/cam/raw", serialize_message(Image()), T0, T0)
+    uri = tmp_path / "raw" if "/cam/raw" in names else clashing.path
+    with pytest.raises(ComponentConstructionError) as error:
+        load_player(manager, uri, **parameters)
+    for name in names:
+        assert name in str(error.value)
+    assert load_player(manager, clashing.path, **{"play.decode_topics": [STILLS]}) is not None
