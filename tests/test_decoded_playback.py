@@ -44,8 +44,8 @@ T0 = 1_700_000_000_000_000_000
 VIDEO, STILLS = "/cam/image/video", "/cam2/image/compressed"
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 CLI = str(Path(sys.executable).with_name("ipc-component"))
-#: Decoded against the raw frames: the codecs' defaults on photographic 320x240 frames give 33-40 dB.
-MIN_PSNR_DB = 30.0
+#: Decoded against the raw frames (the codecs' defaults gave 38-41 dB here): the issue's target for H.264.
+MIN_PSNR_DB = 36.0
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -193,3 +193,26 @@ def test_a_bad_choice_is_a_load_error_naming_it_and_the_container_keeps_running(
     for name in names:
         assert name in str(error.value)
     assert load_player(manager, clashing.path, **{"play.decode_topics": [STILLS]}) is not None
+
+
+def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBag) -> None:
+    got: list[Image] = []
+    subscription = probe.create_subscription(Image, "/cam/image", got.append, RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    process = subprocess.Popen([CLI, "bag", "play", str(bag.path), "--decode", VIDEO, "--start-paused",
+                                "--wait-for-all-acked", "10000"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: subscription.get_publisher_count() > 0, 60.0, probe), "never matched"
+        call(probe, resume, Resume.Request(), 30.0, again=True)
+        assert wait_until(lambda: len(got) == FRAMES, 60.0, probe), len(got)
+        assert process.wait(30.0) == 0, process.communicate()[1]
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.communicate(timeout=10)
+        probe.destroy_client(resume)
+        probe.destroy_subscription(subscription)
+    assert [m.header.stamp for m in got] == [stamp_from_ns(T0 + index * PERIOD_NS) for index in range(FRAMES)]
+    assert {(m.width, m.height, m.encoding) for m in got} == {(WIDTH, HEIGHT, "rgb8")}
+    assert min(psnr(pixels_of(m), sent) for m, sent in zip(got, bag.frames)) >= MIN_PSNR_DB
