@@ -71,16 +71,17 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class CompressedBag:
-    """A bag of FRAMES photographic frames as H.264 (VIDEO) and JPEG (STILLS), and what went into it."""
+    """A bag of FRAMES photographic frames as video (VIDEO, H.264 unless told) and JPEG (STILLS), and what
+    went into it."""
 
-    def __init__(self, path: Path, raw_topic: str = "") -> None:
+    def __init__(self, path: Path, raw_topic: str = "", codec: str = "h264") -> None:
         self.path = path
         self.frames: list[np.ndarray] = []
         self.video: list[bytes] = []
         self.keyframes: list[bool] = []
         self.jpegs: list[bytes] = []
         content = PhotoContent(WIDTH, HEIGHT, "rgb8")
-        video = codecs.VideoCodec(codecs.choose("h264", "", -1, 0, KEYFRAME_INTERVAL), WIDTH, HEIGHT)
+        video = codecs.VideoCodec(codecs.choose(codec, "", -1, 0, KEYFRAME_INTERVAL), WIDTH, HEIGHT)
         jpeg = codecs.StillCodec(codecs.choose("jpeg", "", -1, 0, KEYFRAME_INTERVAL), 0)
         with BagWriter(path) as writer:
             writer.add_topic(TopicInfo(VIDEO, "foxglove_msgs/msg/CompressedVideo",
@@ -101,7 +102,7 @@ class CompressedBag:
                 [(_, keyframe, data)] = video.encode(pixels, "rgb8", False)
                 self.video.append(data)
                 self.keyframes.append(keyframe)
-                frame = CompressedVideo(timestamp=image.header.stamp, frame_id="camera", format="h264")
+                frame = CompressedVideo(timestamp=image.header.stamp, frame_id="camera", format=codec)
                 frame.data = data
                 still = CompressedImage(header=image.header, format=jpeg.format_of("rgb8"))
                 still.data = jpeg.encode(image)
@@ -216,3 +217,48 @@ def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBa
     assert [m.header.stamp for m in got] == [stamp_from_ns(T0 + index * PERIOD_NS) for index in range(FRAMES)]
     assert {(m.width, m.height, m.encoding) for m in got} == {(WIDTH, HEIGHT, "rgb8")}
     assert min(psnr(pixels_of(m), sent) for m, sent in zip(got, bag.frames)) >= MIN_PSNR_DB
+
+
+def ffprobe(path: Path, *entries: str) -> Any:
+    result = subprocess.run([program("ffprobe"), "-v", "error", "-count_packets", "-show_entries", ",".join(entries),
+                             "-of", "json", str(path)], capture_output=True, text=True, timeout=60, check=True)
+    return json.loads(result.stdout)
+
+
+def decoded_by_ffmpeg(data: bytes, demuxer: str) -> bytes:
+    """What Debian's ffmpeg decodes ``data`` (read with ``demuxer``) to: raw rgb24 frames."""
+    return subprocess.run([program("ffmpeg"), "-v", "error", "-f", demuxer, "-i", "pipe:0", "-fps_mode", "passthrough",
+                           "-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"], input=data, capture_output=True,
+                          timeout=60, check=True).stdout
+
+
+@pytest.mark.parametrize(("codec", "demuxer", "tag"), [("h264", "h264", "avc1"), ("h265", "hevc", "hev1"),
+                                                      ("av1", "obu", "av01")])
+def test_bag_export_remuxes_a_video_topic_into_mp4_without_re_encoding(
+        tmp_path: Path, codec: str, demuxer: str, tag: str) -> None:
+    bag = CompressedBag(tmp_path / "bag", codec=codec)
+    out = tmp_path / "video.mp4"
+    result = subprocess.run([CLI, "bag", "export", str(bag.path), VIDEO, str(out)], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert f"Wrote {FRAMES} frames of {VIDEO} ({codec})" in result.stdout
+    [stream] = ffprobe(out, "stream=codec_name,codec_tag_string,width,height,nb_read_packets")["streams"]
+    assert stream == {"codec_name": {"h265": "hevc"}.get(codec, codec), "codec_tag_string": tag, "width": WIDTH,
+                      "height": HEIGHT, "nb_read_packets": str(FRAMES)}
+    packets = ffprobe(out, "packet=pts_time,flags")["packets"]
+    assert [round(float(p["pts_time"]) * 1e9) for p in packets] == [index * PERIOD_NS for index in range(FRAMES)]
+    assert [p["flags"].startswith("K") for p in packets] == bag.keyframes
+    # Not re-encoded: ffmpeg decodes the MP4 to exactly the pictures of the recorded stream, bit for bit.
+    assert decoded_by_ffmpeg(out.read_bytes(), "mp4") == decoded_by_ffmpeg(b"".join(bag.video), demuxer)
+
+
+def test_bag_export_writes_stills_as_numbered_files_of_the_recorded_bytes(bag: CompressedBag, tmp_path: Path) -> None:
+    out = tmp_path / "stills"
+    result = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in out.iterdir()) == [f"{n:06d}.jpg" for n in range(1, FRAMES + 1)]
+    assert [(out / f"{n:06d}.jpg").read_bytes() for n in range(1, FRAMES + 1)] == bag.jpegs
+    again = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,
+                           timeout=120)
+    assert again.returncode == 1 and f"'{out}' exists" in again.stderr
