@@ -177,6 +177,25 @@ def test_a_video_stream_starts_at_a_keyframe_and_counts_the_frames_before_it(
         VIDEO: {"topic": "/cam/image", "decoded": FRAMES - first, "skipped": first - start, "failed": 0}}
 
 
+def test_a_frame_that_fails_to_decode_is_counted_and_its_compressed_message_still_plays(
+        manager: ComponentManager, bag: CompressedBag, tmp_path: Path) -> None:
+    damaged = 3
+    with BagWriter(tmp_path / "damaged") as writer:
+        writer.add_topic(TopicInfo(STILLS, "sensor_msgs/msg/CompressedImage"))
+        for index, data in enumerate(bag.jpegs):
+            still = CompressedImage(header=Image().header, format="rgb8; jpeg compressed bgr8")
+            still.header.stamp = stamp_from_ns(T0 + index * PERIOD_NS)
+            still.data = data if index != damaged else b"\xff\xd8 not a picture"
+            writer.write(STILLS, serialize_message(still), T0 + index * PERIOD_NS, T0 + index * PERIOD_NS)
+    images = Probe(manager, "/cam2/image")
+    player = load_player(manager, tmp_path / "damaged", **{"play.decode": True})
+    assert player._playback.wait_finished(30.0)
+    assert len(images.messages) == FRAMES - 1
+    assert player.stats()["decoded"][STILLS] == {"topic": "/cam2/image", "decoded": FRAMES - 1, "skipped": 0,
+                                                 "failed": 1}
+    assert player.stats()["published"][STILLS] == FRAMES
+
+
 @pytest.mark.parametrize(("parameters", "names"), [
     ({"play.decode_topics": ["/cam/raw"]}, ["play.decode_topics", "/cam/raw", "sensor_msgs/msg/Image"]),
     ({"play.decode_topics": ["/nowhere"]}, ["play.decode_topics", "/nowhere", "not a played topic"]),

@@ -61,15 +61,15 @@ class ExportReport:
 def export_topic(bag: str | os.PathLike[str], topic: str, output: str | os.PathLike[str]) -> ExportReport:
     """Export ``topic`` of ``bag`` to ``output``: an MP4 file for video, a directory of pictures for stills."""
     output = Path(output)
-    if output.exists() and not (output.is_dir() and not any(output.iterdir())):
-        raise ExportError(f"'{output}' exists: name a new file (video) or a new or empty directory (stills)")
     try:
         with BagReader(bag) as reader:
             connection = _connection(reader, topic)
+            video = connection.msgtype == VIDEO_TYPE
+            if output.exists() and (video or not output.is_dir() or any(output.iterdir())):
+                raise ExportError(f"'{output}' exists: name a new file (video) or a new or empty directory "
+                                  "(stills)")
             messages = (deserialize(m.data, message_class(connection.msgtype)) for m in reader.messages([topic]))
-            if connection.msgtype == VIDEO_TYPE:
-                return _remux(messages, topic, output)
-            return _pictures(messages, topic, output)
+            return _remux(messages, topic, output) if video else _pictures(messages, topic, output)
     except BagReadError as exc:
         raise ExportError(f"cannot read {bag}: {exc}") from None
 

@@ -29,7 +29,7 @@ from sensor_msgs.msg import Image
 
 from baglib.format.cdr_read import deserialize
 from baglib.read.reader import BagMessage
-from components.image_encoder.decoding import DecodeCounts, DecodeError, StillDecoder, VideoDecoder
+from components.image_encoder.decoding import DecodeCounts, StillDecoder, VideoDecoder
 
 #: The compressed types that decode, and whether they are video.
 DECODABLE = {"sensor_msgs/msg/CompressedImage": False, "foxglove_msgs/msg/CompressedVideo": True}
@@ -93,7 +93,7 @@ class DecodedStream:
             if self._decoder is None:
                 self._decoder = VideoDecoder(compressed.format) if self._video else StillDecoder()
             image = self._decoder.decode(compressed)
-        except (DecodeError, ValueError) as exc:
+        except Exception as exc:  # noqa: BLE001 - one frame a codec cannot take is counted, playback goes on
             self.counts.failed += 1
             self._report(str(exc))
             return compressed, None
