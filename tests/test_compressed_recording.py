@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 import pytest
+import yaml
 from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
@@ -25,10 +28,11 @@ from component_container.component_manager import ComponentConstructionError, Co
 from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import ImageEncoder
 from components.recorder.recorder import Recorder
-from ipc_testing import in_process_manager, wait_until
+from ipc_testing import ContainerProcess, in_process_manager, wait_until
 from ipc_testing.foxglove_client import install_client
 from test_image_encoder import Probe, decode, psnr
 
+REPO = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 320, 240
 CAMERA = "/rec_cam/image"
 FRAMES = 45
@@ -85,6 +89,11 @@ def foxglove_decode(schema: str, data: list[bytes]) -> list[dict[str, Any]]:
     for view in views:
         view["data"] = base64.b64decode(view["data"])
     return views
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ipc_component.cli", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=90)
 
 
 def record(manager: ComponentManager, tmp_path: Path, codec: str, **parameters: Any) -> tuple[Any, list[Image]]:
@@ -155,3 +164,34 @@ def test_jpeg_recording_holds_every_frame_close_to_the_raw_one(manager: Componen
     view = foxglove_decode(schema, [data])[0]
     assert view["format"] == messages[0].format == "rgb8; jpeg compressed bgr8"
     assert view["data"] == bytes(messages[0].data)
+
+
+def test_fleet_record_start_compress_records_jpeg_and_unloads_the_encoder_with_the_recorder(tmp_path: Path) -> None:
+    """``ipc-component record start --compress jpeg --max-rates ...`` on a container process: the bag holds the
+    camera as JPEG (not raw), the IMU rate limited, and ``record stop`` unloads the encoder with the recorder."""
+    rig = [{"package": "components", "plugin": f"components::{plugin}", "name": name, "parameters": parameters,
+            "extra_arguments": IPC}
+           for plugin, name, parameters in (("CameraDriver", "cam", {"width": WIDTH, "height": HEIGHT, "fps": 10.0}),
+                                            ("ImuDriver", "imu", {"rate": 50.0}))]
+    load_file = tmp_path / "rig.yaml"
+    load_file.write_text(yaml.safe_dump({"components": rig}))
+    with ContainerProcess("--use-intra-process-comms", "--bag-root", str(tmp_path), "--load", str(load_file),
+                          name="/cx/container", cwd=REPO, log_path=tmp_path / "container.log"):
+        assert wait_until(lambda: "/imu" in cli("list", "/cx/container").stdout, 120.0)
+        started = cli("record", "start", "/cx/container", "--session", "comp", "--in", "0.5", "--compress", "jpeg",
+                      "--max-rates", "/imu/imu:5")
+        assert started.returncode == 0, started.stdout + started.stderr
+        assert wait_until(lambda: "/record_comp_encoder" in cli("list", "/cx/container").stdout, 60.0)
+        bag = tmp_path / "comp" / f"{os.uname().nodename}_cx_container"
+        assert wait_until(lambda: len(list(bag.glob("*.mcap"))) == 1, 30.0)
+        stopped = cli("record", "stop", "--session", "comp", "--in", "2")
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        listed = cli("list", "/cx/container").stdout
+        assert "record_comp" not in listed, listed  # the encoder went with the recorder
+    messages = bag_messages(bag)
+    assert "/cam/image_raw" not in messages and len(messages["/cam/image_raw/compressed"]) >= 10, messages.keys()
+    assert {m.format for m in messages["/cam/image_raw/compressed"]} == {"rgb8; jpeg compressed bgr8"}
+    frames, imu = len(messages["/cam/image_raw/compressed"]), len(messages["/imu/imu"])
+    assert frames / 2 - 3 <= imu <= frames / 2 + 3, (frames, imu)  # 5 Hz of a 50 Hz IMU beside a 10 Hz camera
+    custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
+    assert custom["record.max_rates"] == "/imu/imu:5", custom
