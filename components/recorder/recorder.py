@@ -12,6 +12,8 @@ Fleet recording (components/recorder/schedule.py): ``record.start_at`` / ``recor
 recording to the messages received within a window, ``record.max_duration`` ends it even if no stop comes,
 ``record.split_at`` schedules a split; ``record.stop_at``, ``record.split_at`` and ``storage.custom_data`` may be
 set while recording (``ros2 param set``). ``record.local_only`` records only what this container publishes.
+``record.compress`` records chosen image topics compressed by an ImageEncoder the recorder loads into its
+container (components/recorder/compression.py; video files begin at keyframes: keyframe_gate.py).
 
 Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
 ``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM, within the
