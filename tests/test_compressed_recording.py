@@ -24,7 +24,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 from sensor_msgs.msg import Image
 
-from component_container.component_manager import ComponentManager
+from component_container.component_manager import ComponentConstructionError, ComponentManager
 from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import ImageEncoder
 from ipc_testing import ContainerProcess, in_process_manager, wait_until
@@ -193,3 +193,18 @@ def test_fleet_record_start_compress_records_jpeg_and_unloads_the_encoder_with_t
     assert frames / 2 - 3 <= imu <= frames / 2 + 3, (frames, imu)  # 5 Hz of a 50 Hz IMU beside a 10 Hz camera
     custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
     assert custom["record.max_rates"] == "/imu/imu:5", custom
+
+
+def test_a_bad_encoder_setting_is_the_recorders_load_error_and_unloading_takes_the_encoder_along(
+        manager: ComponentManager, tmp_path: Path) -> None:
+    for parameters, named in (({"record.compress": "mpeg7"}, "'record.compress'"),
+                              ({"record.compress": "h264", "record.compress_width": 321}, "'record.compress_width'"),
+                              ({"record.compress": "jpeg", "record.compress_quality": 101},
+                               "'record.compress_quality'")):
+        with pytest.raises(ComponentConstructionError, match=named):
+            load(manager, "Recorder", "rec_bad", **{"storage.uri": str(tmp_path / "bad"), **parameters})
+        assert manager.components() == []  # neither the recorder nor its encoder stays
+    recorder = load(manager, "Recorder", "rec_ok", **{"storage.uri": str(tmp_path / "ok"), "record.compress": "jpeg"})
+    assert [c.full_name for c in manager.components()] == ["/rec_ok", "/rec_ok_encoder"]
+    assert manager.unload(recorder.unique_id).error == ""
+    assert manager.components() == []
