@@ -14,7 +14,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,23 +27,16 @@ from sensor_msgs.msg import Image
 from component_container.component_manager import ComponentConstructionError, ComponentManager
 from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import ImageEncoder
-from ipc_testing import ContainerProcess, in_process_manager, wait_until
+from ipc_testing import ContainerProcess, wait_until
 from ipc_testing.foxglove_client import install_client
-from test_image_encoder import Probe, decode, psnr
+from test_image_encoder import IPC, Probe, decode, manager, psnr  # noqa: F401 - manager: the fixture
 
 REPO = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 320, 240
 CAMERA = "/rec_cam/image"
 FRAMES = 45
-IPC = {"use_intra_process_comms": True}
 #: the bounds of issue 30 at the encoder's defaults (photo content)
 MIN_PSNR = {"jpeg": 38.0, "h264": 36.0}
-
-
-@pytest.fixture()
-def manager() -> Iterator[ComponentManager]:
-    with in_process_manager("compressed_recording_test") as manager:
-        yield manager
 
 
 def load(manager: ComponentManager, plugin: str, name: str, **parameters: Any) -> Any:
