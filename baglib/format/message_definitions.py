@@ -9,6 +9,7 @@ its output exactly, because ``rosbags`` recomputes the RIHS01 type hash from the
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import re
 import sys
@@ -27,6 +28,8 @@ __all__ = [
     "type_hash_of_definition",
 ]
 
+#: A ROS package name (also a Python module name, so safe to look up with importlib).
+_PACKAGE_NAME = re.compile(r"[a-z][a-z0-9_]*")
 #: The line rosbag2 puts between the root definition and each dependency.
 _SEPARATOR = "=" * 80 + "\n"
 
@@ -71,7 +74,7 @@ def _share_directories(package: str) -> tuple[Path, ...]:
 
     The ament index knows packages installed anywhere on ``AMENT_PREFIX_PATH``; interface packages
     installed from PyPI wheels are not indexed there (often the variable is not even set), but
-    always live in this interpreter's ``share`` folder.
+    always live in this interpreter's ``share`` folder; an editable install's in its build tree.
     """
     candidates: list[Path] = []
     try:
@@ -80,10 +83,13 @@ def _share_directories(package: str) -> tuple[Path, ...]:
         candidates.append(Path(get_package_share_directory(package)))
     except (ImportError, LookupError, OSError, ValueError):
         pass
-    fallback = Path(sys.prefix) / "share" / package
-    if fallback not in candidates:
-        candidates.append(fallback)
-    return tuple(candidates)
+    candidates.append(Path(sys.prefix) / "share" / package)
+    # An editable install of this project's own interfaces (srv/build_interfaces.py): build/interfaces/share
+    # beside the build/interfaces/python the package is imported from.
+    spec = importlib.util.find_spec(package) if _PACKAGE_NAME.fullmatch(package) else None
+    if spec is not None and spec.origin:
+        candidates.append(Path(spec.origin).resolve().parents[2] / "share" / package)
+    return tuple(dict.fromkeys(candidates))
 
 
 def _find_file(package: str, folder: str, name: str, extension: str) -> Path | None:

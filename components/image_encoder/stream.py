@@ -44,9 +44,10 @@ class StreamCounts:
 
 
 class EncodeStream:
-    """Encodes the images of one topic on a thread of its own and publishes each result with ``publish``."""
+    """Encodes the images of one topic on a thread of its own and publishes each result with
+    ``publish(message, keyframe)`` (``keyframe``: a picture that decodes on its own; every still is one)."""
 
-    def __init__(self, topic: str, choice: CodecChoice, out_width: int, publish: Callable[[Any], None],
+    def __init__(self, topic: str, choice: CodecChoice, out_width: int, publish: Callable[[Any, bool], None],
                  subscribers: Callable[[], int], log_error: Callable[[str], None]) -> None:
         self.topic = topic
         self._choice = choice
@@ -152,7 +153,7 @@ class EncodeStream:
         buffer = array("B")
         buffer.frombytes(data)
         message.data = buffer  # check_fields=True keeps the array as it is (no second copy)
-        self._publish(message)
+        self._publish(message, keyframe)
         with self._wake:
             self.counts.published += 1
             self.counts.keyframes += keyframe
