@@ -10,7 +10,8 @@ raw CDR.
 What a client sees: every topic of the graph as a channel (``cdr``, schema ``ros2msg``, see
 channel_registry), kept current at ``polling_interval``; the parameters of the graph's nodes
 (ros_parameters); the graph's services, called with CDR (ros_services); the connection graph (graph_view);
-with ``use_sim_time``, ``/clock`` as the server's time.
+with ``use_sim_time``, ``/clock`` as the server's time; each image topic also as video, encoded in the bridge
+while a client watches (video_feed).
 ``~/get_stats`` (std_srvs/Trigger) answers the counts per channel as JSON; ``/diagnostics`` shows them too.
 
 A slow client never slows the container: each channel's queue in the bridge is bounded (newest kept, drops
@@ -164,7 +165,8 @@ class FoxgloveBridge(ComponentNode):
 
     # --- reporting ------------------------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
-        """Per channel with traffic or clients: clients, received, sent, dropped, throttled, per-client counts."""
+        """Per channel with traffic or clients: clients, received, sent, dropped, throttled, per-client counts;
+        a video channel's encoder counts too."""
         return {"url": self.url, "subscriptions": self._topic_subscriptions.topics, "channels": self._registry.stats()}
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -182,6 +184,8 @@ class FoxgloveBridge(ComponentNode):
         for topic, c in sorted(channels.items()):
             values[topic] = (f"clients {len(c['clients'])}, received {c['received']}, sent {c['sent']}, "
                              f"dropped {c['dropped']}, throttled {c['throttled']}")
+            if "encoder" in c:
+                values[topic] += ", encoder " + ", ".join(f"{name} {count}" for name, count in c["encoder"].items())
             for client, sent in sorted(c["sent_to"].items()):
                 values[f"{topic} -> client {client}"] = f"sent {sent}"
         if new_drops:

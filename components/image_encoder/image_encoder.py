@@ -112,8 +112,8 @@ class ImageEncoder(ComponentNode):
     def _add_stream(self, topic: str) -> None:
         msg_type = CompressedVideo if self._choice.is_video else CompressedImage
         publisher = self.create_publisher(msg_type, self.output_topic(topic), OUTPUT_QOS)
-        stream = EncodeStream(topic, self._choice, self._width, publisher.publish,
-                              lambda: _subscriber_count(publisher), self.get_logger().error)
+        stream = EncodeStream(topic, self._choice, self._width, publisher.publish, self.get_logger().error,
+                              subscribers=lambda: _subscriber_count(publisher))
         self._streams[topic] = stream
         # Inline: the driver's publish() only appends a reference to the stream's mailbox (never blocks).
         self.create_subscription(Image, topic, stream.offer, qos_profile_sensor_data, intra_process_inline=True)
