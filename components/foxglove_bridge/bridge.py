@@ -150,8 +150,9 @@ class FoxgloveBridge(ComponentNode):
             dropped = stats["dropped"] - self._reported_drops.get(topic, 0)
             if dropped > 0:
                 self._reported_drops[topic] = stats["dropped"]
-                self._warn(f"Dropped {dropped} messages of {topic}: the bridge's thread fell behind "
-                           f"({stats['dropped']} in all)")
+                reason = ("its encoder skipped them (it fell behind, or held them back for a client's keyframe)"
+                          if "encoder" in stats else "the bridge's thread fell behind")
+                self._warn(f"Dropped {dropped} messages of {topic}: {reason} ({stats['dropped']} in all)")
 
     def _on_clock(self, message: Clock) -> None:
         stamp = message.clock.sec * 1_000_000_000 + message.clock.nanosec

@@ -104,8 +104,8 @@ def check_codec(choice: CodecChoice, prefix: str = "") -> None:
     try:
         VideoCodec(choice, 64, 64).close()
     except Exception as exc:  # FFmpeg's errors for a missing device, a bad preset, an option it refuses
-        raise ValueError(f"parameter '{prefix}codec' (or '{prefix}preset' {choice.preset!r}): encoder {choice.encoder!r} cannot "
-                         f"be opened on this machine: {exc}") from None
+        raise ValueError(f"parameter '{prefix}codec' (or '{prefix}preset' {choice.preset!r}): encoder "
+                         f"{choice.encoder!r} cannot be opened on this machine: {exc}") from None
 
 
 def pixels_of(image: Any) -> np.ndarray:
