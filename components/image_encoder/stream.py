@@ -101,10 +101,14 @@ class EncodeStream:
             return self.counts.as_dict(len(self._queue) + self._in_hand)
 
     def stop(self, timeout: float) -> None:
+        """Stop the worker (it finishes the frame in hand); the frames still waiting are counted as skipped."""
         with self._wake:
             self._stopping = True
             self._wake.notify()
         self._thread.join(timeout)
+        with self._wake:
+            self.counts.skipped += len(self._queue)
+            self._queue.clear()
 
     # --- the worker ------------------------------------------------------------------------------------------
     def _run(self) -> None:
