@@ -32,7 +32,7 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
-from component_container.health import OK, WARN, Health
+from component_container.health import DROPPED, OK, WARN, Health
 from components.foxglove_bridge.bridge_options import BridgeOptions, declare_options
 from components.foxglove_bridge.channel_registry import ChannelRegistry
 from components.foxglove_bridge.executor_work import WorkQueue
@@ -175,13 +175,14 @@ class FoxgloveBridge(ComponentNode):
         return response
 
     def health(self) -> Health:
-        """For /diagnostics: WARN while the bridge's queues drop messages, OK otherwise."""
+        """For /diagnostics: WARN while the bridge's queues (or a video channel's encoder) drop messages, OK
+        otherwise; ``dropped`` in all, which ``ipc-component top`` shows."""
         channels = self._registry.stats()
         drops = sum(c["dropped"] for c in channels.values())
         new_drops, self._health_drops = drops - self._health_drops, drops
         clients = sorted({client for c in channels.values() for client in c["clients"]})
         values = {"url": self.url, "channels": str(len(self._registry.channels())),
-                  "clients subscribed": ", ".join(map(str, clients)) or "none"}
+                  "clients subscribed": ", ".join(map(str, clients)) or "none", DROPPED: str(drops)}
         for topic, c in sorted(channels.items()):
             values[topic] = (f"clients {len(c['clients'])}, received {c['received']}, sent {c['sent']}, "
                              f"dropped {c['dropped']}, throttled {c['throttled']}")
