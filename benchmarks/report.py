@@ -294,7 +294,8 @@ def merge_table(merge: dict[str, Any]) -> list[str]:
 
 FOXGLOVE_MODES = {"no_viewer": "recording, no viewer", "in_container": "viewer through the in-container bridge",
                   "out_of_process": "viewer through a bridge process over DDS",
-                  "stalled": "in-container bridge, plus a second client stalled"}
+                  "stalled": "in-container bridge, plus a second client stalled",
+                  "video": "viewer of the video channels (H.264, 640 px, 10 Hz) through the in-container bridge"}
 
 
 def drop_reasons(run: dict[str, Any]) -> str:

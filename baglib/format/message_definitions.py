@@ -8,7 +8,6 @@ its output exactly, because ``rosbags`` recomputes the RIHS01 type hash from the
 """
 from __future__ import annotations
 
-import importlib
 import importlib.util
 import json
 import re
@@ -29,7 +28,6 @@ __all__ = [
 ]
 
 #: A ROS package name (also a Python module name, so safe to look up with importlib).
-_PACKAGE_NAME = re.compile(r"[a-z][a-z0-9_]*")
 #: The line rosbag2 puts between the root definition and each dependency.
 _SEPARATOR = "=" * 80 + "\n"
 
@@ -83,13 +81,27 @@ def _share_directories(package: str) -> tuple[Path, ...]:
         candidates.append(Path(get_package_share_directory(package)))
     except (ImportError, LookupError, OSError, ValueError):
         pass
-    candidates.append(Path(sys.prefix) / "share" / package)
-    # An editable install of this project's own interfaces (srv/build_interfaces.py): build/interfaces/share
-    # beside the build/interfaces/python the package is imported from.
-    spec = importlib.util.find_spec(package) if _PACKAGE_NAME.fullmatch(package) else None
-    if spec is not None and spec.origin:
-        candidates.append(Path(spec.origin).resolve().parents[2] / "share" / package)
-    return tuple(dict.fromkeys(candidates))
+    fallback = Path(sys.prefix) / "share" / package
+    if fallback not in candidates:
+        candidates.append(fallback)
+    built = _built_share_directory(package)
+    if built is not None and built not in candidates:
+        candidates.append(built)
+    return tuple(candidates)
+
+
+def _built_share_directory(package: str) -> Path | None:
+    """The share folder beside an interface package that this project builds (srv/build_interfaces.py writes
+    ``build/interfaces/python/<pkg>`` and ``build/interfaces/share/<pkg>``): an editable install (``make setup``,
+    ``pip install -e``) imports the package from there and installs no ``share`` data."""
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or spec.origin is None:
+        return None
+    python_dir = Path(spec.origin).parent.parent
+    return python_dir.parent / "share" / package if python_dir.name == "python" else None
 
 
 def _find_file(package: str, folder: str, name: str, extension: str) -> Path | None:

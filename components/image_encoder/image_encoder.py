@@ -116,7 +116,7 @@ class ImageEncoder(ComponentNode):
         publisher = self.create_publisher(msg_type, self.output_topic(topic), OUTPUT_QOS)
         stream = EncodeStream(topic, self._choice, self._width,
                               functools.partial(self._publish, self.output_topic(topic), publisher),
-                              lambda: _subscriber_count(publisher), self.get_logger().error)
+                              self.get_logger().error, subscribers=lambda: _subscriber_count(publisher))
         self._streams[topic] = stream
         # Inline: the driver's publish() only appends a reference to the stream's mailbox (never blocks).
         self.create_subscription(Image, topic, stream.offer, qos_profile_sensor_data, intra_process_inline=True)
