@@ -26,7 +26,7 @@ import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from container_process import Containers, SharedContainer  # noqa: E402
-from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env  # noqa: E402
+from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env, seed_interfaces  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -60,15 +60,18 @@ def containers(probe: Node) -> Iterator[Containers]:
 @pytest.fixture(scope="session")
 def installed_env(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> InstalledEnv:
     """The project's wheel, built once per test run from a clean copy of the tree and installed non-editable
-    into an environment of its own (see tests/installed.py). With pytest-xdist the first worker to ask builds
-    it under a lock; the others reuse it."""
+    into an environment of its own (see tests/installed.py), reusing the interfaces the editable install
+    compiled when their inputs are the same. With pytest-xdist the first worker to ask builds it under a lock;
+    the others reuse it."""
     shared = tmp_path_factory.getbasetemp() if worker_id == "master" else tmp_path_factory.getbasetemp().parent
     root = shared / "installed"
     with open(shared / "installed.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (root / "ready").exists():
             root.mkdir(exist_ok=True)
-            wheel = build_wheel(clean_copy(REPO, root / "src"), root / "wheels")
+            source = clean_copy(REPO, root / "src")
+            seed_interfaces(REPO, source)
+            wheel = build_wheel(source, root / "wheels")
             env = make_env(root / "env")
             env.install(wheel)
             (root / "ready").write_text(wheel.name)
