@@ -5,10 +5,11 @@ processes the tests start (which inherit the environment) all share the one priv
 """
 from __future__ import annotations
 
+import faulthandler
 import fcntl
 import os
 import random
-from typing import Iterator
+from typing import Generator, Iterator
 
 import pytest
 
@@ -27,6 +28,30 @@ from rclpy.node import Node  # noqa: E402
 
 from container_process import Containers, SharedContainer  # noqa: E402
 from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env, seed_interfaces  # noqa: E402
+
+
+#: Seconds past pytest-timeout's limit (``timeout`` in pyproject.toml) after which a test's process is ended.
+HARD_TIMEOUT_MARGIN = 60.0
+_stderr = pytest.StashKey[int]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.stash[_stderr] = os.dup(2)  # the terminal, not a test's captured output (capture is suspended here)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, None, None]:
+    """pytest-timeout fails a test that overruns by raising in its main thread, which cannot happen while that
+    thread is stuck in C code that holds the GIL (a deadlock inside rclpy or the middleware). faulthandler's
+    watchdog is a C thread: it prints every thread's stack to the terminal and ends the process, and
+    pytest-xdist reports the test as crashing its worker and goes on with a new one."""
+    limit = float(item.config.getini("timeout") or 0)
+    if limit > 0:
+        faulthandler.dump_traceback_later(limit + HARD_TIMEOUT_MARGIN, exit=True, file=item.config.stash[_stderr])
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.fixture(scope="module")
