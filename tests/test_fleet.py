@@ -43,7 +43,7 @@ RIG = [
 ]
 SEQUENCED = {"/camera/image_raw": "sensor_msgs/msg/Image", "/lidar/points": "sensor_msgs/msg/PointCloud2",
              "/imu/imu": "sensor_msgs/msg/Imu"}
-RECORD_SECONDS = 20.0
+RECORD_SECONDS = 10.0
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
