@@ -54,6 +54,14 @@ def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, None, None]:
         faulthandler.cancel_dump_traceback_later()
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``long`` first, the rest in their order: pytest-xdist hands tests out in this order, so the
+    long ones start while the short ones fill the other workers, rather than one of them keeping a worker busy
+    after all the others have finished. Only tests with fixtures of their own are marked (a module fixture
+    would be set up again on the worker that runs the rest of its module)."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+
+
 @pytest.fixture(scope="module")
 def ros() -> Iterator[None]:
     """The default context: ContainerClient and rclpy.spin_once use the global executor."""
