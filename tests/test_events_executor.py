@@ -366,8 +366,8 @@ def test_a_stop_while_the_thread_gathers_its_wait_set_ends_the_thread(harness: H
 
     rclpy's ``Executor.shutdown()`` destroys the guard condition that wakes the wait set; a thread that had
     already taken it into the set it was gathering waited without it, forever (nothing else of this node
-    becomes ready), holding the handles of the node's entities while the node was destroyed under it: the
-    intermittent hang of test_intra_process's executor-model test, at ``destroy_node``."""
+    becomes ready), holding the handles of the node's entities while the node was destroyed under it (found
+    while looking for an intermittent hang of test_intra_process's executor-model test at ``destroy_node``)."""
     node = harness.node("held", ipc=True)
     subscription = node.create_subscription(String, "nobody_publishes_here", lambda _m: None, 10)
     harness.executor.add(node)
