@@ -1,6 +1,8 @@
 # Fresh-machine entry points: `make demo` and `make test` create .venv, install the project (building the
-# srv/ interfaces with the system C compiler) and run. Every ROS run is isolated: a random ROS_DOMAIN_ID
-# and discovery limited to localhost.
+# srv/ interfaces with the system C compiler) and run. Every ROS run is isolated: a random ROS_DOMAIN_ID and
+# discovery limited to localhost. The build requirements go into .venv first and the project is built there
+# (no isolated build environment): the ROS wheels are installed once, and the wheel the tests build from a clean
+# copy reuses the interfaces compiled here (srv/build_interfaces.py compares their inputs.sha256).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -12,7 +14,9 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 $(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -c 'import tomllib; print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["build-system"]["requires"]))' \
+		| $(BIN)/python -m pip install -q -r /dev/stdin
+	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
 	touch $(STAMP)
 
 setup: $(STAMP)

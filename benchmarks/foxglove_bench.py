@@ -11,12 +11,14 @@ files kept, so a run needs little disk), and Foxglove's own client (tests/foxglo
   watching both cameras at full rate;
 * ``out_of_process``: the same component in a second container process without intra-process comms (a Python
   bridge over DDS, the same SDK), one client watching both cameras;
-* ``stalled``: as ``in_container`` with a second client that stops reading (SIGSTOP) for the whole window.
+* ``stalled``: as ``in_container`` with a second client that stops reading (SIGSTOP) for the whole window;
+* ``video``: as ``in_container``, the client watching both cameras' video channels (``<image>/video``: H.264 at
+  the bridge's defaults, 640 px wide at 10 Hz) instead of the raw frames.
 
 Measured over each window (the same length in every mode): CPU seconds per second of the rig's container (and
 of the bridge's process and the viewers), the recorder's drops and their reasons, the frames each client
 decoded and the gaps in their sequence numbers, and for a stalled client what the bridge handed to its outbox
-against what it got.
+against what it got; for video, the messages received and the encoder's counts.
 
     python benchmarks/foxglove_bench.py [--seconds 30] [--modes ...] [--quick]
 
@@ -46,8 +48,9 @@ from benchmarks.result_folder import add_run_arguments, run_header, save, work_d
 from ipc_testing import ContainerProcess, call, wait_until  # noqa: E402
 from ipc_testing.foxglove_client import FoxgloveClient, bridge_url, gaps, install_client  # noqa: E402
 
-MODES = ("no_viewer", "in_container", "out_of_process", "stalled")
+MODES = ("no_viewer", "in_container", "out_of_process", "stalled", "video")
 CAMERAS = ["/front_camera/image_raw", "/rear_camera/image_raw"]
+VIDEOS = [f"{camera}/video" for camera in CAMERAS]
 RIG = REPO / "examples" / "sensors.yaml"
 
 
@@ -59,7 +62,7 @@ def load_file(workdir: Path, mode: str) -> Path:
                        "parameters": {"record.topics": topics, "storage.uri": str(workdir / "bag"),
                                       "storage.max_bagfile_size": 1 << 30, "storage.max_bag_files": 2},
                        "extra_arguments": {"use_intra_process_comms": True}})
-    if mode in ("in_container", "stalled"):
+    if mode in ("in_container", "stalled", "video"):
         components.append(bridge_component(True))
     path = workdir / f"{mode}.yaml"
     path.write_text(yaml.safe_dump({"components": components}))
@@ -68,7 +71,7 @@ def load_file(workdir: Path, mode: str) -> Path:
 
 def bridge_component(intra_process: bool) -> dict[str, Any]:
     return {"package": "components", "plugin": "components::FoxgloveBridge", "name": "foxglove_bridge",
-            "parameters": {"port": 0, "topic_whitelist": CAMERAS},
+            "parameters": {"port": 0, "topic_whitelist": [*CAMERAS, *VIDEOS]},
             "extra_arguments": {"use_intra_process_comms": intra_process}}
 
 
@@ -113,11 +116,17 @@ class Rig:
         url = bridge_url(served.output)
         for _ in range(2 if self.mode == "stalled" else 1):
             viewer = FoxgloveClient(url)
-            viewer.subscribe(*CAMERAS)
+            viewer.subscribe(*self.topics)
             self.viewers.append(viewer)
         for viewer in self.viewers:
-            for topic in CAMERAS:
-                viewer.wait_messages(topic, 10, timeout=60.0)
+            for topic in self.topics:
+                if not wait_until(lambda: messages(viewer, topic) >= 10, 60.0):
+                    raise RuntimeError(f"the viewer got no messages of {topic}: {viewer.events[-3:]}")
+
+    @property
+    def topics(self) -> list[str]:
+        """The channels the viewers watch."""
+        return VIDEOS if self.mode == "video" else CAMERAS
 
     def pids(self) -> dict[str, int]:
         pids = {"container": self.container.pid}
@@ -152,14 +161,14 @@ def run_mode(mode: str, node: Node, seconds: float, workdir: Path) -> dict[str, 
         if mode == "stalled":
             rig.viewers[1].pause()
         pids = rig.pids()
-        frames_before = [{t: len(v.sequences(t)) for t in CAMERAS} for v in rig.viewers]
+        frames_before = [{t: messages(v, t) for t in rig.topics} for v in rig.viewers]
         before, recorder_before, rss_before = ({k: cpu_seconds(p) for k, p in pids.items()}, recorder_topics(node),
                                                rss_mb(rig.container.pid))
         started = time.monotonic()
         time.sleep(seconds)
         after, elapsed = {k: cpu_seconds(p) for k, p in pids.items()}, time.monotonic() - started
         recorder_after, rss_after = recorder_topics(node), rss_mb(rig.container.pid)
-        frames_after = [{t: len(v.sequences(t)) for t in CAMERAS} for v in rig.viewers]
+        frames_after = [{t: messages(v, t) for t in rig.topics} for v in rig.viewers]
         result: dict[str, Any] = {
             "cpu_per_s": {k: (after[k] - before[k]) / elapsed for k in pids},
             "container_rss_mb": [rss_before, rss_after],
@@ -169,8 +178,8 @@ def run_mode(mode: str, node: Node, seconds: float, workdir: Path) -> dict[str, 
             "viewers": [viewer_figures(v, a, b, elapsed) for v, a, b in zip(rig.viewers, frames_before, frames_after)]}
         if mode != "no_viewer":
             channels = trigger_json(node, "/foxglove_bridge/get_stats")["channels"]
-            result["bridge"] = {t: {k: channels[t][k] for k in ("received", "sent", "dropped", "throttled")}
-                                for t in CAMERAS}
+            figures = ("received", "sent", "sent_bytes", "dropped", "throttled", "encoder")
+            result["bridge"] = {t: {k: channels[t][k] for k in figures if k in channels[t]} for t in rig.topics}
         if mode == "stalled":
             result["stalled"] = stalled_figures(rig, node)
         return result
@@ -178,10 +187,16 @@ def run_mode(mode: str, node: Node, seconds: float, workdir: Path) -> dict[str, 
         rig.close()
 
 
+def messages(viewer: FoxgloveClient, topic: str) -> int:
+    return len(viewer.of("message", lambda e: e["topic"] == topic))
+
+
 def viewer_figures(viewer: FoxgloveClient, before: dict[str, int], after: dict[str, int],
                    elapsed: float) -> dict[str, Any]:
+    """Messages a second per channel; gaps in the drivers' sequence numbers (raw frames; video has none)."""
     return {topic: {"fps": (after[topic] - before[topic]) / elapsed,
-                    "gaps": gaps(viewer.sequences(topic)[before[topic]:after[topic]])} for topic in CAMERAS}
+                    "gaps": gaps(viewer.sequences(topic)[before[topic]:after[topic]]) if topic in CAMERAS else 0}
+            for topic in before}
 
 
 def stalled_figures(rig: Rig, node: Node) -> dict[str, Any]:

@@ -78,23 +78,24 @@ def s1_table(record: dict[str, Any]) -> list[str]:
             continue
         lat = e.get("latency_ms") or {}
         rows.append([label, str(e["published"]), str(e["recorded"]), f"{e['lost_pct']:.2f} %", fmt(e["mb_per_s"]),
-                     fmt(e["total_cpu_s"], ".2f"), fmt(e.get("total_cpu_s_per_gb"), ".2f"), rss_text(e),
+                     fmt(e["total_cpu_s"], ".2f"), fmt(e.get("total_cpu_s_per_gb"), ".2f"),
+                     fmt(e.get("recorder_cpu_s_per_gb"), ".2f"), rss_text(e),
                      f"{fmt(lat.get('p50'))} / {fmt(lat.get('p99'))} ms"])
     if measured(s1.get("drivers")):
-        rows.append(["drivers only", "", "", "", "", fmt(s1["drivers"]["total_cpu_s"], ".2f"), "",
+        rows.append(["drivers only", "", "", "", "", fmt(s1["drivers"]["total_cpu_s"], ".2f"), "", "",
                      rss_text(s1["drivers"]), ""])
     if measured(s1.get("ceiling")):
         c = s1["ceiling"]
         rows.append(["ceiling (buffered)", "", "", "", fmt(c["mb_per_s"]), fmt(c["total_cpu_s"], ".2f"),
-                     fmt(c["total_cpu_s_per_gb"], ".2f"), "", ""])
+                     fmt(c["total_cpu_s_per_gb"], ".2f"), "", "", ""])
     if not rows:
         raise Missing("no S1 mode measured")
     if measured(record.get("direct_write")):
         d = record["direct_write"]
         rows.append(["direct-write limit (O_DIRECT)", "", "", "", fmt(d["mb_per_s"]), "", fmt(d["cpu_s_per_gb"], ".2f"),
-                     "", ""])
-    return markdown(["mode", "published", "recorded", "lost", "MB/s", "total CPU s", "CPU s per GB", "peak RSS",
-                     "receive-to-write p50 / p99"], rows)
+                     "", "", ""])
+    return markdown(["mode", "published", "recorded", "lost", "MB/s", "total CPU s", "CPU s per GB",
+                     "recorder's own CPU s per GB", "peak RSS", "receive-to-write p50 / p99"], rows)
 
 
 def s2_table(record: dict[str, Any]) -> list[str]:
@@ -210,6 +211,8 @@ def headline_table(record: dict[str, Any]) -> list[str]:
                      "recorder in its own process (DDS)"],
                     [["messages lost", lost(ipc), lost(dds)],
                      ["CPU per GB recorded", *(f"{fmt(e.get('total_cpu_s_per_gb'), '.2f')} s" for e in (ipc, dds))],
+                     ["of which the recorder's own (what it costs beside your drivers)",
+                      *(f"{fmt(e.get('recorder_cpu_s_per_gb'), '.2f')} s" for e in (ipc, dds))],
                      ["receive-to-write latency p99",
                       *(f"{fmt((e.get('latency_ms') or {}).get('p99'))} ms" for e in (ipc, dds))],
                      [f"{camera} cameras recorded without loss (S2 ramp)", cameras("ipc"), cameras("dds")]])
@@ -291,7 +294,8 @@ def merge_table(merge: dict[str, Any]) -> list[str]:
 
 FOXGLOVE_MODES = {"no_viewer": "recording, no viewer", "in_container": "viewer through the in-container bridge",
                   "out_of_process": "viewer through a bridge process over DDS",
-                  "stalled": "in-container bridge, plus a second client stalled"}
+                  "stalled": "in-container bridge, plus a second client stalled",
+                  "video": "viewer of the video channels (H.264, 640 px, 10 Hz) through the in-container bridge"}
 
 
 def drop_reasons(run: dict[str, Any]) -> str:

@@ -10,6 +10,7 @@ these two pieces do not.
 from __future__ import annotations
 
 import threading
+import time
 import weakref
 from collections import Counter
 from typing import Any, Callable
@@ -25,6 +26,8 @@ ErrorHandler = Callable[[Node, BaseException], None]
 FatalHandler = Callable[[str, BaseException], None]
 #: How long removing a node waits for its running callbacks unless the caller says otherwise.
 DRAIN_TIMEOUT = 5.0
+#: How often stopping a spinning thread wakes it again while it has not left.
+WAKE_INTERVAL = 0.05
 #: InvalidHandle errors in a row, from the executor's own wait-set code, that still count as unload races.
 TRANSIENT_INVALID_HANDLES = 100
 
@@ -90,14 +93,19 @@ class SpinThread:
             self._on_fatal(self.name, exc)
 
     def run_executor(self) -> None:
-        """rclpy's ``spin()``, except for one race it does not guard against: the executor gathers its wait set
-        from a snapshot of its nodes, so a node removed and destroyed on another thread (an unload) in between
-        makes ``wait_for_ready_callbacks`` raise InvalidHandle, outside any callback. The next wait set no
-        longer holds that node, so the error is transient; only a run of them is a real failure."""
+        """rclpy's ``spin()``, with two differences.
+
+        * A wake-up that finds the thread told to stop ends the wait (``spin_once()`` itself goes back to
+          waiting when a wake-up brings no work): one call of rclpy's ``spin_until_future_complete`` loop, with
+          :meth:`_stop_requested` as its condition.
+        * One race rclpy does not guard against: the executor gathers its wait set from a snapshot of its
+          nodes, so a node removed and destroyed on another thread (an unload) in between makes
+          ``wait_for_ready_callbacks`` raise InvalidHandle, outside any callback. The next wait set no longer
+          holds that node, so the error is transient; only a run of them is a real failure."""
         in_a_row = 0
         while self.executor.context.ok() and not self._stopping:
             try:
-                self.executor.spin_once()
+                self.executor._spin_once_impl(None, self._stop_requested)
             except InvalidHandle:
                 in_a_row += 1
                 if in_a_row > TRANSIENT_INVALID_HANDLES:
@@ -105,8 +113,29 @@ class SpinThread:
             else:
                 in_a_row = 0
 
+    def _stop_requested(self) -> bool:
+        return self._stopping
+
     def stop(self, timeout: float) -> None:
-        """Shut the executor down and wait up to ``timeout`` s for the thread."""
+        """Stop the thread, then shut the executor down; ``timeout`` s at most in all.
+
+        The thread is told to stop and woken (again every ``WAKE_INTERVAL``, in case it was inside a callback)
+        while the executor still runs, and the executor is shut down only once the thread has left, or when the
+        time is up (a callback that never returns). Shutting rclpy's executor down first strands the thread:
+        ``shutdown()`` destroys the guard condition that wakes the wait set, so a thread that had gathered its
+        next wait set (the guard taken, not yet entered) waits without it, forever if no entity of its nodes
+        becomes ready, with every one of their handles in use while the nodes are destroyed. A wake-up of the
+        live guard condition is kept until a wait takes it, so it cannot be lost that way."""
         self._stopping = True
-        self.executor.shutdown(timeout_sec=timeout)
-        self.thread.join(timeout)
+        deadline = time.monotonic() + timeout
+        while True:
+            self.interrupt()
+            self.thread.join(max(0.0, min(WAKE_INTERVAL, deadline - time.monotonic())))
+            if not self.thread.is_alive() or time.monotonic() >= deadline:
+                break
+        self.executor.shutdown(timeout_sec=max(0.0, deadline - time.monotonic()))
+        self.thread.join(max(0.0, deadline - time.monotonic()))
+
+    def interrupt(self) -> None:
+        """Make the spinning thread return to its loop (where it sees ``_stopping``) soon."""
+        self.executor.wake()

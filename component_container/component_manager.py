@@ -6,6 +6,7 @@ This module is the load path: a request is validated (component_options), its pl
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -59,6 +60,7 @@ class LoadedComponent:
     full_name: str  # taken at load: a component that destroyed its own node can no longer say it
     logger_level_set: bool = False
     warning: str = ""  # what the loader should know although the load succeeded (undeclared parameters)
+    owner: int = 0  # the component that loaded this one (ComponentNode.load_owned_component); 0: a request
 
 
 @dataclass
@@ -180,8 +182,12 @@ class ComponentManager(Node):
         return response
 
     # --- the load path -----------------------------------------------------------------------------------
-    def load(self, request: LoadNode.Request) -> LoadedComponent:
-        """Construct the requested component and start executing it; raises with the caller's message."""
+    def load(self, request: LoadNode.Request, owner: int = 0) -> LoadedComponent:
+        """Construct the requested component and start executing it; raises with the caller's message.
+
+        ``owner``: the unique id of the component that asked for this one from its constructor (see
+        :meth:`ComponentNode.load_owned_component`); an owned component is unloaded with its owner, first.
+        """
         if self.exit_request.requested:
             raise LoadRequestError(f"The container is shutting down ({self.exit_request.reason}): load refused")
         node_class = self._registry.resolve(request.package_name, request.plugin_name)
@@ -204,14 +210,17 @@ class ComponentManager(Node):
         node = node_class.__new__(node_class)
         node.shutdown_timeout = self.shutdown_timeout
         node.bag_root = self.bag_root
+        if isinstance(node, ComponentNode):
+            node.component_loader = functools.partial(self._load_owned, unique_id)
         try:
             node.__init__(**kwargs)
         except COMPONENT_ERRORS as exc:  # a component's constructor may raise anything; report it, stay up
+            self._unload_owned(unique_id)
             _destroy_partially_constructed(node)
             raise ComponentConstructionError(f"Component constructor threw an exception: {exc}") from exc
         try:
             loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name,
-                                     node.get_fully_qualified_name(), options.log_level is not None)
+                                     node.get_fully_qualified_name(), options.log_level is not None, owner=owner)
             undeclared = undeclared_parameters(node, (p.name for p in request.parameters))
             if undeclared:
                 loaded.warning = warning_text(loaded.full_name, undeclared)
@@ -225,9 +234,24 @@ class ComponentManager(Node):
             with self._lock:
                 self._components.pop(unique_id, None)
             self._executor.remove(node, 0.0)
+            self._unload_owned(unique_id)
             _destroy_partially_constructed(node)
             raise ComponentConstructionError(f"Component could not be started: {exc}") from exc
         return loaded
+
+    def _load_owned(self, owner: int, request: LoadNode.Request) -> Node:
+        """A component's own load of another (from its constructor): listed like any, unloaded with it."""
+        return self.load(request, owner).node
+
+    def _unload_owned(self, owner: int, timeout: float | None = None) -> None:
+        """Tear down what component ``owner`` loaded, newest first (its own load failed or it is unloading),
+        within ``timeout`` in all (default: ``shutdown_timeout``)."""
+        deadline = time.monotonic() + (self.shutdown_timeout if timeout is None else timeout)
+        with self._lock:
+            owned = [self._components.pop(uid) for uid in sorted(self._components, reverse=True)
+                     if self._components[uid].owner == owner]
+        for loaded in owned:
+            self._teardown(loaded, max(0.0, deadline - time.monotonic()))
 
     # --- the unload path ---------------------------------------------------------------------------------
     def unload(self, unique_id: int, timeout: float | None = None) -> UnloadResult:
@@ -246,6 +270,7 @@ class ComponentManager(Node):
 
     def _teardown(self, loaded: LoadedComponent, timeout: float) -> UnloadResult:
         deadline = time.monotonic() + timeout
+        self._unload_owned(loaded.unique_id, timeout / 2)  # first: what it loaded may still deliver to it
         self.get_logger().info(f"Unloading {loaded.full_name} (id {loaded.unique_id})")
         if not self._executor.remove(loaded.node, timeout):
             self.get_logger().warning(f"{loaded.full_name}: callbacks still running after {timeout:.1f} s; "

@@ -54,6 +54,10 @@ class ComponentNode(Node):
     #: path a component takes from a request or a service call goes through :meth:`resolve_path`.
     bag_root: pathlib.Path | None = None
 
+    #: Set by the container at load, before ``__init__`` runs: loads a LoadNode request as a component owned by
+    #: this one (see :meth:`load_owned_component`). None outside a container.
+    component_loader: Callable[[Any], Node] | None = None
+
     def __init__(self, node_name: str, *, intra_process_manager: IntraProcessManager | None = None,
                  **kwargs: Any) -> None:
         self._ipm = intra_process_manager
@@ -78,6 +82,15 @@ class ComponentNode(Node):
         symlinks) raises ValueError naming ``parameter``: the load service answers anyone on the ROS domain.
         """
         return pathlib.Path(value) if self.bag_root is None else confine(self.bag_root, parameter, value)
+
+    def load_owned_component(self, request: Any) -> Node:
+        """Load another component (a ``composition_interfaces/LoadNode`` request) into this container, as the
+        load service would: listed by ListNodes, run by the container's executor, in its intra-process manager.
+        It is unloaded with this one, before it. ValueError outside a container; the container's
+        ComponentConstructionError (or LoadRequestError) when the request fails."""
+        if self.component_loader is None:
+            raise ValueError(f"{request.plugin_name} can only be loaded by a component running in a container")
+        return self.component_loader(request)
 
     def has_local_publisher(self, topic: str) -> bool:
         """Whether a component of this container publishes ``topic`` (resolved name) through intra-process."""

@@ -459,6 +459,11 @@ class EventsSpinThread(SpinThread):
     """Spins a SupervisedEventsExecutor in slices (its ``spin()`` without a timeout does not work in 7.1.6)."""
 
     def run_executor(self) -> None:
-        never = Future()
         while self.executor.context.ok() and not self._stopping:
-            self.executor.spin_until_future_complete(never, timeout_sec=SPIN_SLICE)
+            # A new future for each slice: each call adds a done callback to the future it is given.
+            self.executor.spin_until_future_complete(Future(), timeout_sec=SPIN_SLICE)
+
+    def interrupt(self) -> None:
+        """End the current slice at once: ``shutdown(0)`` stops the C++ event loop without waiting for it (with
+        a timeout it would wait holding the GIL, which a callback still running needs to return)."""
+        self.executor.shutdown(timeout_sec=0.0)

@@ -83,6 +83,12 @@ def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse
             "storage.custom_data": [f"{key}={value}" for key, value in custom.items()]}
     if args.max_duration:
         ours["record.max_duration"] = float(args.max_duration)
+    if args.compress:
+        ours["record.compress"] = args.compress
+    if args.compress_regex:
+        ours["record.compress_regex"] = args.compress_regex
+    if args.max_rates:
+        ours["record.max_rates"] = list(args.max_rates)
     if not names & set(SELECTION):
         ours["record.all_topics"] = True
     clash = names & set(ours)
@@ -335,6 +341,13 @@ def add_record_parser(verbs: Any) -> Any:
                    help="every recorder stops this long after the start even if no stop reaches it")
     p.add_argument("--all-or-nothing", action="store_true",
                    help="abort (and unload what was loaded) unless every container records")
+    p.add_argument("--compress", metavar="CODEC",
+                   help="record image topics compressed: jpeg, png, h264, h265, av1 or an FFmpeg encoder name; "
+                        "each recorder loads an ImageEncoder beside it (record.compress)")
+    p.add_argument("--compress-regex", metavar="REGEX",
+                   help="the image topics to compress (default: every sensor_msgs/msg/Image topic)")
+    p.add_argument("--max-rates", nargs="+", metavar="TOPIC_OR_REGEX:RATE",
+                   help="per-topic rate limits in messages per second (record.max_rates), e.g. '/lidar.*:2'")
     p.add_argument("-p", "--parameter", action="append", dest="parameters",
                    help="a recorder parameter, in the 'name:=value' form")
     p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")

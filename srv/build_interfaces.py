@@ -17,6 +17,8 @@ Every folder ``srv/<pkg>/`` with ``srv/*.srv`` and ``msg/*.msg`` files is one pa
 """
 from __future__ import annotations
 
+import hashlib
+import importlib.metadata
 import inspect
 import logging
 import os
@@ -30,6 +32,8 @@ from dataclasses import dataclass, field
 
 SRV_ROOT = pathlib.Path(__file__).resolve().parent
 TYPESUPPORTS = ("c", "fastrtps_c", "introspection_c")
+#: The file in a build folder that names the inputs of the complete build it holds (see :func:`build_all`).
+STAMP = "inputs.sha256"
 logging.getLogger("rosidl_cli").setLevel(logging.ERROR)  # silence the wheels' duplicate entry point warnings
 
 
@@ -222,9 +226,48 @@ def _install_share(package: str, work: pathlib.Path, build_dir: pathlib.Path) ->
                 shutil.copy2(f, share / sub / f.name)
 
 
+def inputs_digest() -> str:
+    """A digest of everything a build's output depends on: the files under srv/ (definitions and this script),
+    the Python (its version and extension suffix), the compilers named by $CC/$CXX, and the versions of the
+    ROS wheels and numpy the code is generated from and compiled against."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in SRV_ROOT.rglob("*") if p.is_file() and "__pycache__" not in p.parts):
+        digest.update(f"{path.relative_to(SRV_ROOT).as_posix()}\0".encode())
+        digest.update(path.read_bytes())
+    distributions = sorted({f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions()
+                            if d.metadata["Name"].lower().startswith(("ros", "numpy"))})
+    for item in (sys.version, sysconfig.get_config_var("EXT_SUFFIX"), os.environ.get("CC", "gcc"),
+                 os.environ.get("CXX", "g++"), str(_ros_prefix()), *distributions):
+        digest.update(f"{item}\0".encode())
+    return digest.hexdigest()
+
+
+def _already_built(build_dir: pathlib.Path, digest: str) -> list[BuiltPackage] | None:
+    """The packages in ``build_dir`` if a build of exactly these inputs completed there, else None."""
+    stamp = build_dir / STAMP
+    if not stamp.is_file() or stamp.read_text().strip() != digest:
+        return None
+    built = []
+    for package in interface_packages():
+        python_package = build_dir / "python" / package
+        if not (python_package / "__init__.py").is_file():
+            return None
+        built.append(BuiltPackage(package, python_package, sorted(python_package.glob("lib*.so"))))
+    return built
+
+
 def build_all(build_dir: pathlib.Path) -> list[BuiltPackage]:
-    """Build every interface package under srv/ into ``build_dir``."""
-    return [build_package(p, build_dir) for p in interface_packages()]
+    """Build every interface package under srv/ into ``build_dir``, unless a completed build of the same inputs
+    (:func:`inputs_digest`) is already there: an editable install followed by a wheel build, or a clean copy
+    given the tree's finished ``build/interfaces``, then compiles once."""
+    digest = inputs_digest()
+    built = _already_built(build_dir, digest)
+    if built is not None:
+        return built
+    (build_dir / STAMP).unlink(missing_ok=True)  # a build that stops halfway must not look complete
+    built = [build_package(p, build_dir) for p in interface_packages()]
+    (build_dir / STAMP).write_text(digest + "\n")
+    return built
 
 
 if __name__ == "__main__":

@@ -5,10 +5,11 @@ processes the tests start (which inherit the environment) all share the one priv
 """
 from __future__ import annotations
 
+import faulthandler
 import fcntl
 import os
 import random
-from typing import Iterator
+from typing import Generator, Iterator
 
 import pytest
 
@@ -26,7 +27,39 @@ import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from container_process import Containers, SharedContainer  # noqa: E402
-from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env  # noqa: E402
+from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env, seed_interfaces  # noqa: E402
+
+
+#: Seconds past pytest-timeout's limit (``timeout`` in pyproject.toml) after which a test's process is ended.
+HARD_TIMEOUT_MARGIN = 60.0
+_stderr = pytest.StashKey[int]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.stash[_stderr] = os.dup(2)  # the terminal, not a test's captured output (capture is suspended here)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, None, None]:
+    """pytest-timeout fails a test that overruns by raising in its main thread, which cannot happen while that
+    thread is stuck in C code that holds the GIL (a deadlock inside rclpy or the middleware). faulthandler's
+    watchdog is a C thread: it prints every thread's stack to the terminal and ends the process, and
+    pytest-xdist reports the test as crashing its worker and goes on with a new one."""
+    limit = float(item.config.getini("timeout") or 0)
+    if limit > 0:
+        faulthandler.dump_traceback_later(limit + HARD_TIMEOUT_MARGIN, exit=True, file=item.config.stash[_stderr])
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``long`` first, the rest in their order: pytest-xdist hands tests out in this order, so the
+    long ones start while the short ones fill the other workers, rather than one of them keeping a worker busy
+    after all the others have finished. Only tests with fixtures of their own are marked (a module fixture
+    would be set up again on the worker that runs the rest of its module)."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
 
 
 @pytest.fixture(scope="module")
@@ -60,15 +93,18 @@ def containers(probe: Node) -> Iterator[Containers]:
 @pytest.fixture(scope="session")
 def installed_env(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> InstalledEnv:
     """The project's wheel, built once per test run from a clean copy of the tree and installed non-editable
-    into an environment of its own (see tests/installed.py). With pytest-xdist the first worker to ask builds
-    it under a lock; the others reuse it."""
+    into an environment of its own (see tests/installed.py), reusing the interfaces the editable install
+    compiled when their inputs are the same. With pytest-xdist the first worker to ask builds it under a lock;
+    the others reuse it."""
     shared = tmp_path_factory.getbasetemp() if worker_id == "master" else tmp_path_factory.getbasetemp().parent
     root = shared / "installed"
     with open(shared / "installed.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (root / "ready").exists():
             root.mkdir(exist_ok=True)
-            wheel = build_wheel(clean_copy(REPO, root / "src"), root / "wheels")
+            source = clean_copy(REPO, root / "src")
+            seed_interfaces(REPO, source)
+            wheel = build_wheel(source, root / "wheels")
             env = make_env(root / "env")
             env.install(wheel)
             (root / "ready").write_text(wheel.name)

@@ -25,7 +25,6 @@ from rclpy.serialization import serialize_message
 from rosbag2_interfaces.srv import Resume
 from sensor_msgs.msg import CompressedImage, Image
 
-from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.write.writer import BagWriter
 from component_container.component_manager import ComponentConstructionError, ComponentManager
@@ -46,15 +45,6 @@ RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 CLI = str(Path(sys.executable).with_name("ipc-component"))
 #: Decoded against the raw frames (the codecs' defaults gave 38-41 dB here): the issue's target for H.264.
 MIN_PSNR_DB = 36.0
-REPO = Path(__file__).resolve().parents[1]
-
-
-def video_definition() -> tuple[str, str]:
-    """CompressedVideo's definition from srv/ (a development install does not put foxglove_msgs' share folder
-    where baglib looks for it)."""
-    text = (REPO / "srv" / "foxglove_msgs" / "msg" / "CompressedVideo.msg").read_text()
-    time = message_definition("builtin_interfaces/msg/Time")[1]
-    return "ros2msg", f"{text}\n{'=' * 80}\nMSG: builtin_interfaces/Time\n{time}"
 
 
 def program(name: str) -> str:
@@ -85,7 +75,7 @@ class CompressedBag:
         jpeg = codecs.StillCodec(codecs.choose("jpeg", "", -1, 0, KEYFRAME_INTERVAL), 0)
         with BagWriter(path) as writer:
             writer.add_topic(TopicInfo(VIDEO, "foxglove_msgs/msg/CompressedVideo",
-                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]), video_definition())
+                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
             writer.add_topic(TopicInfo(STILLS, "sensor_msgs/msg/CompressedImage",
                                        offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
             if raw_topic:

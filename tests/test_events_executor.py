@@ -19,6 +19,7 @@ import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -331,3 +332,70 @@ def test_events_thread_sleeps_when_idle_and_stops_within_the_timeout(harness: Ha
     harness.executor.shutdown(2.0)
     assert not any(thread.is_alive() for thread in harness.executor.threads()), "still running after 2 s"
     assert not harness.fatal
+
+
+class HeldGuardCondition(GuardCondition):
+    """A guard condition that holds the first thread other than the test's to read its handle until
+    :meth:`release`. An executor reads a guard condition's handle first when it enters the handles of the wait
+    set it has just gathered, after it took its own guard condition into that set: holding the thread there is
+    a preemption at that moment, made certain."""
+
+    def __init__(self, node: Node) -> None:
+        super().__init__(None, node.default_callback_group, context=node.context)
+        self.reached = threading.Event()
+        self._released = threading.Event()
+        self._main = threading.current_thread()
+        node.default_callback_group.add_entity(self)
+        node._guards.append(self)  # as Node.create_guard_condition does, with this class
+
+    @property
+    def handle(self) -> Any:
+        if threading.current_thread() is not self._main and not self.reached.is_set():
+            self.reached.set()
+            self._released.wait(10.0)
+        return super().handle
+
+    def release(self) -> None:
+        self._released.set()
+
+
+@pytest.mark.parametrize("harness", ["single", "multi", "isolated"], indirect=True)
+def test_a_stop_while_the_thread_gathers_its_wait_set_ends_the_thread(harness: Harness) -> None:
+    """Stopping a wait-set executor ends its thread even when the stop lands while that thread gathers its next
+    wait set, and then nothing holds the node's entities any more: destroying the node destroys them at once.
+
+    rclpy's ``Executor.shutdown()`` destroys the guard condition that wakes the wait set; a thread that had
+    already taken it into the set it was gathering waited without it, forever (nothing else of this node
+    becomes ready), holding the handles of the node's entities while the node was destroyed under it (found
+    while looking for an intermittent hang of test_intra_process's executor-model test at ``destroy_node``)."""
+    node = harness.node("held", ipc=True)
+    subscription = node.create_subscription(String, "nobody_publishes_here", lambda _m: None, 10)
+    harness.executor.add(node)
+    held = HeldGuardCondition(node)
+    node._wake_executor()  # the executor gathers a wait set that holds the new guard condition
+    (thread,) = harness.executor.threads()
+    try:
+        assert held.reached.wait(10.0), "the executor never gathered a wait set with the guard condition"
+        stopping = threading.Thread(target=harness.executor.shutdown, args=(5.0,))
+        stopping.start()
+        # Let a stop that shuts rclpy's executor down first do so while the thread is held (it does at once); a
+        # stop that waits for the thread first is still waiting when this gives up.
+        wait_for(lambda: thread.is_alive() and _rclpy_executor_shut_down(harness, node), timeout=0.5)
+        held.release()
+        stopping.join(10.0)
+        assert not stopping.is_alive()
+        assert not thread.is_alive(), "the executor thread still waits after its executor was stopped"
+        node.destroy_node()
+        assert subscription.handle.pointer == 0, "something still holds the subscription of a destroyed node"
+    finally:
+        held.release()
+        if thread.is_alive():  # left waiting (the failure above): woken, so that it does not outlive the test
+            held.trigger()
+            thread.join(5.0)
+    assert not harness.fatal and not harness.failed()
+
+
+def _rclpy_executor_shut_down(harness: Harness, node: Node) -> bool:
+    """Whether the rclpy executor running ``node`` has been shut down (its guard condition destroyed)."""
+    executor = node.executor
+    return executor is not None and executor._guard is None

@@ -43,7 +43,7 @@ RIG = [
 ]
 SEQUENCED = {"/camera/image_raw": "sensor_msgs/msg/Image", "/lidar/points": "sensor_msgs/msg/PointCloud2",
              "/imu/imu": "sensor_msgs/msg/Imu"}
-RECORD_SECONDS = 20.0
+RECORD_SECONDS = 10.0
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
@@ -117,6 +117,7 @@ def _wait_for_containers(fleet: Fleet, deadline: float) -> None:
         assert time.monotonic() < deadline, f"containers not listed: {listing.stdout}{listing.stderr}"
 
 
+@pytest.mark.long
 def test_three_hosts_record_one_window_exactly_through_a_partition(fleet: Fleet) -> None:
     for host in HOSTS:
         fleet.start_container(host)

@@ -63,6 +63,7 @@ def sequences(bag: Path, topic: str = "") -> list[tuple[int, int]]:
                 for c, t, data in reader.messages(connections=imu)]
 
 
+@pytest.mark.long
 def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tmp_path: Path) -> None:
     os.kill(rig["fb"].pid, signal.SIGSTOP)  # a hung computer: it answers nothing, not even discovery
     both = ("/fa/container", "/fb/container")
@@ -91,6 +92,7 @@ def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tm
     assert not (tmp_path / "fb" / "partial").exists(), "a recorder was loaded into the stopped container"
 
 
+@pytest.mark.long
 def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Path) -> None:
     started = cli("record", "start", "/fa/container", "/fb/container", "--session", "crash", "--in", "0.5",
                   "-p", "storage.flush_interval:=0.5")  # named: other tests' containers share this domain

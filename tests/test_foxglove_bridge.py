@@ -8,6 +8,7 @@ What the drivers publish is known: their sequence numbers (first 8 bytes of Imag
 """
 from __future__ import annotations
 
+import base64
 import json
 import socket
 import time
@@ -23,8 +24,10 @@ from std_srvs.srv import Trigger
 
 from baglib.format.message_definitions import service_definitions
 from components.foxglove_bridge.channel_queue import MAX_QUEUED_BYTES, ChannelQueue
+from components.foxglove_bridge.video_feed import StampRateLimit
 
 from container_process import recorder_stats
+from ffmpeg_tools import probe_h264
 from ipc_testing.foxglove_client import FoxgloveClient, bridge_url, gaps, install_client
 from ipc_testing import ContainerClient, ContainerProcess, call, wait_until
 
@@ -33,6 +36,7 @@ IPC = {"use_intra_process_comms": True}
 CAMERA = "/camera/image_raw"
 IMU = "/imu/imu"
 EXT_IMU = "/ext_imu/imu"
+VIDEO = f"{CAMERA}/video"
 
 
 def rig_file(path: Path, components: list[tuple[str, str, dict[str, Any], bool]]) -> Path:
@@ -227,7 +231,7 @@ def test_rate_limit_and_topic_whitelist(rig, probe: Node) -> None:
         with FoxgloveClient(url) as client:
             client.wait_for("advertise", lambda e: any(c["topic"] == IMU for c in e["channels"]))
             topics = {c["topic"] for e in client.of("advertise") for c in e["channels"]}
-            assert topics == {CAMERA, "/camera/camera_info", IMU}
+            assert topics == {CAMERA, "/camera/camera_info", IMU, VIDEO}
             client.subscribe(CAMERA, IMU)
             client.wait_messages(CAMERA, 2)
             began, first = time.monotonic(), len(client.sequences(CAMERA))
@@ -239,6 +243,97 @@ def test_rate_limit_and_topic_whitelist(rig, probe: Node) -> None:
             assert stats[CAMERA]["throttled"] > 0 and stats[IMU]["throttled"] == 0
     finally:
         assert rig[1].unload(unique_id).success
+
+
+# --- video channels -----------------------------------------------------------------------------------------
+def video_payloads(client: FoxgloveClient) -> list[bytes]:
+    return [base64.b64decode(e["data"]) for e in client.of("message", lambda e: e["topic"] == VIDEO)]
+
+
+def is_keyframe(payload: bytes) -> bool:
+    """Whether ffprobe reads one access unit as a keyframe (with its parameter sets: it decodes on its own)."""
+    return any("K" in packet["flags"] for packet in probe_h264(payload)["packets"])
+
+
+def test_video_channel_is_h264_at_the_configured_width_and_rate_encoded_only_while_watched(
+        rig, probe: Node, tmp_path: Path) -> None:
+    """The camera (640x480, 30 Hz) as H.264 video: nothing encoded before a client subscribes; the subscriber's
+    payloads, concatenated, decode with ffprobe at 320 px wide, starting at a keyframe, at most 10 frames per
+    second of the messages' stamps; a client joining later gets a keyframe at once; after the unsubscribe no
+    message reaches the client and nothing is encoded; the recorder beside it loses nothing."""
+    process, container = rig
+    recorder = load(container, "components::Recorder", "video_recorder",
+                    {"record.topics": [CAMERA], "storage.uri": str(tmp_path / "bag")})
+    unique_id, url = load_bridge(rig, **{"video.max_width": 320, "video.max_rate": 10.0})
+
+    def camera_received() -> int:
+        return recorder_stats(probe, "/video_recorder")["current"]["topics"].get(CAMERA, {}).get("received", 0)
+
+    def video_stats() -> dict[str, Any]:
+        return trigger_json(probe, "/foxglove_bridge/get_stats")["channels"].get(VIDEO, {})
+
+    def camera_advances() -> None:
+        """A second of camera frames reaches the recorder (the condition the idle checks wait on)."""
+        start = camera_received()
+        assert wait_until(lambda: camera_received() >= start + 30, 20.0), "the camera stopped"
+
+    try:
+        with FoxgloveClient(url) as viewer:
+            advertised = viewer.wait_for("advertise", lambda e: any(c["topic"] == VIDEO for c in e["channels"]))
+            channel = next(c for c in advertised["channels"] if c["topic"] == VIDEO)
+            assert (channel["schemaName"], channel["encoding"], channel["schemaEncoding"]) == (
+                "foxglove_msgs/msg/CompressedVideo", "cdr", "ros2msg")
+            camera_advances()
+            assert video_stats() == {} and bridge_subscriptions(probe, CAMERA) == 0, "encoding without a client"
+
+            viewer.subscribe(VIDEO)
+            assert wait_until(lambda: len(video_payloads(viewer)) >= 20, 30.0), viewer.events[-3:]
+            events = viewer.of("message", lambda e: e["topic"] == VIDEO)
+            payloads = video_payloads(viewer)
+            report = probe_h264(b"".join(payloads))
+            assert (report["stream"]["width"], report["stream"]["height"]) == (320, 240)
+            assert int(report["stream"]["nb_read_frames"]) == len(payloads) and report["errors"] == ""
+            assert len(report["packets"]) == len(payloads) and "K" in report["packets"][0]["flags"]
+            assert {e["format"] for e in events} == {"h264"}
+            stamps = [sec * 10**9 + nanosec for sec, nanosec in (e["stamp"] for e in events)]
+            assert stamps == sorted(set(stamps))
+            assert (len(stamps) - 1) * 100_000_000 <= stamps[-1] - stamps[0], "more than 10 frames a second"
+
+            with FoxgloveClient(url) as late:
+                late.subscribe(VIDEO)
+                assert wait_until(lambda: len(video_payloads(late)) >= 3, 20.0), late.events[-3:]
+                joined = video_payloads(late)
+            # The SDK enrols a client before it tells the bridge: a frame sent in between may come first, and
+            # the keyframe the bridge asks for then follows at once.
+            first_key = next(i for i, payload in enumerate(joined) if is_keyframe(payload))
+            assert first_key <= 1, [is_keyframe(payload) for payload in joined]
+            assert int(probe_h264(b"".join(joined[first_key:]))["stream"]["nb_read_frames"]) == len(joined) - first_key
+
+            viewer.unsubscribe(VIDEO)
+            assert wait_until(lambda: bridge_subscriptions(probe, CAMERA) == 0, 10.0, probe), "still subscribed"
+            assert wait_until(lambda: video_stats()["clients"] == [], 10.0)
+            before, strays = video_stats(), len(viewer.of("stray"))
+            assert before["encoder"]["running"] == 0
+            camera_advances()
+            after = video_stats()
+            assert (after["sent"], after["encoder"]) == (before["sent"], before["encoder"]), "encoded unwatched"
+            assert len(viewer.of("stray")) == strays, "messages after the unsubscribe"
+            assert before["dropped"] == before["encoder"]["skipped"] + before["encoder"]["rejected"]
+            assert viewer.of("error") == []
+        counts = recorder_stats(probe, "/video_recorder")["current"]["topics"][CAMERA]
+        assert counts["dropped"] == 0 and counts["queue_dropped"] == 0 and counts["received"] > 0, counts
+    finally:
+        assert container.unload(unique_id).success
+        assert container.unload(recorder).success
+
+
+def test_stamp_rate_limit_admits_at_most_the_rate_and_restarts_when_stamps_go_back() -> None:
+    limit = StampRateLimit(10.0)
+    period = 33_333_333  # a 30 Hz camera
+    admitted = [i for i in range(300) if limit.admit(10**9 + i * period)]
+    assert 90 <= len(admitted) <= 100 and all(b - a >= 3 for a, b in zip(admitted, admitted[1:]))
+    assert limit.admit(10**9)  # a bag played again from its start
+    assert not limit.admit(10**9 + period)
 
 
 # --- parameters, graph, time ------------------------------------------------------------------------------
@@ -349,6 +444,10 @@ def free_port() -> int:
     ({"rate_limits": [".*=0"]}, "must be in [0.01, 10000] Hz"),
     ({"topic_whitelist": ["("]}, "parameter 'topic_whitelist': '(' is not a valid regular expression"),
     ({"message_backlog_size": 0}, "parameter 'message_backlog_size' must be in [1, 4096] messages"),
+    ({"video.codec": "jpeg"}, "parameter 'video.codec': 'jpeg' is a still codec"),
+    ({"video.codec": "nocodec"}, "parameter 'video.codec': 'nocodec' is neither"),
+    ({"video.quality": 99}, "parameter 'video.quality' (CRF) must be in [0, 51]"),
+    ({"video.max_rate": -1.0}, "parameter 'video.max_rate' must be 0 (every frame) or in [0.01, 1000] Hz"),
 ])
 def test_bad_parameters_are_load_errors(rig, parameters: dict[str, Any], message: str) -> None:
     response = rig[1].load("components::FoxgloveBridge", name="bad_bridge", parameters={"port": 0, **parameters})

@@ -86,6 +86,7 @@ def run_fuzz(probe: Node, fuzz_node: Node, workdir: pathlib.Path, seed: int, req
     assert scene.escaped(TMP) == tmp_before, f"seed {seed}: written outside the bag root (/tmp)"
 
 
+@pytest.mark.long
 def test_random_requests_of_a_fixed_seed_leave_the_container_healthy(probe: Node, fuzz_node: Node,
                                                                      tmp_path: pathlib.Path) -> None:
     seed = int(os.environ.get("IPC_FUZZ_SEED") or DEFAULT_SEED)

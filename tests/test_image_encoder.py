@@ -8,7 +8,6 @@ they see every message without an executor.
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import threading
 from typing import Any, Iterator
@@ -28,19 +27,12 @@ from component_container.health import DROPPED
 from component_container.startup_file import load_request
 from components.image_encoder import codecs
 from components.sensor_driver import stamp_from_ns
+from ffmpeg_tools import ffmpeg
 from ipc_testing import call, in_process_manager, wait_until
 
 WIDTH, HEIGHT = 320, 240
 SOURCE = "/enc_test/image"
 IPC = {"use_intra_process_comms": True}
-
-
-def ffmpeg() -> str:
-    """The ffmpeg program; the tests fail (never skip) without it: .ci/run installs Debian's package."""
-    path = shutil.which("ffmpeg")
-    if path is None:
-        pytest.fail("the ffmpeg command-line program is missing: `apt-get install -y ffmpeg` (.ci/run does this)")
-    return path
 
 
 def decode(data: bytes, demuxer: str, width: int, height: int) -> np.ndarray:

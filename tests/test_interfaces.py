@@ -4,9 +4,11 @@ and rosbag2_interfaces must import and work between two rclpy nodes.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import pathlib
+import shutil
 import sys
 import threading
 import time
@@ -61,6 +63,31 @@ def _installed_share_dirs() -> list[pathlib.Path]:
     candidates = [pathlib.Path(sys.prefix) / "share",
                   pathlib.Path(composition_interfaces.__file__).resolve().parents[2] / "share"]
     return [c for c in candidates if (c / "composition_interfaces" / "srv").is_dir()]
+
+
+def test_a_build_is_reused_only_for_the_same_inputs(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The interfaces this venv's editable install compiled are reused for a wheel build (what the packaging
+    tests do with a clean copy) only while the definitions, the build script and the toolchain are the same."""
+    monkeypatch.syspath_prepend(str(REPO / "srv"))  # as setup.py imports it
+    script = importlib.import_module("build_interfaces")
+    built = REPO / "build" / "interfaces"
+    if not (built / script.STAMP).is_file():
+        pytest.skip("this venv's interfaces were not built from this tree (no editable install)")
+    copy = tmp_path / "interfaces"
+    shutil.copytree(built, copy, ignore=shutil.ignore_patterns("work"))
+    reused = script.build_all(copy)
+    assert not (copy / "work").exists()  # nothing was generated or compiled again
+    assert [package.name for package in reused] == script.interface_packages()
+    assert all(package.libraries for package in reused)
+
+    srv = shutil.copytree(REPO / "srv", tmp_path / "srv", ignore=shutil.ignore_patterns("__pycache__"))
+    unchanged = script.inputs_digest()
+    monkeypatch.setattr(script, "SRV_ROOT", srv)
+    assert script.inputs_digest() == unchanged
+    definition = srv / "composition_interfaces" / "srv" / "ListNodes.srv"
+    definition.write_text(definition.read_text() + "\n# a changed definition\n")
+    assert script.inputs_digest() != unchanged
+    assert script._already_built(copy, script.inputs_digest()) is None  # so build_all compiles again
 
 
 # --- composition_interfaces: type descriptions and hashes ---------------------------------------------------

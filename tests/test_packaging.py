@@ -12,6 +12,7 @@ import tomllib
 import zipfile
 from pathlib import Path
 
+import pytest
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -87,6 +88,7 @@ def test_installed_commands_and_modules_come_from_the_wheel(installed_env: Insta
     assert "usage: ipc-component bag play" in help_text.stdout
 
 
+@pytest.mark.long
 def test_installed_container_loads_every_registered_plugin(installed_env: InstalledEnv) -> None:
     container = subprocess.Popen([str(installed_env.python), "-m", "component_container", "--bag-root",
                                   str(installed_env.root), "--ros-args", "-r", "__node:=installed"],

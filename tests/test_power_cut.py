@@ -306,7 +306,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory, worker_id: str):
     with open(shared / "power_cut_capture.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         directory.mkdir(exist_ok=True)
-        return load_capture(directory, list(CONFIGS.values()), seconds=4.0, camera=(128, 96))
+        return load_capture(directory, list(CONFIGS.values()), seconds=2.0, camera=(128, 96))
 
 
 @needs_strace

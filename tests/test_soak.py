@@ -83,6 +83,7 @@ def test_accounting_counts_the_players_publications() -> None:
     assert accounted(clean_union(), published=0)["lost"] > 0  # a player that never played
 
 
+@pytest.mark.long
 def test_short_soak_loses_nothing_and_leaves_nothing_behind(tmp_path: pathlib.Path) -> None:
     report_path = tmp_path / "soak.json"
     done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "soak.py"), "--short", "--results", "",

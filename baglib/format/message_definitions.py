@@ -8,7 +8,7 @@ its output exactly, because ``rosbags`` recomputes the RIHS01 type hash from the
 """
 from __future__ import annotations
 
-import importlib
+import importlib.util
 import json
 import re
 import sys
@@ -27,6 +27,7 @@ __all__ = [
     "type_hash_of_definition",
 ]
 
+#: A ROS package name (also a Python module name, so safe to look up with importlib).
 #: The line rosbag2 puts between the root definition and each dependency.
 _SEPARATOR = "=" * 80 + "\n"
 
@@ -71,7 +72,7 @@ def _share_directories(package: str) -> tuple[Path, ...]:
 
     The ament index knows packages installed anywhere on ``AMENT_PREFIX_PATH``; interface packages
     installed from PyPI wheels are not indexed there (often the variable is not even set), but
-    always live in this interpreter's ``share`` folder.
+    always live in this interpreter's ``share`` folder; an editable install's in its build tree.
     """
     candidates: list[Path] = []
     try:
@@ -83,7 +84,24 @@ def _share_directories(package: str) -> tuple[Path, ...]:
     fallback = Path(sys.prefix) / "share" / package
     if fallback not in candidates:
         candidates.append(fallback)
+    built = _built_share_directory(package)
+    if built is not None and built not in candidates:
+        candidates.append(built)
     return tuple(candidates)
+
+
+def _built_share_directory(package: str) -> Path | None:
+    """The share folder beside an interface package that this project builds (srv/build_interfaces.py writes
+    ``build/interfaces/python/<pkg>`` and ``build/interfaces/share/<pkg>``): an editable install (``make setup``,
+    ``pip install -e``) imports the package from there and installs no ``share`` data."""
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or spec.origin is None:
+        return None
+    python_dir = Path(spec.origin).parent.parent
+    return python_dir.parent / "share" / package if python_dir.name == "python" else None
 
 
 def _find_file(package: str, folder: str, name: str, extension: str) -> Path | None:

@@ -326,13 +326,15 @@ class BagWriter:
             self._file_counts[info.name] = 0
 
     def write(
-        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int
+        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int, split: bool | None = None
     ) -> None:
         """Write one CDR-serialized message (with its 4-byte encapsulation header).
 
         ``log_time_ns`` is the receive time (bag order, splitting, metadata times);
-        ``publish_time_ns`` the source time. Splits first if the current file is full. ``data`` may be reused
-        after the call, unless the writer gathers writes (``gather_bytes``).
+        ``publish_time_ns`` the source time. ``split``: None splits first if the current file is full, True
+        splits first (unless the file is empty), False never (a caller that chooses where files begin, see
+        :meth:`split_due`). ``data`` may be reused after the call, unless the writer gathers writes
+        (``gather_bytes``).
 
         Raises:
             KeyError: the topic was not added.
@@ -343,7 +345,7 @@ class BagWriter:
             if topic not in self._topics:
                 raise KeyError(f"unknown topic {topic!r}: add_topic() it first")
             self._settle_background()
-            if self._split_due(log_time_ns):
+            if self._split_due(log_time_ns) if split is None else (split and self._file_first_ns is not None):
                 self._split()
             assert self._storage is not None
             try:
@@ -357,6 +359,11 @@ class BagWriter:
                 self._file_last_ns = log_time_ns
             if self._prepared is None and self._split_near(log_time_ns):
                 self._prepare_next()
+
+    def split_due(self, log_time_ns: int) -> bool:
+        """Whether a message received at ``log_time_ns`` would go to a new file (the current one is full)."""
+        with self._lock:
+            return self._storage is not None and self._split_due(log_time_ns)
 
     def split(self) -> None:
         """Close the current file (complete with its summary, listed in ``metadata.yaml`` on return) and

@@ -20,24 +20,28 @@ def total_us_per_msg(entry: dict[str, Any]) -> float:
 
 
 def apply_recorder_cpu(results: dict[str, Any]) -> None:
-    """The recorder's own CPU: ``dds``: the recorder process; ``ipc``: ipc total minus drivers-only total.
+    """The recorder's own CPU: ``dds``: the recorder process; ``ipc`` and ``split``: their total minus the
+    drivers-only total. That is what a user whose drivers are already running pays for recording.
 
     The subtraction assumes the drivers cost the same with and without the recorder next to them; the rclpy
     executor's per-wake overhead shrinks when it is busier, so it can come out below the bag writer thread's
     own CPU (which the recorder certainly spent): then the writer thread is the estimate (``..._best``).
     """
-    ipc, drivers = results.get("ipc"), results.get("drivers")
-    if good(ipc) and good(drivers):
-        scale = ipc["window_s"] / drivers["window_s"]
-        ipc["recorder_cpu_s"] = ipc["total_cpu_s"] - drivers["total_cpu_s"] * scale
-        ipc["recorder_cpu_note"] = "ipc total minus drivers-only total"
-        writer = ipc.get("writer_thread_cpu_s")
-        ipc["recorder_cpu_subtraction_below_writer"] = writer is not None and ipc["recorder_cpu_s"] < writer
-        ipc["recorder_cpu_best_s"] = max(ipc["recorder_cpu_s"], writer or 0.0)
+    drivers = results.get("drivers")
+    for mode in IPC_MODES:
+        entry = results.get(mode)
+        if not good(entry) or not good(drivers):
+            continue
+        scale = entry["window_s"] / drivers["window_s"]
+        entry["recorder_cpu_s"] = entry["total_cpu_s"] - drivers["total_cpu_s"] * scale
+        entry["recorder_cpu_note"] = f"{mode} total minus drivers-only total"
+        writer = entry.get("writer_thread_cpu_s")
+        entry["recorder_cpu_subtraction_below_writer"] = writer is not None and entry["recorder_cpu_s"] < writer
+        entry["recorder_cpu_best_s"] = max(entry["recorder_cpu_s"], writer or 0.0)
     dds = results.get("dds")
     if good(dds) and dds.get("recorder_cpu_s") is not None:
         dds["recorder_cpu_best_s"] = dds["recorder_cpu_s"]
-    for mode in ("ipc", "dds"):
+    for mode in (*IPC_MODES, "dds"):
         entry = results.get(mode)
         if not good(entry) or entry.get("recorder_cpu_s") is None:
             continue

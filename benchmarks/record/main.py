@@ -19,6 +19,7 @@ from benchmarks.record.bench import Bench, guarded
 from benchmarks.record.disk import DIRECT_BLOCK, run_ceiling, run_direct_write
 from benchmarks.record.figures import (apply_direct_share, apply_recorder_cpu, good, repeat_summary,
                                        s2_repeat_summary)
+from benchmarks.record.measure import machine_identity
 from benchmarks.record.modes import run_baseline, run_drivers_only, run_recorder_mode
 from benchmarks.record.report import plot, print_report
 from benchmarks.record.scenarios import RECORDER_MODES, s1_scenario, s2_scenario, s3_scenario
@@ -248,7 +249,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     report: dict[str, Any] = {**run_header("record_bench.py", argv),
                               "config": {k: v for k, v in vars(args).items() if not k.endswith("_set")},
                               "environment": {"ros_domain_id": os.environ["ROS_DOMAIN_ID"], "cpus": os.cpu_count(),
-                                              "python": sys.version.split()[0], "workdir": str(workdir),
+                                              "python": sys.version.split()[0], **machine_identity(),
+                                              "workdir": str(workdir),
                                               "loadavg_start": os.getloadavg()}}
     started = time.monotonic()
     rclpy.init(args=["record_bench"])

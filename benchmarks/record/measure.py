@@ -38,6 +38,17 @@ def cpu_seconds(pid: int) -> float:
     return sum(cpu_times(pid))
 
 
+def machine_identity() -> dict[str, str]:
+    """The CPU model and kernel release: absolute CPU times compare only between runs on the same machine."""
+    model = "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            model = next((line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name")), model)
+    except OSError:
+        pass
+    return {"cpu_model": model, "kernel": os.uname().release}
+
+
 def machine_busy_seconds() -> float:
     """CPU time all CPUs of the machine spent busy (user, nice, system, irq, softirq, steal), in seconds."""
     with open("/proc/stat") as stat:

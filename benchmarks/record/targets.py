@@ -8,11 +8,14 @@ a mode that failed, a ramp capped before the recorder lost anything).
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any, Optional
 
 from benchmarks.record.figures import good, total_us_per_msg
+from benchmarks.record.previous import compare, find_previous, machine
 from benchmarks.record.report import fmt
 from benchmarks.record.scenarios import PUBLISH_RATE_OK
+from benchmarks.result_folder import RESULTS
 
 DEFAULT_CACHE = 100 * 1024 * 1024  # rosbag2's storage.max_cache_size default
 S1_CPU_RATIO = 0.5            # S1: ipc total CPU per GB at most half of dds's
@@ -195,10 +198,35 @@ def repeat_targets(repeat: dict[str, Any], args: argparse.Namespace, targets: Ta
                     + ", ".join(fmt(r, ".2f") for r in ratios))
 
 
+def previous_target(report: dict[str, Any], results: Path, targets: Targets) -> None:
+    """No S1 CPU figure worse than in the previous result file of the same rig by more than the noise
+    (benchmarks.record.previous)."""
+    name = "S1 CPU figures no worse than the previous result of the same rig, beyond the --repeat noise"
+    if not good((report.get("S1") or {}).get("ipc")):
+        targets.add(name, None, "S1 ipc not measured")
+        return
+    found = find_previous(results, report)
+    if found is None:
+        targets.add(name, None, f"no earlier S1 result of the same rig under {results}")
+        return
+    path, previous = found
+    changes = compare(report, previous)
+    where = (f"previous: {path.parent.name} (code at {previous.get('git', {}).get('commit', '?')}, "
+             f"{previous.get('command', '?')})")
+    if machine(report) != machine(previous):
+        where += f"; machines differ: {machine(previous)} then, {machine(report)} now"
+    if not changes:
+        targets.add(name, None, f"no figure in common with the {where}")
+        return
+    targets.add(name, not any(change.worse for change in changes),
+                "; ".join(change.text() for change in changes) + f"; {where}")
+
+
 def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
     targets = Targets()
     s1 = report.get("S1") or {}
     s1_targets(s1, args, targets)
+    previous_target(report, Path(args.results) if args.results else RESULTS, targets)
     if s1.get("repeat"):
         repeat_targets(s1["repeat"], args, targets)
     s2_targets(report.get("S2"), targets)

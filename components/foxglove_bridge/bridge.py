@@ -10,7 +10,8 @@ raw CDR.
 What a client sees: every topic of the graph as a channel (``cdr``, schema ``ros2msg``, see
 channel_registry), kept current at ``polling_interval``; the parameters of the graph's nodes
 (ros_parameters); the graph's services, called with CDR (ros_services); the connection graph (graph_view);
-with ``use_sim_time``, ``/clock`` as the server's time.
+with ``use_sim_time``, ``/clock`` as the server's time; each image topic also as video, encoded in the bridge
+while a client watches (video_feed).
 ``~/get_stats`` (std_srvs/Trigger) answers the counts per channel as JSON; ``/diagnostics`` shows them too.
 
 A slow client never slows the container: each channel's queue in the bridge is bounded (newest kept, drops
@@ -31,7 +32,7 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
-from component_container.health import OK, WARN, Health
+from component_container.health import DROPPED, OK, WARN, Health
 from components.foxglove_bridge.bridge_options import BridgeOptions, declare_options
 from components.foxglove_bridge.channel_registry import ChannelRegistry
 from components.foxglove_bridge.executor_work import WorkQueue
@@ -149,8 +150,9 @@ class FoxgloveBridge(ComponentNode):
             dropped = stats["dropped"] - self._reported_drops.get(topic, 0)
             if dropped > 0:
                 self._reported_drops[topic] = stats["dropped"]
-                self._warn(f"Dropped {dropped} messages of {topic}: the bridge's thread fell behind "
-                           f"({stats['dropped']} in all)")
+                reason = ("its encoder skipped them (it fell behind, or held them back for a client's keyframe)"
+                          if "encoder" in stats else "the bridge's thread fell behind")
+                self._warn(f"Dropped {dropped} messages of {topic}: {reason} ({stats['dropped']} in all)")
 
     def _on_clock(self, message: Clock) -> None:
         stamp = message.clock.sec * 1_000_000_000 + message.clock.nanosec
@@ -164,7 +166,8 @@ class FoxgloveBridge(ComponentNode):
 
     # --- reporting ------------------------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
-        """Per channel with traffic or clients: clients, received, sent, dropped, throttled, per-client counts."""
+        """Per channel with traffic or clients: clients, received, sent, dropped, throttled, per-client counts;
+        a video channel's encoder counts too."""
         return {"url": self.url, "subscriptions": self._topic_subscriptions.topics, "channels": self._registry.stats()}
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -172,16 +175,19 @@ class FoxgloveBridge(ComponentNode):
         return response
 
     def health(self) -> Health:
-        """For /diagnostics: WARN while the bridge's queues drop messages, OK otherwise."""
+        """For /diagnostics: WARN while the bridge's queues (or a video channel's encoder) drop messages, OK
+        otherwise; ``dropped`` in all, which ``ipc-component top`` shows."""
         channels = self._registry.stats()
         drops = sum(c["dropped"] for c in channels.values())
         new_drops, self._health_drops = drops - self._health_drops, drops
         clients = sorted({client for c in channels.values() for client in c["clients"]})
         values = {"url": self.url, "channels": str(len(self._registry.channels())),
-                  "clients subscribed": ", ".join(map(str, clients)) or "none"}
+                  "clients subscribed": ", ".join(map(str, clients)) or "none", DROPPED: str(drops)}
         for topic, c in sorted(channels.items()):
             values[topic] = (f"clients {len(c['clients'])}, received {c['received']}, sent {c['sent']}, "
                              f"dropped {c['dropped']}, throttled {c['throttled']}")
+            if "encoder" in c:
+                values[topic] += ", encoder " + ", ".join(f"{name} {count}" for name, count in c["encoder"].items())
             for client, sent in sorted(c["sent_to"].items()):
                 values[f"{topic} -> client {client}"] = f"sent {sent}"
         if new_drops:

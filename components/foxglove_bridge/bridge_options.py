@@ -22,6 +22,12 @@
                                                 connection graph)
 ``use_sim_time``            False               (rclpy's) also: send ``/clock`` to clients as the server
                                                 time, so a replay plays in Foxglove
+``video.codec``             ``'h264'``          each Image topic is also offered as ``<image>/video``
+                                                (foxglove_msgs/CompressedVideo) in this codec (h264, h265,
+                                                av1 or an FFmpeg encoder name); ``''``: no video channels
+``video.max_width``         640                 pixels; wider images are scaled down (0: the image's width)
+``video.max_rate``          10.0                frames a second, by the images' stamps (0: every frame)
+``video.quality``           -1                  the codec's CRF (-1: its default, image_encoder.codecs)
 ==========================  ==================  ==========================================================
 
 Every number is checked against a range (the load service answers anyone on the ROS domain): a value outside
@@ -37,6 +43,7 @@ from typing import Any
 from rclpy.node import Node
 
 from components.bounds import Bounds
+from components.image_encoder.codecs import STILLS, VIDEO_ENCODERS, CodecChoice, check_codec, choose
 from components.node_parameters import clean, declare_defaults
 
 DEFAULTS: dict[str, Any] = {
@@ -51,6 +58,10 @@ DEFAULTS: dict[str, Any] = {
     "message_backlog_size": 32,
     "rate_limits": [""],
     "polling_interval": 1.0,
+    "video.codec": "h264",
+    "video.max_width": 640,
+    "video.max_rate": 10.0,
+    "video.quality": -1,
 }
 
 PORT = Bounds(0, 65535)
@@ -59,6 +70,11 @@ QOS_DEPTH = Bounds(1, 1000, "messages")
 BACKLOG = Bounds(1, 4096, "messages")
 RATE_LIMIT = Bounds(0.01, 10000.0, "Hz")
 POLLING_INTERVAL = Bounds(0.05, 60.0, "s")
+VIDEO_WIDTH = Bounds(2, 16384, "pixels")
+VIDEO_RATE = Bounds(0.01, 1000.0, "Hz")
+#: Frames between two keyframes of a video channel (3 s at 10 Hz): what a client that lost a frame in its
+#: outbox waits at most for a clean picture (a client that joins gets a keyframe at once).
+VIDEO_KEYFRAME_INTERVAL = 30
 
 
 @dataclass(frozen=True)
@@ -67,6 +83,15 @@ class RateLimit:
 
     pattern: re.Pattern[str]
     hz: float
+
+
+@dataclass(frozen=True)
+class VideoOptions:
+    """How the video channels encode: the codec, at most ``max_width`` pixels wide and ``max_rate`` Hz."""
+
+    choice: CodecChoice
+    max_width: int
+    max_rate: float
 
 
 @dataclass(frozen=True)
@@ -82,6 +107,7 @@ class BridgeOptions:
     message_backlog_size: int
     rate_limits: tuple[RateLimit, ...]
     polling_interval: float
+    video: VideoOptions | None  # None: no video channels
 
     def rate_limit(self, topic: str) -> float:
         """The rate cap of ``topic`` in Hz; 0 for none."""
@@ -124,7 +150,22 @@ def declare_options(node: Node) -> BridgeOptions:
         include_hidden=values["include_hidden"], min_qos_depth=values["min_qos_depth"],
         max_qos_depth=values["max_qos_depth"], message_backlog_size=values["message_backlog_size"],
         rate_limits=tuple(_rate_limit(entry) for entry in clean(values["rate_limits"])),
-        polling_interval=values["polling_interval"])
+        polling_interval=values["polling_interval"], video=_video(values))
+
+
+def _video(values: dict[str, Any]) -> VideoOptions | None:
+    """The video channels' settings, the codec opened once (an encoder the machine lacks fails the load)."""
+    codec = values["video.codec"].strip().lower()
+    if not codec:
+        return None
+    if codec in STILLS:
+        raise ValueError(f"parameter 'video.codec': {codec!r} is a still codec; video channels take "
+                         f"{', '.join(VIDEO_ENCODERS)} or an FFmpeg video encoder name ('' for none)")
+    choice = choose(codec, "", values["video.quality"], 0, VIDEO_KEYFRAME_INTERVAL, prefix="video.")
+    check_codec(choice, prefix="video.")
+    VIDEO_WIDTH.check("'video.max_width'", values["video.max_width"], zero_means="the image's width")
+    VIDEO_RATE.check("'video.max_rate'", values["video.max_rate"], zero_means="every frame")
+    return VideoOptions(choice, values["video.max_width"], values["video.max_rate"])
 
 
 def _address(value: str) -> str:

@@ -15,18 +15,7 @@ from __future__ import annotations
 import threading
 from typing import Any, Callable
 
-from baglib.format import cdr_fast
 from components.foxglove_bridge.channel_registry import BridgeChannel
-
-
-def cdr_bytes(message: Any) -> bytes:
-    """``message`` as one CDR ``bytes`` object (what the SDK takes): DDS samples as they are."""
-    if isinstance(message, bytes):
-        return message
-    if isinstance(message, (bytearray, memoryview)):
-        return bytes(message)
-    data = cdr_fast.serialize(message)
-    return data if isinstance(data, bytes) else bytes(data)
 
 
 class Forwarder:
@@ -70,20 +59,10 @@ class Forwarder:
             return False
         message, log_time = item
         del item
-        try:
-            data = cdr_bytes(message)
-        except Exception as exc:  # noqa: BLE001 - a message that cannot be serialized costs that message only
-            channel.serialize_errors += 1
-            if channel.serialize_errors == 1:
-                self._warn(f"Cannot serialize a message of {channel.topic} ({type(exc).__name__}: {exc}); "
-                           "its messages are dropped")
-            return True
+        data = channel.serialize(message, self._warn)
         del message  # an in-process frame goes back to its publisher's ring as soon as it is serialized
-        channel.sdk.log(data, log_time=log_time)
-        channel.sent += 1
-        channel.sent_bytes += len(data)
-        for client in tuple(channel.clients):
-            channel.sent_to[client] = channel.sent_to.get(client, 0) + 1
+        if data is not None:
+            channel.send(data, log_time)
         return True
 
     def stop(self, timeout: float = 2.0) -> None:

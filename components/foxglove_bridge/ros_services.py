@@ -22,7 +22,7 @@ from rclpy.serialization import deserialize_message
 from baglib.format.message_definitions import service_definitions
 from components.foxglove_bridge.bridge_options import BridgeOptions
 from components.foxglove_bridge.executor_work import Work, WorkQueue
-from components.foxglove_bridge.forwarder import cdr_bytes
+from components.foxglove_bridge.channel_registry import cdr_bytes
 
 #: s a Foxglove service call waits for the ROS service's response
 SERVICE_TIMEOUT = 10.0

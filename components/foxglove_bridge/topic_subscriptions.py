@@ -6,7 +6,9 @@ channel_queue), and those of other processes through its DDS reader as raw CDR (
 deserialization, no second serialization). Without intra-process comms everything comes over DDS, raw.
 
 Created and destroyed on the executor (:meth:`TopicSubscriptions.apply`), from what the SDK's threads
-recorded; destroying one takes it off the ROS graph and forgets what its channel had queued.
+recorded; destroying one takes it off the ROS graph and forgets what its channel had queued. A video channel's
+subscription is to its image topic, deserialized (the encoder needs the pixels), and exists together with its
+encoder (video_feed): the encoder starts before the subscription and stops after it.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from baglib.format.message_definitions import message_class
 from component_container.component_node import ComponentNode
 from components.foxglove_bridge.bridge_options import BridgeOptions
 from components.foxglove_bridge.channel_registry import BridgeChannel, ChannelRegistry
+from components.foxglove_bridge.video_feed import IMAGE_TYPE, VideoFeed
 
 
 def subscription_qos(offered: list[QoSProfile], options: BridgeOptions) -> QoSProfile:
@@ -62,16 +65,20 @@ class TopicSubscriptions:
     def _subscribe(self, channel: BridgeChannel) -> None:
         """Subscribe; a type this process cannot subscribe with is logged once and left alone."""
         kwargs: dict[str, Any] = {"intra_process_inline": True} if self._node.uses_intra_process else {}
+        topic, type_name, raw = channel.topic, channel.type_name, True
+        if isinstance(channel.queue, VideoFeed):
+            topic, type_name, raw = channel.queue.source, IMAGE_TYPE, False
+            channel.queue.start()
         try:
             self._subscriptions[channel.topic] = self._node.create_subscription(
-                message_class(channel.type_name), channel.topic, channel.queue.offer, self.qos(channel.topic),
-                raw=True, **kwargs)
+                message_class(type_name), topic, channel.queue.offer, self.qos(topic), raw=raw, **kwargs)
         except Exception as exc:  # noqa: BLE001 - any broken installation of a type: that topic only
             self._failed.add(channel.topic)
-            self._node.get_logger().error(f"Cannot subscribe to {channel.topic} ({channel.type_name}): "
-                                          f"{type(exc).__name__}: {exc}")
+            channel.queue.clear()
+            self._node.get_logger().error(f"Cannot subscribe to {topic} ({type_name}): {type(exc).__name__}: {exc}")
             return
-        self._node.get_logger().info(f"Subscribed to {channel.topic} ({channel.type_name})")
+        self._node.get_logger().info(f"Subscribed to {topic} ({type_name}) for {channel.topic}"
+                                     if topic != channel.topic else f"Subscribed to {topic} ({type_name})")
 
     @property
     def topics(self) -> list[str]:

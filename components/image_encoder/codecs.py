@@ -67,43 +67,45 @@ class EncodeError(ValueError):
     """A frame this codec cannot take (its encoding or size); the frame is counted as rejected."""
 
 
-def choose(codec: str, preset: str, quality: int, bitrate: int, keyframe_interval: int) -> CodecChoice:
-    """Resolve and check the codec parameters; ValueError naming the parameter at fault."""
+def choose(codec: str, preset: str, quality: int, bitrate: int, keyframe_interval: int,
+           prefix: str = "") -> CodecChoice:
+    """Resolve and check the codec parameters; ValueError naming the parameter at fault (``prefix`` + name:
+    the Foxglove bridge's are ``video.codec``, ...)."""
     if codec in STILLS:
         if bitrate:
-            raise ValueError(f"parameter 'bitrate' applies to video codecs only, not to {codec!r}")
+            raise ValueError(f"parameter '{prefix}bitrate' applies to video codecs only, not to {codec!r}")
         encoder, video_format = ("simplejpeg" if codec == "jpeg" else "png"), ""
     else:
         encoder = VIDEO_ENCODERS.get(codec, codec)
         try:
             found = av.Codec(encoder, "w")
         except Exception:  # PyAV raises UnknownCodecError (and others for odd names)
-            raise ValueError(f"parameter 'codec': {codec!r} is neither jpeg, png, {', '.join(VIDEO_ENCODERS)} "
+            raise ValueError(f"parameter '{prefix}codec': {codec!r} is neither jpeg, png, {', '.join(VIDEO_ENCODERS)} "
                              "nor an FFmpeg video encoder this installation has") from None
         video_format = VIDEO_FORMATS.get(found.canonical_name, "")
         if found.type != "video" or not video_format:
-            raise ValueError(f"parameter 'codec': encoder {encoder!r} writes {found.canonical_name}, which "
+            raise ValueError(f"parameter '{prefix}codec': encoder {encoder!r} writes {found.canonical_name}, which "
                              f"foxglove_msgs/CompressedVideo cannot carry (it takes {', '.join(VIDEO_FORMATS)})")
     kind = codec if codec in QUALITY else video_format
     if quality != -1:
-        QUALITY[kind].check(f"'quality' ({'CRF' if video_format else codec})", quality)
+        QUALITY[kind].check(f"'{prefix}quality' ({'CRF' if video_format else codec})", quality)
     elif not bitrate:
         quality = DEFAULT_QUALITY[kind]
     if quality != -1 and bitrate:
-        raise ValueError("parameters 'quality' and 'bitrate': give one of them, not both")
+        raise ValueError(f"parameters '{prefix}quality' and '{prefix}bitrate': give one of them, not both")
     return CodecChoice(codec, encoder, video_format, preset or DEFAULT_PRESET.get(encoder, ""), quality, bitrate,
                        keyframe_interval)
 
 
-def check_codec(choice: CodecChoice) -> None:
+def check_codec(choice: CodecChoice, prefix: str = "") -> None:
     """Open the encoder once on a small picture: what the machine lacks fails here, at load, naming ``codec``."""
     if not choice.is_video:
         return
     try:
         VideoCodec(choice, 64, 64).close()
     except Exception as exc:  # FFmpeg's errors for a missing device, a bad preset, an option it refuses
-        raise ValueError(f"parameter 'codec' (or 'preset' {choice.preset!r}): encoder {choice.encoder!r} cannot "
-                         f"be opened on this machine: {exc}") from None
+        raise ValueError(f"parameter '{prefix}codec' (or '{prefix}preset' {choice.preset!r}): encoder "
+                         f"{choice.encoder!r} cannot be opened on this machine: {exc}") from None
 
 
 def pixels_of(image: Any) -> np.ndarray:
@@ -121,9 +123,18 @@ def pixels_of(image: Any) -> np.ndarray:
     return view if channels == 1 else view.reshape(height, width, channels)
 
 
-def scaled_size(width: int, height: int, out_width: int, even: bool) -> tuple[int, int]:
-    """The output size for ``out_width`` (0: the input's), keeping the aspect ratio; even sides for 4:2:0."""
-    if not out_width or out_width == width:
+def scaled_size(width: int, height: int, out_width: int, even: bool, at_most: bool = False) -> tuple[int, int]:
+    """The output size for ``out_width`` (0: the input's), keeping the aspect ratio; even sides for 4:2:0.
+
+    ``at_most``: ``out_width`` is a maximum (a viewer's), so a narrower image keeps its width, and an odd side
+    is rounded to even rather than refused.
+    """
+    if at_most:
+        out_width = min(out_width or width, width)
+        out_width -= out_width % 2 if even else 0
+        if out_width == width and not (even and height % 2):
+            return width, height
+    elif not out_width or out_width == width:
         if even and (width % 2 or height % 2):
             raise EncodeError(f"a {width}x{height} image has an odd side, which 4:2:0 video cannot hold; "
                               "set 'width' to an even output width")

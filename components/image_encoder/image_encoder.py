@@ -20,9 +20,10 @@ counts; skipped and rejected frames are its drops.
 """
 from __future__ import annotations
 
+import functools
 import json
 import re
-from typing import Any
+from typing import Any, Callable
 
 from foxglove_msgs.msg import CompressedVideo
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -57,6 +58,7 @@ class ImageEncoder(ComponentNode):
     def __init__(self, node_name: str = "image_encoder", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         self._streams: dict[str, EncodeStream] = {}
+        self._keyframe_listeners: list[Callable[[str, Any], None]] = []
         values = declare_defaults(self, DEFAULTS)
         self._topics = [absolute_topic(t) for t in clean(values["topics"])]
         try:
@@ -112,12 +114,34 @@ class ImageEncoder(ComponentNode):
     def _add_stream(self, topic: str) -> None:
         msg_type = CompressedVideo if self._choice.is_video else CompressedImage
         publisher = self.create_publisher(msg_type, self.output_topic(topic), OUTPUT_QOS)
-        stream = EncodeStream(topic, self._choice, self._width, publisher.publish,
-                              lambda: _subscriber_count(publisher), self.get_logger().error)
+        stream = EncodeStream(topic, self._choice, self._width,
+                              functools.partial(self._publish, self.output_topic(topic), publisher),
+                              self.get_logger().error, subscribers=lambda: _subscriber_count(publisher))
         self._streams[topic] = stream
         # Inline: the driver's publish() only appends a reference to the stream's mailbox (never blocks).
         self.create_subscription(Image, topic, stream.offer, qos_profile_sensor_data, intra_process_inline=True)
         self.get_logger().info(f"Encoding {topic} as {self._choice.codec} on {self.output_topic(topic)}")
+
+    def _publish(self, topic: str, publisher: Any, message: Any, keyframe: bool) -> None:
+        if keyframe and self._choice.is_video:
+            for listener in self._keyframe_listeners:
+                listener(topic, message)
+        publisher.publish(message)
+
+    def add_keyframe_listener(self, listener: Callable[[str, Any], None]) -> None:
+        """Call ``listener(output_topic, message)`` on the worker thread just before each video keyframe is
+        published: CompressedVideo carries no keyframe flag, and an in-process recorder that begins each file at
+        a keyframe must not parse the bitstream to find one."""
+        self._keyframe_listeners.append(listener)
+
+    def encodes(self, topic: str) -> bool:
+        """Whether ``topic`` is one of the image topics this encoder compresses (named, or matched by regex)."""
+        return topic in self._topics or (self._regex is not None and self._regex.search(topic) is not None
+                                         and not any(topic == self.output_topic(t) for t in self._streams))
+
+    @property
+    def is_video(self) -> bool:
+        return self._choice.is_video
 
     # --- services and reporting ------------------------------------------------------------------------------
     def request_keyframe(self) -> int:

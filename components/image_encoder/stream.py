@@ -8,6 +8,11 @@ frame waiting is skipped and counted: a slow encoder loses frames, it never queu
 Ownership (docs/intra-process.md): a published message belongs to its subscribers and is never mutated, so the
 worker keeps the message itself and reads its pixels through a numpy view of its own buffer, no copy. A driver
 that reuses frame buffers (components/frame_buffers.py) sees the reference and fills a fresh buffer instead.
+
+A viewer that joins a running stream (the Foxglove bridge's video channels) asks for a keyframe with
+``skip_until_keyframe``: the access units that come out before it (the frame the worker was encoding) are
+skipped and counted, so the newcomer's first message is the keyframe. The viewers already watching lose only
+that frame, which nothing after the keyframe refers to.
 """
 from __future__ import annotations
 
@@ -33,7 +38,7 @@ class StreamCounts:
 
     received: int = 0
     published: int = 0
-    skipped: int = 0    # the encoder was behind: dropped from the full mailbox
+    skipped: int = 0    # the encoder was behind (dropped from the full mailbox), or held for a keyframe
     rejected: int = 0   # the frame could not be encoded (its encoding, its size), or the encoder failed
     keyframes: int = 0
     bytes: int = 0
@@ -44,13 +49,18 @@ class StreamCounts:
 
 
 class EncodeStream:
-    """Encodes the images of one topic on a thread of its own and publishes each result with ``publish``."""
+    """Encodes the images of one topic on a thread of its own and publishes each result with
+    ``publish(message, keyframe)`` (``keyframe``: a picture that decodes on its own; every still is one)."""
 
-    def __init__(self, topic: str, choice: CodecChoice, out_width: int, publish: Callable[[Any], None],
-                 subscribers: Callable[[], int], log_error: Callable[[str], None]) -> None:
+    def __init__(self, topic: str, choice: CodecChoice, out_width: int, publish: Callable[[Any, bool], None],
+                 log_error: Callable[[str], None], *, subscribers: Callable[[], int] | None = None,
+                 width_at_most: bool = False) -> None:
+        """``subscribers``: the readers of the output, a keyframe when they grow (None: keyframes on request
+        only); ``width_at_most``: ``out_width`` is a maximum, never an upscale (scaled_size)."""
         self.topic = topic
         self._choice = choice
         self._out_width = out_width
+        self._width_at_most = width_at_most
         self._publish = publish
         self._subscribers = subscribers
         self._log_error = log_error
@@ -61,6 +71,7 @@ class EncodeStream:
         self._queue: collections.deque[Any] = collections.deque()
         self._wake = threading.Condition()
         self._keyframe_requested = False
+        self._skip_until_keyframe = False
         self._in_hand = 0  # 1 while the worker encodes a frame it took from the mailbox
         self._stopping = False
         self._reported: set[str] = set()
@@ -79,20 +90,26 @@ class EncodeStream:
             self._queue.append(image)
             self._wake.notify()
 
-    def request_keyframe(self) -> None:
-        """Make the next encoded frame a keyframe with parameter sets (a recording, split or viewer starts)."""
+    def request_keyframe(self, skip_until_keyframe: bool = False) -> None:
+        """Make the next encoded frame a keyframe with parameter sets (a recording, split or viewer starts);
+        with ``skip_until_keyframe``, nothing else is published before it (module docstring)."""
         with self._wake:
             self._keyframe_requested = True
+            self._skip_until_keyframe = self._skip_until_keyframe or skip_until_keyframe
 
     def stats(self) -> dict[str, int]:
         with self._wake:
             return self.counts.as_dict(len(self._queue) + self._in_hand)
 
     def stop(self, timeout: float) -> None:
+        """Stop the worker (it finishes the frame in hand); the frames still waiting are counted as skipped."""
         with self._wake:
             self._stopping = True
             self._wake.notify()
         self._thread.join(timeout)
+        with self._wake:
+            self.counts.skipped += len(self._queue)
+            self._queue.clear()
 
     # --- the worker ------------------------------------------------------------------------------------------
     def _run(self) -> None:
@@ -131,14 +148,15 @@ class EncodeStream:
             self._send(message, data, True)
             return
         pixels = pixels_of(image)
-        size = scaled_size(image.width, image.height, self._out_width, even=True)
+        size = scaled_size(image.width, image.height, self._out_width, even=True, at_most=self._width_at_most)
         if self._video is None or self._video.size != size:
             self._video = VideoCodec(self._choice, *size)  # a new encoder starts with a keyframe
             self._stamps.clear()
-        subscribers = self._subscribers()
-        if subscribers > self._known_subscribers:
-            keyframe = True  # a new subscriber (a viewer, a recorder) starts decodable
-        self._known_subscribers = subscribers
+        if self._subscribers is not None:
+            subscribers = self._subscribers()
+            if subscribers > self._known_subscribers:
+                keyframe = True  # a new subscriber (a viewer, a recorder) starts decodable
+            self._known_subscribers = subscribers
         self._stamps[self._video.next_pts] = (image.header.stamp, image.header.frame_id)
         for pts, is_keyframe, data in self._video.encode(pixels, image.encoding, keyframe):
             if not data:
@@ -149,10 +167,15 @@ class EncodeStream:
             self._send(message, data, is_keyframe)
 
     def _send(self, message: Any, data: bytes, keyframe: bool) -> None:
+        with self._wake:
+            if self._skip_until_keyframe and not keyframe:
+                self.counts.skipped += 1
+                return
+            self._skip_until_keyframe = False
         buffer = array("B")
         buffer.frombytes(data)
         message.data = buffer  # check_fields=True keeps the array as it is (no second copy)
-        self._publish(message)
+        self._publish(message, keyframe)
         with self._wake:
             self.counts.published += 1
             self.counts.keyframes += keyframe

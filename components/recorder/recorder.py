@@ -12,6 +12,8 @@ Fleet recording (components/recorder/schedule.py): ``record.start_at`` / ``recor
 recording to the messages received within a window, ``record.max_duration`` ends it even if no stop comes,
 ``record.split_at`` schedules a split; ``record.stop_at``, ``record.split_at`` and ``storage.custom_data`` may be
 set while recording (``ros2 param set``). ``record.local_only`` records only what this container publishes.
+``record.compress`` records chosen image topics compressed by an ImageEncoder the recorder loads into its
+container (components/recorder/compression.py; video files begin at keyframes: keyframe_gate.py).
 
 Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
 ``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM, within the
@@ -45,6 +47,7 @@ from baglib.write.writer import BagWriter
 from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
+from components.recorder.compression import Compression
 from components.recorder.finished_bags import FinishedBags
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import custom_data_pairs, declare_options
@@ -85,6 +88,7 @@ class Recorder(ComponentNode):
                 raise ValueError("parameter 'record.local_only' records what this container publishes in-process: "
                                  "load the recorder with use_intra_process_comms:=true")
             options = self._options
+            self._compression = Compression(self, options) if options.compress else None
             self._schedule = Schedule(options.start_ns or time.time_ns(), options.stop_ns, options.max_duration_ns,
                                       options.split_ns)
             self._finalizer: threading.Thread | None = None
@@ -150,7 +154,8 @@ class Recorder(ComponentNode):
         baseline = {topic: getattr(sub, "dropped_count", 0) for topic, sub in self._topic_subscriptions.items()}
         session = RecordingSession(self._options, str(self._next_uri()), self.get_logger(), self._publish_split,
                                    queue_drops=functools.partial(self._queue_drops, baseline),
-                                   writer_class=self.writer_class)
+                                   writer_class=self.writer_class,
+                                   keyframes=self._compression.keyframes if self._compression else None)
         for info in self._topics.values():
             session.add_topic(info)
         self._window_bag = None
@@ -197,8 +202,12 @@ class Recorder(ComponentNode):
                 continue
             if self._options.local_only and not self.has_local_publisher(topic):
                 continue  # not (yet) published here; a local publisher may still come
+            compression = self._compression
+            if compression is not None and compression.replaces(topic, types[0]):
+                continue  # recorded compressed: its encoder's output is
             publishers = self.get_publishers_info_by_topic(topic)
-            if self._filter.selects(topic, types[0], len(publishers)):
+            if (compression is not None and compression.output(topic)) or \
+                    self._filter.selects(topic, types[0], len(publishers)):
                 self._subscribe(topic, types[0], publishers)
 
     def _ignore(self, topic: str, reason: str) -> None:
@@ -224,6 +233,8 @@ class Recorder(ComponentNode):
         type_hash = next((str(p.topic_type_hash) for p in publishers if str(p.topic_type_hash).startswith("RIHS01_")),
                          "")
         info = TopicInfo(topic, type_name, "cdr", [qos_profile_dict(q) for q in offered], type_hash)
+        if self._compression is not None and self._compression.output(topic):
+            self._compression.subscribed(topic)
         try:
             with self._lock:  # declared in the bag before the first message can reach the writer
                 if self._session is not None:
@@ -327,6 +338,9 @@ class Recorder(ComponentNode):
     # --- services -----------------------------------------------------------------------------------------
     def _set_paused(self, paused: bool) -> None:
         if paused != self._paused:
+            session = self._session
+            if not paused and session is not None and session.gate is not None:
+                session.gate.restart()  # frames were left out: each video topic begins anew at a keyframe
             self._paused = paused
             self.get_logger().info("Recording paused" if paused else "Recording resumed")
 

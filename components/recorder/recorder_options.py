@@ -27,10 +27,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
+from components.image_encoder.image_encoder import DEFAULTS as IMAGE_ENCODER_DEFAULTS
 from components.node_parameters import clean, declare_defaults, given_values, typed
 from components.recorder.rate_limits import parse_max_rates
 from components.recorder.schedule import duration_ns, instant_ns
 
+#: The ImageEncoder parameters that ``record.compress_<name>`` passes through.
+ENCODER_SETTINGS = ("preset", "quality", "bitrate", "keyframe_interval", "width")
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
     "all_services": False,
@@ -57,6 +60,12 @@ RECORD_DEFAULTS: dict[str, Any] = {
     "local_only": False,
     # Not in rosbag2: per-topic rate limits, "PATTERN:RATE" strings (components/recorder/rate_limits.py).
     "max_rates": [""],
+    # Not in rosbag2: image topics recorded compressed by an encoder the recorder loads (components/recorder/
+    # compression.py); compress_<name> are the encoder's parameters of that name.
+    "compress": "",
+    "compress_topics": [""],
+    "compress_regex": "",
+    **{f"compress_{name}": IMAGE_ENCODER_DEFAULTS[name] for name in ENCODER_SETTINGS},
 }
 STORAGE_DEFAULTS: dict[str, Any] = {
     "uri": "",
@@ -196,6 +205,11 @@ class RecordOptions:
     local_only: bool = False
     #: per-topic rate limits, validated ``"PATTERN:RATE"`` strings (see components/recorder/rate_limits.py)
     max_rates: list[str] = field(default_factory=list)
+    #: record.compress: the codec image topics are recorded in ("": raw), which topics, and the encoder's settings
+    compress: str = ""
+    compress_topics: list[str] = field(default_factory=list)
+    compress_regex: str = ""
+    compress_settings: dict[str, Any] = field(default_factory=dict)
 
 
 def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOptions:
@@ -262,7 +276,7 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
     custom = custom_data_pairs(values["storage.custom_data"])
-    for name in ("record.regex", "record.exclude_regex"):
+    for name in ("record.regex", "record.exclude_regex", "record.compress_regex"):
         try:
             re.compile(values[name])
         except re.error as exc:
@@ -306,4 +320,8 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         max_duration_ns=duration_ns("record.max_duration", float(values["record.max_duration"])),
         local_only=values["record.local_only"],
         max_rates=max_rates,
+        compress=values["record.compress"].strip().lower(),
+        compress_topics=clean(values["record.compress_topics"]),
+        compress_regex=values["record.compress_regex"],
+        compress_settings={name: values[f"record.compress_{name}"] for name in ENCODER_SETTINGS},
     )

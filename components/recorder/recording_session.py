@@ -18,7 +18,9 @@ The writer thread is supervised, so one bad message or one bad disk never silent
 * :meth:`finish` is bounded: a writer that does not finish in time (a hung disk) is abandoned, its bag left
   unfinalized (repairable) and the error recorded.
 
-Every drop is counted per topic and reason (``drop_reasons`` in :meth:`stats`). ``finish`` is idempotent.
+Every drop is counted per topic and reason (``drop_reasons`` in :meth:`stats`), ``awaiting_keyframe`` among
+them (with ``record.compress`` to video, files begin each video topic at a keyframe: keyframe_gate).
+``finish`` is idempotent.
 Messages that ``record.max_rates`` leaves out are not drops: they are counted apart, as ``rate_limited`` per topic
 and in ``dropped_by_design`` (a bag holds what was asked for; ``dropped`` and ``drop_reasons`` are losses).
 """
@@ -37,6 +39,7 @@ from baglib.write.direct_file import GATHER
 from baglib.write.writer import BagWriteError, BagWriter
 from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
+from components.recorder.keyframe_gate import AWAITING_KEYFRAME, KeyframeGate, KeyframeLog
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.rate_limits import RATE_LIMITED, RateLimiter, parse_max_rates
 from baglib.format.metadata import TopicInfo
@@ -87,8 +90,10 @@ class RecordingSession:
     def __init__(self, options: RecordOptions, uri: str, logger: Any,
                  on_split: Callable[[str, str], None] | None = None,
                  serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None,
-                 writer_class: type[BagWriter] = BagWriter) -> None:
+                 writer_class: type[BagWriter] = BagWriter, keyframes: KeyframeLog | None = None) -> None:
         self._logger = logger
+        # record.compress with a video codec: each file begins each video topic at a keyframe (keyframe_gate)
+        self.gate = KeyframeGate(keyframes) if keyframes is not None else None
         self._serialize = serialize
         self._queue_drops = queue_drops
         self._last_log_time = 0
@@ -208,8 +213,12 @@ class RecordingSession:
         return None
 
     def split(self) -> bool:
+        """Close the current file and go on in the next; with compressed video, at its next keyframe."""
         if not self.active:
             return False
+        if self.gate is not None:
+            self.gate.split()
+            return True
         try:
             self.writer.split()
         except BagWriteError as exc:
@@ -316,6 +325,13 @@ class RecordingSession:
     def _write(self, message: CachedMessage) -> None:
         """Serialize and write one message; raises what the storage raised (the caller ends the session)."""
         payload = message.payload
+        split = None
+        if self.gate is not None:
+            split, keep = self.gate.splits_before(message.topic, payload, message.log_time_ns,
+                                                  self.writer.split_due(message.log_time_ns))
+            if not keep:
+                self._discard([message], AWAITING_KEYFRAME)
+                return
         try:
             data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
         except Exception as exc:  # noqa: BLE001 - a malformed message object: dropped, the recording goes on
@@ -328,7 +344,7 @@ class RecordingSession:
         log_time = message.log_time_ns
         if self._monotonic_log_times:
             log_time = self._last_log_time = max(log_time, self._last_log_time)
-        self.writer.write(message.topic, data, log_time, message.publish_time_ns)
+        self.writer.write(message.topic, data, log_time, message.publish_time_ns, split)
         if self._oldest_unflushed_ns is None:
             self._oldest_unflushed_ns = message.log_time_ns  # the receive time
         self._unsynced = True

@@ -16,10 +16,11 @@
 //   {"op": "close"}
 // Events, one JSON object per line on stdout: {"event": "open" | "serverInfo" | "advertise" | "unadvertise" |
 // "message" | "time" | "parameterValues" | "connectionGraph" | "advertiseServices" | "serviceResponse" |
-// "serviceFailure" | "status" | "error" | "close", ...}. A "message" event carries the topic, the schema name,
-// the log time and, for the test drivers' types, the sequence number the driver wrote into the message
+// "serviceFailure" | "status" | "error" | "close" | "stray" (a message of a subscription already ended), ...}.
+// A "message" event carries the topic, the schema name, the log time and, for the test drivers' types, the sequence number the driver wrote into the message
 // (sensor_msgs/msg/Image: the first 8 bytes of data, little endian; sensor_msgs/msg/Imu:
-// orientation_covariance[1]); for other types the names of the decoded fields.
+// orientation_covariance[1]); a foxglove_msgs/msg/CompressedVideo message carries its timestamp
+// ([sec, nanosec]), format and data (base64); for other types the names of the decoded fields.
 "use strict";
 
 const readline = require("readline");
@@ -150,7 +151,10 @@ client.on("unadvertise", (ids) => {
 
 client.on("message", ({ subscriptionId, timestamp, data }) => {
   const topic = subscriptionTopics.get(subscriptionId);
-  if (topic === undefined) return; // arrived after the unsubscribe was sent
+  if (topic === undefined) { // arrived after the unsubscribe was sent
+    emit({ event: "stray", subscriptionId });
+    return;
+  }
   const channel = channelsByTopic.get(topic);
   const reader = readers.get(channel.id);
   const bytes = new Uint8Array(data.buffer, data.byteOffset, data.byteLength);
@@ -165,6 +169,11 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
   const event = { event: "message", topic, schemaName: channel.schemaName, logTime: Number(timestamp), size: bytes.length };
   if (sequence !== null) event.sequence = sequence;
   else event.fields = Object.keys(decoded);
+  if (channel.schemaName === "foxglove_msgs/msg/CompressedVideo") {
+    event.stamp = [decoded.timestamp.sec, decoded.timestamp.nanosec];
+    event.format = decoded.format;
+    event.data = Buffer.from(decoded.data.buffer, decoded.data.byteOffset, decoded.data.byteLength).toString("base64");
+  }
   if (channel.schemaName === "rosgraph_msgs/msg/Clock") event.clock = decoded.clock;
   emit(event);
 });
