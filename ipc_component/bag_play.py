@@ -66,6 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "their events")
     parser.add_argument("--service-requests-source", default="SERVICE_INTROSPECTION",
                         choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"))
+    parser.add_argument("--decode", nargs="*", default=None, metavar="TOPIC",
+                        help="Also play compressed image topics (sensor_msgs/CompressedImage, "
+                             "foxglove_msgs/CompressedVideo) decoded as sensor_msgs/Image on <base> for "
+                             "<base>/compressed or <base>/video: all of them, or the topics named")
     parser.add_argument("--no-progress", action="store_true", help="No progress line, even on a terminal")
 
 
@@ -115,6 +119,8 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.start_paused": args.start_paused,
         "play.publish_service_request": args.publish_service_requests,
         "play.service_requests_source": args.service_requests_source,
+        "play.decode": args.decode is not None,
+        "play.decode_topics": args.decode or [""],
         **_duration("play.delay", args.delay),
         **_duration("play.playback_duration", args.playback_duration),
         **_duration("play.start_offset", args.start_offset),

@@ -14,6 +14,9 @@ In a container with intra-process comms, in-process subscribers get message obje
 the playback thread before they are due, only while such a subscriber exists); DDS readers get the recorded CDR bytes.
 Topics whose type is not installed are skipped with a warning naming the type; the rest plays.
 
+Decoding (``play.decode``, ``play.decode_topics``): compressed image topics are played also as
+``sensor_msgs/Image``, decoded on the read-ahead thread (player/decoded_topics.py).
+
 Timing: start the container with ``--low-latency`` (component_container.process_tuning; ``ipc-component bag
 play`` does). Without it CPython hands the GIL over only every 5 ms and large frames are page-faulted in, so a
 due message may be published several ms late; the player says so at load, and changes nothing itself.
@@ -52,6 +55,7 @@ from baglib.format.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
 from component_container.process_tuning import low_latency
+from components.player.decoded_topics import DECODABLE, DecodedStream, Decoding, choose_topics
 from components.player.playback import Playback, RunLimits
 from components.player.playback_clock import PlaybackClock
 from components.player.player_options import PlayOptions, declare_play_options
@@ -83,18 +87,20 @@ class Player(ComponentNode):
         super().__init__("rosbag2_player", **kwargs)
         self._reader: Timeline | None = None
         self._read_ahead: ReadAhead | None = None
+        self._decoding: Decoding | None = None
         self._read_error: str | None = None
         try:
             self._options = declare_play_options(self)
             self._reader = self._open_bag(self._options)
             self._senders = self._make_publishers()
+            self._decoding = self._make_decoding()
             self._clock_publisher = None
             if self._options.clock_publish_frequency > 0 or self._options.clock_publish_on_topic_publish:
                 self._clock_publisher = self.create_publisher(Clock, "/clock", CLOCK_QOS)
             self._split_events = self.create_publisher(ReadSplitEvent, SPLIT_EVENT_TOPIC, 1)
             self._file_index = [self._reader.file_range(bag).start for bag in range(len(self._reader.bags))]
             self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
-                                         self._options.read_ahead_max_bytes, self._on_read_error)
+                                         self._options.read_ahead_max_bytes, self._on_read_error, self._decoding)
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
             if low_latency() is None:
                 self.get_logger().warning(
@@ -174,6 +180,25 @@ class Player(ComponentNode):
             self.get_logger().warning("No topic of the bag is played (filters, or no installed type)")
         return publishers
 
+    def _make_decoding(self) -> Decoding | None:
+        """The decoded streams ``play.decode`` / ``play.decode_topics`` ask for (None: none)."""
+        played = {topic: sender.connection.msgtype for topic, sender in self._senders.items()
+                  if isinstance(sender, TopicPublisher)}
+        outputs = choose_topics(played, self._options.decode, self._options.decode_topics)
+        if not outputs:
+            if self._options.decode:
+                self.get_logger().warning("play.decode: the bag has no played compressed image topic "
+                                          f"({', '.join(DECODABLE)})")
+            return None
+        streams = []
+        for topic, output in outputs.items():
+            sender = self._senders[topic]
+            assert isinstance(sender, TopicPublisher)
+            streams.append(DecodedStream(self, topic, output, DECODABLE[played[topic]],
+                                         sender.publisher.qos_profile, sender.msg_class, self.get_logger().error))
+            self.get_logger().info(f"Decoding '{topic}' to sensor_msgs/msg/Image on '{output}'")
+        return Decoding(streams)
+
     # --- the read-ahead and playback threads' hooks -------------------------------------------------------
     def _prepare(self, message: BagMessage) -> Any:
         publisher = self._senders[message.connection.topic]
@@ -192,7 +217,11 @@ class Player(ComponentNode):
                 or message.connection.topic in self._options.clock_trigger_topics):
             self._publish_clock()
         try:
-            return self._senders[message.connection.topic].publish(message.data, item.prepared)
+            published = self._senders[message.connection.topic].publish(message.data, item.prepared)
+            if item.decoded is not None:
+                assert self._decoding is not None
+                self._decoding.publish(message.connection.topic, item.decoded)
+            return published
         except Exception as exc:  # noqa: BLE001 - rosbag2 logs a failed publish and plays on
             self.get_logger().error(f"Failed to publish message on '{message.connection.topic}' topic. "
                                     f"\nError: {exc}")
@@ -227,7 +256,8 @@ class Player(ComponentNode):
         if timeout_ns < 0:
             return
         deadline = time.monotonic_ns() + timeout_ns if timeout_ns else None
-        for topic, publisher in self._senders.items():
+        decoded = list(self._decoding.streams.values()) if self._decoding is not None else []
+        for topic, publisher in [*self._senders.items(), *((s.output, s) for s in decoded)]:
             while not self._playback.stopping:
                 step = ACK_POLL_NS if deadline is None else min(ACK_POLL_NS, deadline - time.monotonic_ns())
                 if publisher.publisher.wait_for_all_acked(Duration(nanoseconds=max(step, 0))):
@@ -342,6 +372,7 @@ class Player(ComponentNode):
         """Live numbers: where playback is, what went out, how punctual it was, how often it fell behind."""
         assert self._reader is not None and self._read_ahead is not None
         p50, p99, worst = self._playback.timing.percentiles(0.5, 0.99, 1.0)
+        decoded = list(self._decoding.streams.values()) if self._decoding is not None else []
         return {
             "bag": ", ".join(str(path) for path in self._reader.paths),
             "position_ns": self._playback.position_ns - self._reader.starting_time_ns,
@@ -349,7 +380,9 @@ class Player(ComponentNode):
             "rate": self._playback.clock.rate,
             "paused": self._playback.clock.paused,
             "playing": self._playback.in_playback,
-            "published": {topic: p.published for topic, p in self._senders.items()},
+            "published": {**{topic: p.published for topic, p in self._senders.items()},
+                          **{s.output: s.published for s in decoded}},
+            "decoded": self._decoding.stats() if self._decoding is not None else {},
             "publish_error_ms": {"p50": p50, "p99": p99, "max": worst, "count": self._playback.timing.count},
             "behind": {"count": self._playback.behind_count, "total_s": self._playback.behind_ns / 1e9},
             "queue_starved": self._read_ahead.starved,

@@ -8,7 +8,8 @@ They are read the way rosbag2_transport's ``get_play_options_from_node_params`` 
 ``play.delay``, ``play.start_offset``, ``play.playback_duration``, ``play.playback_until_timestamp`` and
 ``play.wait_acked_timeout`` are each a ``.sec`` / ``.nsec`` pair, negative when either part is negative.
 ``play.read_ahead_max_bytes`` is not rosbag2's: its read-ahead queue counts messages only, and 1000 1080p frames
-are 6 GB.
+are 6 GB. Neither are ``play.decode`` and ``play.decode_topics``: compressed image topics played also as
+``sensor_msgs/Image`` (components/player/decoded_topics.py).
 """
 from __future__ import annotations
 
@@ -55,6 +56,8 @@ DEFAULTS: dict[str, Any] = {
     "play.disable_loan_message": False,
     "play.service_requests_source": "SERVICE_INTROSPECTION",
     "play.publish_service_request": False,
+    "play.decode": False,
+    "play.decode_topics": [""],
     **{f"{name}.{part}": value for name, pair in _DURATIONS.items() for part, value in zip(("sec", "nsec"), pair)},
 }
 STORAGE_IDS = ("", "mcap", "sqlite3")
@@ -98,6 +101,8 @@ class PlayOptions:
     wait_acked_timeout_ns: int
     service_requests_source: str
     publish_service_requests: bool
+    decode: bool                 # every played compressed image topic also as sensor_msgs/Image
+    decode_topics: list[str]     # only these (implies decode)
 
 
 def declare_play_options(node: Node) -> PlayOptions:
@@ -184,4 +189,6 @@ def _validate(values: dict[str, Any]) -> PlayOptions:
         wait_acked_timeout_ns=durations["play.wait_acked_timeout"],
         service_requests_source=values["play.service_requests_source"],
         publish_service_requests=values["play.publish_service_request"],
+        decode=values["play.decode"],
+        decode_topics=clean(values["play.decode_topics"]),
     )

@@ -6,6 +6,9 @@ also bounds the queue's bytes (a count alone lets 1000 camera frames take 6 GB).
 bag from a start time: ``restart`` (play, seek, loop) drops what is queued and starts a new pass; the
 playback thread sees the new pass's messages only. Reading mostly waits on the file (the GIL released);
 turning messages into objects is left to the playback thread (see playback.py), which knows when it has time.
+The exception is decoding compressed images (a :class:`Decoder`, components/player/decoded_topics.py): a
+stream's decoder needs its messages in recorded order, each pass from its start, which is this thread's order;
+the codecs release the GIL while they work. The byte bound counts the decoded pictures.
 """
 from __future__ import annotations
 
@@ -13,29 +16,51 @@ import threading
 from collections import deque
 from collections.abc import Callable, Collection
 from itertools import islice
-from typing import Any
+from typing import Any, Protocol
 
 from baglib.read.reader import BagMessage
 from baglib.read.timeline import Timeline
 
 
-class Queued:
-    """A queued message and what the playback thread prepared for it (``None``: not yet, or nothing)."""
+class Decoder(Protocol):
+    """What the loader asks of a decoder of compressed topics (components/player/decoded_topics.Decoding)."""
 
-    __slots__ = ("message", "prepared", "ready")
+    def start_pass(self) -> None: ...
+
+    def decode(self, message: BagMessage) -> tuple[Any, Any] | None: ...
+
+
+class Queued:
+    """A queued message, what the playback thread prepared for it (``None``: not yet, or nothing) and its
+    decoded picture (``None``: none)."""
+
+    __slots__ = ("decoded", "message", "prepared", "ready", "size")
 
     def __init__(self, message: BagMessage) -> None:
         self.message = message
         self.prepared: Any = None
         self.ready = False
+        self.decoded: Any = None
+        self.size = len(message.data) if isinstance(message.data, bytes) else message.data.nbytes
+
+    def add_decoded(self, decoder: Decoder) -> None:
+        """Decode the message if it is of a decoded topic: its compressed object is then prepared too."""
+        result = decoder.decode(self.message)
+        if result is None:
+            return
+        self.prepared, self.decoded = result
+        self.ready = True
+        if self.decoded is not None:
+            self.size += len(self.decoded.data)
 
 
 class ReadAhead:
     """A loader thread over the bags' timeline; the playback thread ``peek``s and ``pop``s."""
 
     def __init__(self, reader: Timeline, topics: Collection[str], max_messages: int, max_bytes: int,
-                 on_error: Callable[[BaseException], None]) -> None:
+                 on_error: Callable[[BaseException], None], decoder: Decoder | None = None) -> None:
         self._reader = reader
+        self._decoder = decoder
         self._topics = list(topics)
         self._max_messages = max_messages
         self._max_bytes = max_bytes
@@ -79,7 +104,7 @@ class ReadAhead:
     def pop(self) -> None:
         with self._changed:
             if self._queue:
-                self._bytes -= _size(self._queue.popleft().message)
+                self._bytes -= self._queue.popleft().size
                 self._changed.notify_all()
 
     @property
@@ -114,15 +139,19 @@ class ReadAhead:
 
     def _read_pass(self, current: int, start_ns: int, stop_ns: int | None) -> None:
         messages = self._reader.messages(self._topics, start_ns, stop_ns)
+        if self._decoder is not None:
+            self._decoder.start_pass()
         try:
             for message in messages:
-                size = _size(message)
+                item = Queued(message)
+                if self._decoder is not None:
+                    item.add_decoded(self._decoder)
                 with self._changed:
-                    self._changed.wait_for(lambda: self._pass != current or not self._full(size))
+                    self._changed.wait_for(lambda: self._pass != current or not self._full(item.size))
                     if self._pass != current:
                         return
-                    self._queue.append(Queued(message))
-                    self._bytes += size
+                    self._queue.append(item)
+                    self._bytes += item.size
                     self._changed.notify_all()
         finally:
             messages.close()  # type: ignore[attr-defined]  # a generator: releases its files' positions
@@ -132,6 +161,3 @@ class ReadAhead:
             return False  # one message always fits, however big
         return len(self._queue) >= self._max_messages or self._bytes + size > self._max_bytes
 
-
-def _size(message: BagMessage) -> int:
-    return len(message.data) if isinstance(message.data, bytes) else message.data.nbytes

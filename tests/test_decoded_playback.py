@@ -1,0 +1,273 @@
+"""Compressed bags on the way back: the player decoding to ``sensor_msgs/Image``, and ``bag export``.
+
+The bags are written here from the image encoder's own codecs (components/image_encoder/codecs.py) over photographic
+frames (components/photo_content.py): a CompressedVideo topic (H.264) and a CompressedImage topic (JPEG), with
+BagWriter, which is what the recorder writes for them without the cost of a recording. The player runs in an
+in-process manager beside inline probes (they see every message without an executor); ``bag play --decode`` and
+``bag export`` run as the commands users run, checked with an rclpy subscriber over Fast DDS and with Debian's
+``ffmpeg`` / ``ffprobe`` programs.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+from foxglove_msgs.msg import CompressedVideo
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from rosbag2_interfaces.srv import Resume
+from sensor_msgs.msg import CompressedImage, Image
+
+from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.write.writer import BagWriter
+from component_container.component_manager import ComponentConstructionError, ComponentManager
+from component_container.component_node import ComponentNode
+from component_container.startup_file import load_request
+from components.image_encoder import codecs
+from components.photo_content import PhotoContent
+from components.sensor_driver import stamp_from_ns
+from ipc_testing import call, in_process_manager, wait_until
+
+WIDTH, HEIGHT = 320, 240
+FRAMES = 12
+KEYFRAME_INTERVAL = 5
+PERIOD_NS = 20_000_000
+T0 = 1_700_000_000_000_000_000
+VIDEO, STILLS = "/cam/image/video", "/cam2/image/compressed"
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+CLI = str(Path(sys.executable).with_name("ipc-component"))
+#: Decoded against the raw frames (the codecs' defaults gave 38-41 dB here): the issue's target for H.264.
+MIN_PSNR_DB = 36.0
+
+
+def program(name: str) -> str:
+    """Debian's ffmpeg / ffprobe; the tests fail (never skip) without it: `make test` installs the package."""
+    path = shutil.which(name)
+    if path is None:
+        pytest.fail(f"the {name} program is missing: `apt-get install -y ffmpeg` (`make test` does this)")
+    return path
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
+
+
+class CompressedBag:
+    """A bag of FRAMES photographic frames as video (VIDEO, H.264 unless told) and JPEG (STILLS), and what
+    went into it."""
+
+    def __init__(self, path: Path, raw_topic: str = "", codec: str = "h264") -> None:
+        self.path = path
+        self.frames: list[np.ndarray] = []
+        self.video: list[bytes] = []
+        self.keyframes: list[bool] = []
+        self.jpegs: list[bytes] = []
+        content = PhotoContent(WIDTH, HEIGHT, "rgb8")
+        video = codecs.VideoCodec(codecs.choose(codec, "", -1, 0, KEYFRAME_INTERVAL), WIDTH, HEIGHT)
+        jpeg = codecs.StillCodec(codecs.choose("jpeg", "", -1, 0, KEYFRAME_INTERVAL), 0)
+        with BagWriter(path) as writer:
+            writer.add_topic(TopicInfo(VIDEO, "foxglove_msgs/msg/CompressedVideo",
+                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+            writer.add_topic(TopicInfo(STILLS, "sensor_msgs/msg/CompressedImage",
+                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+            if raw_topic:
+                writer.add_topic(TopicInfo(raw_topic, "sensor_msgs/msg/Image"))
+            for index in range(FRAMES):
+                t = T0 + index * PERIOD_NS
+                buffer = bytearray(WIDTH * HEIGHT * 3)
+                content.fill(index, memoryview(buffer))
+                pixels = np.frombuffer(bytes(buffer), np.uint8).reshape(HEIGHT, WIDTH, 3)
+                image = Image(height=HEIGHT, width=WIDTH, encoding="rgb8", step=WIDTH * 3)
+                image.header.stamp, image.header.frame_id = stamp_from_ns(t), "camera"
+                image.data = pixels.tobytes()
+                self.frames.append(pixels)
+                [(_, keyframe, data)] = video.encode(pixels, "rgb8", False)
+                self.video.append(data)
+                self.keyframes.append(keyframe)
+                frame = CompressedVideo(timestamp=image.header.stamp, frame_id="camera", format=codec)
+                frame.data = data
+                still = CompressedImage(header=image.header, format=jpeg.format_of("rgb8"))
+                still.data = jpeg.encode(image)
+                self.jpegs.append(bytes(still.data))
+                writer.write(VIDEO, serialize_message(frame), t, t)
+                writer.write(STILLS, serialize_message(still), t, t)
+        assert self.keyframes[0] and sum(self.keyframes) == -(-FRAMES // KEYFRAME_INTERVAL)
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> CompressedBag:
+    return CompressedBag(tmp_path_factory.mktemp("decoded") / "bag")
+
+
+@pytest.fixture()
+def manager() -> Iterator[ComponentManager]:
+    with in_process_manager("decoded_playback_test") as manager:
+        yield manager
+
+
+class Probe(ComponentNode):
+    """Keeps every Image of ``topic`` it gets in-process (inline, no executor needed)."""
+
+    def __init__(self, manager: ComponentManager, topic: str) -> None:
+        super().__init__(f"probe_{abs(hash(topic))}", intra_process_manager=manager.intra_process_manager,
+                         context=manager.context)
+        self.messages: list[Image] = []
+        self.create_subscription(Image, topic, self.messages.append, RELIABLE, intra_process_inline=True)
+
+
+def load_player(manager: ComponentManager, uri: Path, **parameters: Any) -> Any:
+    return manager.load(load_request({
+        "package": "components", "plugin": "components::Player", "name": "player",
+        "parameters": {"storage.uri": str(uri), **parameters},
+        "extra_arguments": {"use_intra_process_comms": True}}, 1)).node
+
+
+def pixels_of(image: Image) -> np.ndarray:
+    return np.frombuffer(bytes(image.data), np.uint8).reshape(image.height, image.width, 3)
+
+
+def test_a_compressed_bag_plays_as_images_of_the_original_size_encoding_and_stamps(
+        manager: ComponentManager, bag: CompressedBag) -> None:
+    video, stills = Probe(manager, "/cam/image"), Probe(manager, "/cam2/image")
+    player = load_player(manager, bag.path, **{"play.decode": True})
+    assert wait_until(lambda: len(video.messages) == FRAMES and len(stills.messages) == FRAMES, 30.0), \
+        (len(video.messages), len(stills.messages))
+    assert player._playback.wait_finished(30.0)
+    stamps = [stamp_from_ns(T0 + index * PERIOD_NS) for index in range(FRAMES)]
+    for probe in (video, stills):
+        assert [m.header.stamp for m in probe.messages] == stamps  # one per recorded frame, in order
+        assert {(m.width, m.height, m.encoding, m.step, m.header.frame_id) for m in probe.messages} == {
+            (WIDTH, HEIGHT, "rgb8", WIDTH * 3, "camera")}
+        for got, sent in zip(probe.messages, bag.frames):
+            assert psnr(pixels_of(got), sent) >= MIN_PSNR_DB
+    decoded = player.stats()["decoded"]
+    assert decoded == {VIDEO: {"topic": "/cam/image", "decoded": FRAMES, "skipped": 0, "failed": 0},
+                       STILLS: {"topic": "/cam2/image", "decoded": FRAMES, "skipped": 0, "failed": 0}}
+
+
+def test_a_video_stream_starts_at_a_keyframe_and_counts_the_frames_before_it(
+        manager: ComponentManager, bag: CompressedBag) -> None:
+    video = Probe(manager, "/cam/image")
+    start = 2  # two frames into the first group of pictures
+    player = load_player(manager, bag.path, **{"play.decode_topics": [VIDEO],
+                                               "play.start_offset.nsec": start * PERIOD_NS})
+    assert player._playback.wait_finished(30.0)
+    first = bag.keyframes.index(True, start)
+    assert [m.header.stamp for m in video.messages] == [
+        stamp_from_ns(T0 + index * PERIOD_NS) for index in range(first, FRAMES)]
+    assert player.stats()["decoded"] == {
+        VIDEO: {"topic": "/cam/image", "decoded": FRAMES - first, "skipped": first - start, "failed": 0}}
+
+
+def test_a_frame_that_fails_to_decode_is_counted_and_its_compressed_message_still_plays(
+        manager: ComponentManager, bag: CompressedBag, tmp_path: Path) -> None:
+    damaged = 3
+    with BagWriter(tmp_path / "damaged") as writer:
+        writer.add_topic(TopicInfo(STILLS, "sensor_msgs/msg/CompressedImage"))
+        for index, data in enumerate(bag.jpegs):
+            still = CompressedImage(header=Image().header, format="rgb8; jpeg compressed bgr8")
+            still.header.stamp = stamp_from_ns(T0 + index * PERIOD_NS)
+            still.data = data if index != damaged else b"\xff\xd8 not a picture"
+            writer.write(STILLS, serialize_message(still), T0 + index * PERIOD_NS, T0 + index * PERIOD_NS)
+    images = Probe(manager, "/cam2/image")
+    player = load_player(manager, tmp_path / "damaged", **{"play.decode": True})
+    assert player._playback.wait_finished(30.0)
+    assert len(images.messages) == FRAMES - 1
+    assert player.stats()["decoded"][STILLS] == {"topic": "/cam2/image", "decoded": FRAMES - 1, "skipped": 0,
+                                                 "failed": 1}
+    assert player.stats()["published"][STILLS] == FRAMES
+
+
+@pytest.mark.parametrize(("parameters", "names"), [
+    ({"play.decode_topics": ["/cam/raw"]}, ["play.decode_topics", "/cam/raw", "sensor_msgs/msg/Image"]),
+    ({"play.decode_topics": ["/nowhere"]}, ["play.decode_topics", "/nowhere", "not a played topic"]),
+    ({"play.decode": True}, ["play.decode", VIDEO, "'/cam/image'"]),
+])
+def test_a_bad_choice_is_a_load_error_naming_it_and_the_container_keeps_running(
+        manager: ComponentManager, tmp_path: Path, parameters: dict[str, Any], names: list[str]) -> None:
+    clashing = CompressedBag(tmp_path / "bag", raw_topic="/cam/image")
+    with BagWriter(tmp_path / "raw") as writer:
+        writer.add_topic(TopicInfo("/cam/raw", "sensor_msgs/msg/Image"))
+        writer.write("/cam/raw", serialize_message(Image()), T0, T0)
+    uri = tmp_path / "raw" if "/cam/raw" in names else clashing.path
+    with pytest.raises(ComponentConstructionError) as error:
+        load_player(manager, uri, **parameters)
+    for name in names:
+        assert name in str(error.value)
+    assert load_player(manager, clashing.path, **{"play.decode_topics": [STILLS]}) is not None
+
+
+def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBag) -> None:
+    got: list[Image] = []
+    subscription = probe.create_subscription(Image, "/cam/image", got.append, RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    process = subprocess.Popen([CLI, "bag", "play", str(bag.path), "--decode", VIDEO, "--start-paused",
+                                "--wait-for-all-acked", "10000"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: subscription.get_publisher_count() > 0, 60.0, probe), "never matched"
+        call(probe, resume, Resume.Request(), 30.0, again=True)
+        assert wait_until(lambda: len(got) == FRAMES, 60.0, probe), len(got)
+        assert process.wait(30.0) == 0, process.communicate()[1]
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.communicate(timeout=10)
+        probe.destroy_client(resume)
+        probe.destroy_subscription(subscription)
+    assert [m.header.stamp for m in got] == [stamp_from_ns(T0 + index * PERIOD_NS) for index in range(FRAMES)]
+    assert {(m.width, m.height, m.encoding) for m in got} == {(WIDTH, HEIGHT, "rgb8")}
+    assert min(psnr(pixels_of(m), sent) for m, sent in zip(got, bag.frames)) >= MIN_PSNR_DB
+
+
+def ffprobe(path: Path, *entries: str) -> Any:
+    result = subprocess.run([program("ffprobe"), "-v", "error", "-count_packets", "-show_entries", ",".join(entries),
+                             "-of", "json", str(path)], capture_output=True, text=True, timeout=60, check=True)
+    return json.loads(result.stdout)
+
+
+def decoded_by_ffmpeg(data: bytes, demuxer: str) -> bytes:
+    """What Debian's ffmpeg decodes ``data`` (read with ``demuxer``) to: raw rgb24 frames."""
+    return subprocess.run([program("ffmpeg"), "-v", "error", "-f", demuxer, "-i", "pipe:0", "-fps_mode", "passthrough",
+                           "-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"], input=data, capture_output=True,
+                          timeout=60, check=True).stdout
+
+
+@pytest.mark.parametrize(("codec", "demuxer", "tag"), [("h264", "h264", "avc1"), ("h265", "hevc", "hev1"),
+                                                      ("av1", "obu", "av01")])
+def test_bag_export_remuxes_a_video_topic_into_mp4_without_re_encoding(
+        tmp_path: Path, codec: str, demuxer: str, tag: str) -> None:
+    bag = CompressedBag(tmp_path / "bag", codec=codec)
+    out = tmp_path / "video.mp4"
+    result = subprocess.run([CLI, "bag", "export", str(bag.path), VIDEO, str(out)], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert f"Wrote {FRAMES} frames of {VIDEO} ({codec})" in result.stdout
+    [stream] = ffprobe(out, "stream=codec_name,codec_tag_string,width,height,nb_read_packets")["streams"]
+    assert stream == {"codec_name": {"h265": "hevc"}.get(codec, codec), "codec_tag_string": tag, "width": WIDTH,
+                      "height": HEIGHT, "nb_read_packets": str(FRAMES)}
+    packets = ffprobe(out, "packet=pts_time,flags")["packets"]
+    assert [round(float(p["pts_time"]) * 1e9) for p in packets] == [index * PERIOD_NS for index in range(FRAMES)]
+    assert [p["flags"].startswith("K") for p in packets] == bag.keyframes
+    # Not re-encoded: ffmpeg decodes the MP4 to exactly the pictures of the recorded stream, bit for bit.
+    assert decoded_by_ffmpeg(out.read_bytes(), "mp4") == decoded_by_ffmpeg(b"".join(bag.video), demuxer)
+
+
+def test_bag_export_writes_stills_as_numbered_files_of_the_recorded_bytes(bag: CompressedBag, tmp_path: Path) -> None:
+    out = tmp_path / "stills"
+    result = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in out.iterdir()) == [f"{n:06d}.jpg" for n in range(1, FRAMES + 1)]
+    assert [(out / f"{n:06d}.jpg").read_bytes() for n in range(1, FRAMES + 1)] == bag.jpegs
+    again = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,
+                           timeout=120)
+    assert again.returncode == 1 and f"'{out}' exists" in again.stderr
