@@ -185,8 +185,7 @@ def wait_for_ready_callbacks(executor: Executor, generation: Callable[[], int],
 
     try:
         while not executor._is_shutdown and not condition():
-            nodes = set(executor.get_nodes())
-            in_flight = yield from _pending_tasks(executor, nodes)
+            in_flight = yield from _pending_tasks(executor)
             ready = current().wait(executor.can_execute if in_flight else None)
             if executor._is_shutdown:
                 raise ShutdownException()
@@ -207,13 +206,14 @@ def wait_for_ready_callbacks(executor: Executor, generation: Callable[[], int],
     raise ConditionReachedException()
 
 
-def _pending_tasks(executor: Executor, nodes: set[Node]) -> Generator[tuple[Any, Any, Node], None, bool]:
+def _pending_tasks(executor: Executor) -> Generator[tuple[Any, Any, Node], None, bool]:
     """Yield the tasks in progress before waiting for new work, as rclpy does, and drop the finished ones;
     return whether any task is still in flight (its entity or callback group may be busy)."""
     with executor._tasks_lock:
         tasks = list(executor._tasks)
     if not tasks:
         return False
+    nodes = set(executor.get_nodes())
     for task, entity, node in reversed(tasks):
         if not task.executing() and not task.done() and (node is None or node in nodes):
             yield task, entity, node
