@@ -8,73 +8,40 @@ handles entered never frees what was destroyed (a DDS reader that stays matched)
 """
 from __future__ import annotations
 
-import time
-from typing import Any, Callable, Iterator
+from typing import Iterator
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from component_container.component_executors import ComponentExecutor, make_component_executor
+from test_events_executor import Harness, wait_for
 
 WAIT_SET_KINDS = ("single", "multi", "isolated")
 
 
-class Spinning:
-    """An executor model spinning in its own context, with the errors it reports."""
-
-    def __init__(self, kind: str) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.errors: list[BaseException] = []
-        self.executor: ComponentExecutor = make_component_executor(
-            kind, self.context, 2, lambda _node, exc: self.errors.append(exc),
-            lambda _name, exc: self.errors.append(exc))
-        self.nodes: list[Node] = []
-
-    def node(self, name: str, spun: bool = True) -> Node:
-        """A node of this context, added to the executor once it ticks a timer (so its wait set is built)."""
-        node = Node(name, context=self.context)
-        self.nodes.append(node)
-        if spun:
-            ticks: list[int] = []
-            node.create_timer(0.01, lambda: ticks.append(1))
-            self.executor.add(node)
-            assert wait_for(lambda: len(ticks) >= 3), f"{name} is not spun"
-        return node
-
-    def close(self) -> None:
-        for node in self.nodes:
-            self.executor.remove(node, 1.0)
-            node.destroy_node()
-        self.executor.shutdown(2.0)
-        rclpy.try_shutdown(context=self.context)
+def spun_node(harness: Harness, name: str) -> Node:
+    """A node of the harness, added to its executor and ticking a timer (so that its wait set is built)."""
+    node = harness.node(name)
+    ticks: list[int] = []
+    node.create_timer(0.01, lambda: ticks.append(1))
+    harness.executor.add(node)
+    assert wait_for(lambda: len(ticks) >= 3), f"{name} is not spun"
+    return node
 
 
 @pytest.fixture(params=WAIT_SET_KINDS)
-def spinning(request: pytest.FixtureRequest) -> Iterator[Spinning]:
-    made = Spinning(request.param)
+def spinning(request: pytest.FixtureRequest) -> Iterator[Harness]:
+    made = Harness(request.param)
     yield made
     made.close()
-    assert not made.errors
+    assert not made.errors and not made.fatal
 
 
-def wait_for(condition: Callable[[], Any], timeout: float = 10.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if result := condition():
-            return result
-        time.sleep(0.01)
-    return condition()
-
-
-def test_entities_created_while_spinning_are_waited_on(spinning: Spinning) -> None:
-    node = spinning.node("grows")
-    feeder = spinning.node("feeder", spun=False)
+def test_entities_created_while_spinning_are_waited_on(spinning: Harness) -> None:
+    node = spun_node(spinning, "grows")
+    feeder = spinning.node("feeder")
     publisher = feeder.create_publisher(String, "grown", 10)
     received: list[str] = []
     node.create_subscription(String, "grown", lambda msg: received.append(msg.data), 10)
@@ -98,9 +65,9 @@ def test_entities_created_while_spinning_are_waited_on(spinning: Spinning) -> No
     assert future.result() is not None, "the service created while spinning did not answer"
 
 
-def test_destroyed_entities_are_forgotten_and_freed(spinning: Spinning) -> None:
-    node = spinning.node("shrinks")
-    feeder = spinning.node("feeder", spun=False)
+def test_destroyed_entities_are_forgotten_and_freed(spinning: Harness) -> None:
+    node = spun_node(spinning, "shrinks")
+    feeder = spinning.node("feeder")
     publisher = feeder.create_publisher(String, "shrunk", 10)
     received: list[str] = []
     subscription = node.create_subscription(String, "shrunk", lambda msg: received.append(msg.data), 10)
@@ -122,11 +89,11 @@ def test_destroyed_entities_are_forgotten_and_freed(spinning: Spinning) -> None:
     assert len(ticks) == count and len(received) == seen
 
 
-def test_nodes_added_and_removed_while_spinning(spinning: Spinning) -> None:
-    spinning.node("stays")
-    feeder = spinning.node("feeder", spun=False)
+def test_nodes_added_and_removed_while_spinning(spinning: Harness) -> None:
+    spun_node(spinning, "stays")
+    feeder = spinning.node("feeder")
     publisher = feeder.create_publisher(String, "joined", 10)
-    joined = Node("joined", context=spinning.context)
+    joined = Node("joined", context=spinning.context)  # not the harness's: this test destroys it
     received: list[str] = []
     joined.create_subscription(String, "joined", lambda msg: received.append(msg.data), 10)
     ticks: list[int] = []
