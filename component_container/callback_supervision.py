@@ -100,8 +100,9 @@ class SpinThread:
           :meth:`_stop_requested` as its condition.
         * One race rclpy does not guard against: the executor gathers its wait set from a snapshot of its
           nodes, so a node removed and destroyed on another thread (an unload) in between makes
-          ``wait_for_ready_callbacks`` raise InvalidHandle, outside any callback. The next wait set no longer
-          holds that node, so the error is transient; only a run of them is a real failure."""
+          ``wait_for_ready_callbacks`` raise InvalidHandle, outside any callback. The cached wait set
+          (component_container.wait_set_cache) narrows that to a waitable's own ``add_to_wait_set``. The next
+          wait set no longer holds that node, so the error is transient; only a run of them is a real failure."""
         in_a_row = 0
         while self.executor.context.ok() and not self._stopping:
             try:

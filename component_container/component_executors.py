@@ -20,13 +20,16 @@ answer even while a component callback is busy or blocked.
 """
 from __future__ import annotations
 
+import itertools
 import threading
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Generator, Protocol
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.context import Context
 from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
+from rclpy.task import Task
 
 from component_container.callback_supervision import (
     COMPONENT_ERRORS,
@@ -39,46 +42,100 @@ from component_container.callback_supervision import (
 )
 from component_container.events_executor import EventsSpinThread, SupervisedEventsExecutor
 from component_container.intra_process import GuardConditionWakeup, Wakeup
+from component_container.wait_set_cache import wait_for_ready_callbacks
 
 EXECUTOR_KINDS = ("single", "multi", "isolated", "events")
 
 
 class SupervisedExecutor(Executor):
-    """An rclpy executor whose callbacks report their exceptions instead of raising out of ``spin()``."""
+    """An rclpy executor whose callbacks report their exceptions instead of raising out of ``spin()``, and
+    whose wait set is rebuilt only when its nodes or their entities change (component_container.wait_set_cache)."""
 
     def __init__(self, *args: Any, on_error: ErrorHandler | None = None, **kwargs: Any) -> None:
         """``on_error(node, exc)`` gets what a callback of ``node`` raised; without it, it is re-raised."""
+        self._changes = itertools.count(1)
+        self._generation = 0
         super().__init__(*args, **kwargs)
         self.gate = CallbackGate()
         self._on_error = on_error or reraise
 
-    def _make_handler(self, entity: Any, node: Node, take_from_wait_list: Callable) -> Any:
-        gate, on_error = self.gate, self._on_error
+    def wake(self) -> None:
+        """rclpy's Node calls this after it created or destroyed an entity: the cached wait set is stale."""
+        self._generation = next(self._changes)
+        super().wake()
 
-        def supervised_take(entity: Any) -> Callable | None:
-            if not gate.enter(node):
-                return None  # the node is being unloaded: its pending work is dropped, not run
-            try:
-                call = take_from_wait_list(entity)
-            except COMPONENT_ERRORS as exc:
-                gate.leave(node)
-                on_error(node, exc)
-                return None
-            if call is None:
-                gate.leave(node)
-                return None
+    def add_node(self, node: Node) -> bool:
+        added = super().add_node(node)
+        if added:
+            self.wake()  # after the node is in the set, so that a rebuild cannot miss it
+        return added
 
-            async def supervised_call() -> None:
+    def remove_node(self, node: Node) -> None:
+        super().remove_node(node)
+        self.wake()
+
+    def _wait_for_ready_callbacks(self, timeout_sec: Any = None, nodes: list[Node] | None = None,
+                                  condition: Callable[[], bool] = lambda: False
+                                  ) -> Generator[tuple[Any, Any, Node], None, None]:
+        """Spinning without a timeout over all nodes waits on the cached wait set; anything else is rclpy's."""
+        if timeout_sec is None and nodes is None:
+            return wait_for_ready_callbacks(self, lambda: self._generation, condition)
+        return super()._wait_for_ready_callbacks(timeout_sec, nodes, condition)
+
+    #: Whether handlers run on other threads while this one waits. Then each handler wakes the wait once its
+    #: entity is taken and once its callback group is free, so that they are waited on again (rclpy always
+    #: does). A single-threaded executor waits only after its handlers ran: there that would be an empty
+    #: wake-up per callback.
+    HANDLERS_RUN_CONCURRENTLY = True
+
+    def _make_handler(self, entity: Any, node: Node, take_from_wait_list: Callable) -> Task:
+        """rclpy's handler, with the callback supervised: counted in the gate, refused for a node being
+        removed, and what it raises handed to ``on_error``."""
+        gate, on_error, group = self.gate, self._on_error, entity.callback_group
+        is_shutdown, work_tracker = self._is_shutdown, self._work_tracker
+        guard = self._guard if self.HANDLERS_RUN_CONCURRENTLY else None
+
+        def wake_wait() -> None:
+            if guard is not None:
                 try:
-                    await call()
-                except COMPONENT_ERRORS as exc:
-                    on_error(node, exc)
+                    guard.trigger()
+                except InvalidHandle:
+                    pass  # shutdown() destroyed it: nothing waits any more
+
+        async def supervised() -> None:
+            if not gate.enter(node):
+                entity._executor_event = False
+                return  # the node is being unloaded: its pending work is dropped, not run
+            try:
+                try:
+                    call = take_from_wait_list(entity)
                 finally:
-                    gate.leave(node)
+                    entity._executor_event = False  # taken: it may be waited on again
+                    wake_wait()
+                if call is not None:
+                    await call()
+            except COMPONENT_ERRORS as exc:
+                on_error(node, exc)
+            finally:
+                gate.leave(node)
 
-            return supervised_call
+        async def handler() -> None:
+            if is_shutdown or not group.beginning_execution(entity):
+                entity._executor_event = False
+                wake_wait()
+                return
+            with work_tracker:
+                try:
+                    await supervised()
+                finally:
+                    group.ending_execution(entity)
+                    wake_wait()
 
-        return super()._make_handler(entity, node, supervised_take)
+        entity._executor_event = True  # not waited on until taken
+        task = Task(handler, executor=self)
+        with self._tasks_lock:
+            self._tasks.append((task, entity, node))
+        return task
 
     def make_wakeup(self, node: Node, callback: Callable[[], None], group: CallbackGroup | None) -> Wakeup:
         """A wait-set executor is woken by a guard condition of the node."""
@@ -87,6 +144,8 @@ class SupervisedExecutor(Executor):
 
 class SupervisedSingleThreadedExecutor(SupervisedExecutor, SingleThreadedExecutor):
     """rclpy's SingleThreadedExecutor, supervised."""
+
+    HANDLERS_RUN_CONCURRENTLY = False
 
 
 class SupervisedMultiThreadedExecutor(SupervisedExecutor, MultiThreadedExecutor):
