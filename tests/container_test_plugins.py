@@ -216,11 +216,12 @@ class HangingBagWriter(BagWriter):
 
     HANG_AFTER = 20
 
-    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int,
+              split: bool | None = None) -> None:
         if self.message_count >= self.HANG_AFTER:
             with self._lock:
                 threading.Event().wait()
-        super().write(topic, data, log_time_ns, publish_time_ns)
+        super().write(topic, data, log_time_ns, publish_time_ns, split)
 
 
 class HangingDiskRecorder(Recorder):
@@ -234,10 +235,11 @@ class CrashingBagWriter(BagWriter):
 
     CRASH_TOPIC = "/writer_crash"
 
-    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int,
+              split: bool | None = None) -> None:
         if topic == self.CRASH_TOPIC:
             raise RuntimeError(f"deliberate bug in the writer, on {topic}")
-        super().write(topic, data, log_time_ns, publish_time_ns)
+        super().write(topic, data, log_time_ns, publish_time_ns, split)
 
 
 class CrashingWriterRecorder(Recorder):
@@ -250,11 +252,12 @@ class GatedBagWriter(BagWriter):
     """A bag whose writes wait while a gate file ``<bag directory>.hold`` exists: a test holds the writer busy
     for as long as it needs and lets it go by removing the file."""
 
-    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int,
+              split: bool | None = None) -> None:
         gate = self.path.with_name(self.path.name + ".hold")
         while gate.exists():
             time.sleep(0.01)
-        super().write(topic, data, log_time_ns, publish_time_ns)
+        super().write(topic, data, log_time_ns, publish_time_ns, split)
 
 
 class GatedRecorder(Recorder):

@@ -121,10 +121,11 @@ class SlowBagWriter(BagWriter):
 
     DISK_UP = threading.Event()
 
-    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+    def write(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int,
+              split: bool | None = None) -> None:
         self.DISK_UP.wait()
         time.sleep(0.002)
-        super().write(topic, data, log_time_ns, publish_time_ns)
+        super().write(topic, data, log_time_ns, publish_time_ns, split)
 
 
 class SlowRecorder(Recorder):
