@@ -38,9 +38,14 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
 @pytest.fixture()
-def busy_loops() -> Iterator[None]:
-    """Two processes that keep two CPUs busy; killed by their pids at the end."""
-    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+def busy_loops(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Two processes that keep two CPUs busy; killed by their pids at the end. In the default run they are
+    niced: they take every idle moment from the recorder, but not the CPU of the suite's other workers (at
+    full priority, beside 4 xdist workers on 2 cores, they starved whole tests for minutes). The sweep's long
+    run keeps them at full priority."""
+    nice = 0 if request.node.get_closest_marker("sweep") else 19
+    loops = [subprocess.Popen([sys.executable, "-c", f"import os; os.nice({nice})\nwhile True: pass"])
+             for _ in range(2)]
     try:
         yield
     finally:
