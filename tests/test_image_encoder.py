@@ -7,7 +7,9 @@ they see every message without an executor.
 """
 from __future__ import annotations
 
+import glob
 import json
+import os
 import subprocess
 import threading
 from typing import Any, Iterator
@@ -292,3 +294,13 @@ def test_regex_finds_image_topics_on_the_graph(manager: ComponentManager) -> Non
         assert list(encoder.stats()["topics"]) == [topic]  # not the text topic, nor its own output
     finally:
         text.destroy_node()
+
+
+def test_an_av1_encoder_leaves_the_process_scheduling_as_it_was() -> None:
+    """SVT-AV1 opened as root (as CI runs) switched every thread of the process to SCHED_FIFO 99: the xdist
+    worker's Fast DDS threads then spun at real-time priority and starved the machine for minutes."""
+    codec = codecs.VideoCodec(codecs.choose("av1", "", -1, 0, 30), 64, 64)
+    threads = {int(path.rsplit("/", 1)[1]) for path in glob.glob("/proc/self/task/*")}
+    real_time = [tid for tid in threads if os.sched_getscheduler(tid) in (os.SCHED_FIFO, os.SCHED_RR)]
+    assert real_time == [], f"threads left real-time: {real_time} (as root: {os.geteuid() == 0})"
+    del codec

@@ -26,6 +26,7 @@ import simplejpeg
 from av.video.frame import PictureType
 
 from components.bounds import Bounds
+from components.image_encoder.scheduling import unchanged_scheduling
 
 #: The short names of the video formats CompressedVideo carries, and the FFmpeg encoder each one means.
 VIDEO_ENCODERS = {"h264": "libx264", "h265": "libx265", "av1": "libsvtav1"}
@@ -202,7 +203,8 @@ class VideoCodec:
         if choice.bitrate:
             context.bit_rate = choice.bitrate
         context.options = options
-        context.open()
+        with unchanged_scheduling():  # SVT-AV1 as root makes the process real-time
+            context.open()
         self._context = context
         self._pts = 0
 
