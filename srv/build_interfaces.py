@@ -235,7 +235,7 @@ def inputs_digest() -> str:
         digest.update(f"{path.relative_to(SRV_ROOT).as_posix()}\0".encode())
         digest.update(path.read_bytes())
     distributions = sorted({f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions()
-                            if d.metadata["Name"].lower().startswith(("ros", "numpy"))})
+                            if d.metadata["Name"].lower().replace("_", "-").startswith(("ros-", "numpy"))})
     for item in (sys.version, sysconfig.get_config_var("EXT_SUFFIX"), os.environ.get("CC", "gcc"),
                  os.environ.get("CXX", "g++"), str(_ros_prefix()), *distributions):
         digest.update(f"{item}\0".encode())
