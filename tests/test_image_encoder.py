@@ -7,7 +7,6 @@ they see every message without an executor.
 """
 from __future__ import annotations
 
-import glob
 import json
 import os
 import subprocess
@@ -297,10 +296,15 @@ def test_regex_finds_image_topics_on_the_graph(manager: ComponentManager) -> Non
 
 
 def test_an_av1_encoder_leaves_the_process_scheduling_as_it_was() -> None:
-    """SVT-AV1 opened as root (as CI runs) switched every thread of the process to SCHED_FIFO 99: the xdist
-    worker's Fast DDS threads then spun at real-time priority and starved the machine for minutes."""
+    """SVT-AV1 opened as root (as CI runs) switched the opening thread to SCHED_FIFO 99, and every thread
+    started later inherited it: the xdist worker's Fast DDS threads then spun at real-time priority and starved
+    the machine for minutes. The opening thread, and threads it starts afterwards, keep ordinary scheduling.
+    (SVT-AV1's own worker threads may still run real-time as root: docs/image-encoder.md.)"""
+    before = os.sched_getscheduler(0)
     codec = codecs.VideoCodec(codecs.choose("av1", "", -1, 0, 30), 64, 64)
-    threads = {int(path.rsplit("/", 1)[1]) for path in glob.glob("/proc/self/task/*")}
-    real_time = [tid for tid in threads if os.sched_getscheduler(tid) in (os.SCHED_FIFO, os.SCHED_RR)]
-    assert real_time == [], f"threads left real-time: {real_time} (as root: {os.geteuid() == 0})"
+    started: list[int] = []
+    later = threading.Thread(target=lambda: started.append(os.sched_getscheduler(0)))
+    later.start()
+    later.join()
+    assert (os.sched_getscheduler(0), started) == (before, [before]), f"as root: {os.geteuid() == 0}"
     del codec
