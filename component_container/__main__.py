@@ -28,7 +28,7 @@ from component_container.bag_root import bag_root_directory
 from component_container.callback_supervision import SpinThread
 from component_container.component_executors import EXECUTOR_KINDS, SupervisedSingleThreadedExecutor
 from component_container.component_manager import ComponentManager
-from component_container.discovery_profile import use_container_profile
+from component_container.discovery_profile import use_fastdds_profile
 from component_container.process_tuning import apply_low_latency
 from component_container.startup_file import StartupFileError, load_requests
 from component_container.supervisor import ERROR_POLICIES, ExitRequest
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     if args.low_latency:
         apply_low_latency()
-    use_container_profile()
+    use_fastdds_profile()
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     try:
         manager = ComponentManager(args.executor, use_intra_process_comms=args.use_intra_process_comms,

@@ -1,4 +1,6 @@
-"""The container's Fast DDS participant re-announces itself every 0.25 s (Fast DDS default: 3 s).
+"""The Fast DDS profile of the container and of ``ipc-component``: quick re-announcements, diagnostics on stderr.
+
+The participant re-announces itself every 0.25 s (Fast DDS default: 3 s).
 
 Why: a new participant (``ipc-component``, ``ros2 component``, launch_ros) announces itself and the container
 answers at once with its own announcement, but Fast DDS 2.14 often drops that answer because it arrives
@@ -6,7 +8,13 @@ before the new participant has started listening (the answer is received ~2 ms a
 announcement and ignored). The newcomer then finds the container only at its next periodic
 announcement, up to 3 s later; that happened in most command runs and made ``ipc-component load`` take
 seconds. Re-announcing every 0.25 s bounds that delay at 0.25 s, for every
-client, at the cost of one ~500-byte UDP datagram per known participant and initial peer per period.
+client, at the cost of one ~500-byte UDP datagram per known participant and initial peer per period. The
+command line uses it too, so that the container also learns the client quickly (Fast DDS drops a service
+reply to a client it has not discovered yet).
+
+Fast DDS prints its own warnings and errors on stdout by default, where they land inside the output of
+``ipc-component list`` or ``bag info`` (a shared-memory port another process holds is one such error, common
+when many participants start at once). The profile sends them to stderr, where ROS logging goes too.
 
 The profile is used only if nobody configured Fast DDS otherwise: no profiles file in the environment, no
 ``DEFAULT_FASTRTPS_PROFILES.xml`` in the working directory, and no other RMW selected.
@@ -21,8 +29,8 @@ PROFILE = pathlib.Path(__file__).with_name("fastdds_container.xml")
 PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 
 
-def use_container_profile(environ: MutableMapping[str, str] = os.environ) -> bool:
-    """Select the container's participant profile (before ``rclpy.init``) unless Fast DDS is configured."""
+def use_fastdds_profile(environ: MutableMapping[str, str] = os.environ) -> bool:
+    """Select the project's participant profile (before ``rclpy.init``) unless Fast DDS is configured."""
     rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     if not rmw.startswith("rmw_fastrtps") or any(environ.get(name) for name in PROFILE_VARIABLES):
         return False

@@ -165,7 +165,7 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     from rclpy.context import Context
 
     from component_container.component_manager import ComponentManager
-    from component_container.discovery_profile import use_container_profile
+    from component_container.discovery_profile import use_fastdds_profile
     from component_container.process_tuning import apply_low_latency
     from component_container.startup_file import load_request
 
@@ -181,7 +181,7 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     apply_low_latency()  # this process is a player's own container: tune it for replay timing
-    use_container_profile()
+    use_fastdds_profile()
     context = Context()
     rclpy.init(args=["ipc-component", *ros_args], context=context)
     manager = None

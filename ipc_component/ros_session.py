@@ -12,6 +12,9 @@ from typing import Any, Sequence
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
 CALL_TIMEOUT = 60.0      # s: waiting for a LoadNode / UnloadNode reply (component constructors may be slow)
 GONE_GRACE = 2.0         # s: a container whose service stays absent this long while we wait has left
+# Fast DDS's highest domain: its ports (7400 + 250 * domain + offsets) must stay below 65536. Above it, Fast DDS
+# ends the process with status 1 and no message on stderr.
+MAX_FASTDDS_DOMAIN = 232
 
 
 class CliError(Exception):
@@ -24,19 +27,29 @@ class RosSession:
     def __init__(self, ros_args: Sequence[str]) -> None:
         import rclpy
         from rclpy.context import Context
+        from rclpy.impl.implementation_singleton import rclpy_implementation
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.parameter import Parameter
 
+        from component_container.discovery_profile import use_fastdds_profile
+
+        use_fastdds_profile()  # Fast DDS's diagnostics on stderr, not in the output; quick discovery
         self.context = Context()
         rclpy.init(args=["ipc-component", *ros_args], context=self.context)
         try:
+            domain = self.context.get_domain_id()
+            if domain > MAX_FASTDDS_DOMAIN and rclpy.get_rmw_implementation_identifier().startswith("rmw_fastrtps"):
+                raise CliError(f"ROS_DOMAIN_ID {domain} is out of range: Fast DDS accepts 0 to {MAX_FASTDDS_DOMAIN}")
             self.node = Node(
                 f"_ipc_component_{os.getpid()}", context=self.context, start_parameter_services=False,
                 enable_rosout=False,
                 parameter_overrides=[Parameter("start_type_description_service", value=False)])
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
+        except rclpy_implementation.RCLError as exc:  # e.g. ROS_STATIC_PEERS naming a host that does not resolve
+            rclpy.try_shutdown(context=self.context)
+            raise CliError(f"Could not start ROS: {str(exc).splitlines()[0]}") from exc
         except BaseException:
             rclpy.try_shutdown(context=self.context)
             raise

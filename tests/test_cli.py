@@ -106,12 +106,23 @@ def lines(*texts: str) -> str:
     return "".join(f"{text}\n" for text in texts)
 
 
+ANSI_COLOR = re.compile(r"\x1b\[[0-9;]*m")
+FASTDDS_DIAGNOSTIC = re.compile(r"\d{4}-\d\d-\d\d [\d:.]+ \[[A-Z_]+ (Error|Warning)\] ")
+
+
+def ours(stderr: str) -> str:
+    """``stderr`` without Fast DDS's own diagnostics (e.g. a shared-memory port that another process holds,
+    common when many participants start at once): they are not the command's output, and must not be in stdout."""
+    return "".join(line for line in stderr.splitlines(keepends=True)
+                   if not FASTDDS_DIAGNOSTIC.match(ANSI_COLOR.sub("", line)))
+
+
 def assert_ok(result: subprocess.CompletedProcess, stdout: str) -> None:
-    assert (result.returncode, result.stderr, result.stdout) == (0, "", stdout), result
+    assert (result.returncode, ours(result.stderr), result.stdout) == (0, "", stdout), result
 
 
 def assert_fails(result: subprocess.CompletedProcess, stderr: str, stdout: str = "") -> None:
-    assert (result.returncode, result.stderr, result.stdout) == (1, stderr, stdout), result
+    assert (result.returncode, ours(result.stderr), result.stdout) == (1, stderr, stdout), result
 
 
 def searched(domain: str | None = None) -> str:
@@ -215,8 +226,24 @@ def test_list_container_without_components_prints_nothing(clients: dict[str, Con
 def test_list_that_finds_no_container_says_where_it_looked() -> None:
     # Domain 230 is outside the suite's range of domains (conftest): no container can be there.
     result = cli("list", "--spin-time", "0.3", env={"ROS_DOMAIN_ID": "230"})
-    assert (result.returncode, result.stdout, result.stderr) == (
+    assert (result.returncode, result.stdout, ours(result.stderr)) == (
         0, "", lines("No container found", searched("230"))), result  # stdout stays as ros2 component's: empty
+
+
+def test_fast_dds_diagnostics_go_to_stderr_not_into_the_output(clients: dict[str, ContainerClient]) -> None:
+    # A statistics topic Fast DDS does not know: it logs an error and goes on without it.
+    result = cli("list", OTHER, env={"FASTDDS_STATISTICS": "NO_SUCH_TOPIC"})
+    assert_ok(result, "")
+    assert "Topic NO_SUCH_TOPIC is not a valid statistics topic name/alias" in result.stderr, result
+
+
+@pytest.mark.parametrize("env, message", [
+    ({"ROS_DOMAIN_ID": "233"}, "ROS_DOMAIN_ID 233 is out of range: Fast DDS accepts 0 to 232"),
+    ({"ROS_STATIC_PEERS": "no-such-host.invalid"},
+     "Could not start ROS: error creating node: Unable to resolve peer no-such-host.invalid"),
+])
+def test_a_ros_setting_that_cannot_work_is_named(env: dict[str, str], message: str) -> None:
+    assert_fails(cli("list", env=env), lines(message))  # Fast DDS alone ends with status 1 and says nothing
 
 
 # --- unknown containers -------------------------------------------------------------------------------------
