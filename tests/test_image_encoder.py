@@ -295,11 +295,23 @@ def test_regex_finds_image_topics_on_the_graph(manager: ComponentManager) -> Non
         text.destroy_node()
 
 
+def real_time_threads() -> list[int]:
+    """The threads of this process that run a real-time policy."""
+    found = []
+    for name in os.listdir("/proc/self/task"):
+        try:
+            if os.sched_getscheduler(int(name)) in (os.SCHED_FIFO, os.SCHED_RR):
+                found.append(int(name))
+        except OSError:  # a thread that ended meanwhile
+            pass
+    return found
+
+
 def test_an_av1_encoder_leaves_the_process_scheduling_as_it_was() -> None:
-    """SVT-AV1 opened as root (as CI runs) switched the opening thread to SCHED_FIFO 99, and every thread
-    started later inherited it: the xdist worker's Fast DDS threads then spun at real-time priority and starved
-    the machine for minutes. The opening thread, and threads it starts afterwards, keep ordinary scheduling.
-    (SVT-AV1's own worker threads may still run real-time as root: docs/image-encoder.md.)"""
+    """SVT-AV1 opened as root (as CI runs) switched the opening thread and its own worker threads to SCHED_FIFO
+    99, and every thread started later inherited it: the xdist worker's Fast DDS threads then spun at real-time
+    priority and starved the machine for minutes. The opening thread, threads it starts afterwards, and every
+    thread of the process while it encodes keep ordinary scheduling."""
     before = os.sched_getscheduler(0)
     codec = codecs.VideoCodec(codecs.choose("av1", "", -1, 0, 30), 64, 64)
     started: list[int] = []
@@ -307,4 +319,8 @@ def test_an_av1_encoder_leaves_the_process_scheduling_as_it_was() -> None:
     later.start()
     later.join()
     assert (os.sched_getscheduler(0), started) == (before, [before]), f"as root: {os.geteuid() == 0}"
+    pixels = np.random.default_rng(7).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    for number in range(12):
+        codec.encode(pixels, "rgb8", keyframe=number == 0)
+        assert real_time_threads() == [], f"frame {number}, as root: {os.geteuid() == 0}"
     del codec
