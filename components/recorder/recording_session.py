@@ -375,7 +375,10 @@ class RecordingSession:
         log_time = message.log_time_ns
         if self._monotonic_log_times:
             log_time = self._last_log_time = max(log_time, self._last_log_time)
-        self.writer.write(message.topic, data, log_time, message.publish_time_ns, split, repeat=message.repeat)
+        if message.repeat:
+            self.writer.write(message.topic, data, log_time, message.publish_time_ns, split, repeat=True)
+        else:
+            self.writer.write(message.topic, data, log_time, message.publish_time_ns, split)
         if self._oldest_unflushed_ns is None:
             self._oldest_unflushed_ns = message.log_time_ns  # the receive time
         self._unsynced = True
