@@ -89,6 +89,12 @@ def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse
         ours["record.compress_regex"] = args.compress_regex
     if args.max_rates:
         ours["record.max_rates"] = list(args.max_rates)
+    if args.repeat_transient_local:
+        ours["record.repeat_transient_local"] = list(args.repeat_transient_local)
+    if args.repeat_all_transient_local:
+        ours["record.repeat_all_transient_local"] = args.repeat_all_transient_local
+    if args.max_cache_duration:
+        ours["storage.max_cache_duration"] = float(args.max_cache_duration)
     if not names & set(SELECTION):
         ours["record.all_topics"] = True
     clash = names & set(ours)
@@ -348,6 +354,14 @@ def add_record_parser(verbs: Any) -> Any:
                    help="the image topics to compress (default: every sensor_msgs/msg/Image topic)")
     p.add_argument("--max-rates", nargs="+", metavar="TOPIC_OR_REGEX:RATE",
                    help="per-topic rate limits in messages per second (record.max_rates), e.g. '/lidar.*:2'")
+    p.add_argument("--repeat-transient-local", nargs="+", metavar="TOPIC[=DEPTH]",
+                   help="write these latched topics' last DEPTH (1) messages again at the start of every split "
+                        "file and snapshot (record.repeat_transient_local, as ros2 bag record's)")
+    p.add_argument("--repeat-all-transient-local", nargs="?", type=int, const=1, default=0, metavar="DEPTH",
+                   help="the same for every topic recorded transient_local (record.repeat_all_transient_local)")
+    p.add_argument("--max-cache-duration", type=float, default=0.0, metavar="SECONDS",
+                   help="snapshot mode (-p storage.snapshot_mode:=true): the ring holds at most the last SECONDS "
+                        "(storage.max_cache_duration)")
     p.add_argument("-p", "--parameter", action="append", dest="parameters",
                    help="a recorder parameter, in the 'name:=value' form")
     p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")

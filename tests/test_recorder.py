@@ -658,7 +658,7 @@ def test_full_hd_camera_at_moderate_rate(rig: Rig, refs: References, tmp_path: P
     assert_contiguous(seqs, "1080p images")
     assert len(seqs) >= 5
     assert stats["topics"]["/hd_camera/image_raw"] == {"received": len(seqs), "written": len(seqs),
-                                                       "dropped": 0, "queue_dropped": 0, "rate_limited": 0}
+                                                       "dropped": 0, "queue_dropped": 0, "rate_limited": 0, "repeated": 0}
     assert stats["error"] is None and stats["bytes_written"] == (uri / "hd_0.mcap").stat().st_size
     cam = refs.driver(CameraDriver, **HD_CAMERA)
     for m in bag.topic("/hd_camera/image_raw"):

@@ -108,7 +108,7 @@ def test_unserializable_message_is_dropped_and_recording_goes_on(supervised: Rig
         final = json.loads(stop.message)
         assert final["serialize_errors"] == live["serialize_errors"] and final["error"] is None
         assert final["topics"][topic] == {"received": 30, "written": 29, "dropped": 1, "queue_dropped": 0,
-                                           "rate_limited": 0}
+                                           "rate_limited": 0, "repeated": 0}
         bag = verify_bag(uri)
         assert bag.seqs(topic) == [n for n in range(30) if n != 10]
         assert len(bag.seqs(IMU_TOPIC)) == final["topics"][IMU_TOPIC]["written"] > 0

@@ -5,7 +5,8 @@ files by size or duration, and keeps ``metadata.yaml`` true to the files: it is 
 atomically at every split (so a crash later still leaves a readable bag of the closed files) and
 at close. A split does not wait for the full file: the next one is prepared ahead, and the full one is
 finished (last chunk, summary, fsync) and then listed in ``metadata.yaml`` by a thread of its own, while
-writes go on into the next file. A failed write (disk full, ...) never leaves an unreadable bag behind: the current file is
+writes go on into the next file. The last messages of chosen topics (latched ones: :meth:`BagWriter.repeat_topic`)
+are written again at the start of every next file, so that each file can be used on its own. A failed write (disk full, ...) never leaves an unreadable bag behind: the current file is
 finalized with what reached it, ``metadata.yaml`` counts exactly that, and the caller gets a
 :class:`BagWriteError` naming the file and the OS reason.
 """
@@ -18,6 +19,7 @@ import os
 import shutil
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, Protocol
@@ -183,6 +185,13 @@ class BagWriter:
         self._file_last_ns: int | None = None
         self._failure: BagWriteError | None = None
         self._closed = False
+        # Topics whose last messages start every next file: (CDR bytes, log time, publish time) each.
+        self._repeat: dict[str, deque[tuple[bytes, int, int]]] = {}
+        self._last_written: tuple[int, int] | None = None  # (log, publish) time of the latest message written
+        self._file_fresh = True  # the current file holds no message but repeated ones: it is never split off
+        #: Per topic, copies written again (repeat_topic, or ``write(repeat=True)``); replaced, never changed,
+        #: so that it can be read without the lock.
+        self.repeated_counts: dict[str, int] = {}
 
         try:
             created = [self._path, *(parent for parent in self._path.parents if not parent.exists())]
@@ -325,8 +334,23 @@ class BagWriter:
             self._metadata.topics.append(info)
             self._file_counts[info.name] = 0
 
+    def repeat_topic(self, topic: str, depth: int) -> None:
+        """Write the last ``depth`` messages of ``topic`` again at the start of every file that follows a split
+        (rosbag2 Rolling's ``--repeat-transient-local``), stamped with the receive and publish times of the last
+        message written to the previous file, as rosbag2 does (a file played alone has no gap before its own
+        messages). Their data is unchanged: a header stamp in the message is the original one.
+
+        Raises:
+            KeyError: the topic was not added.
+        """
+        with self._lock:
+            if topic not in self._topics:
+                raise KeyError(f"unknown topic {topic!r}: add_topic() it first")
+            self._repeat[topic] = deque(self._repeat.get(topic, ()), maxlen=depth)
+
     def write(
-        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int, split: bool | None = None
+        self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int, split: bool | None = None,
+        repeat: bool = False,
     ) -> None:
         """Write one CDR-serialized message (with its 4-byte encapsulation header).
 
@@ -334,7 +358,8 @@ class BagWriter:
         ``publish_time_ns`` the source time. ``split``: None splits first if the current file is full, True
         splits first (unless the file is empty), False never (a caller that chooses where files begin, see
         :meth:`split_due`). ``data`` may be reused after the call, unless the writer gathers writes
-        (``gather_bytes``).
+        (``gather_bytes``). ``repeat``: a copy of an earlier message (a latched one at the start of a
+        snapshot), counted in :attr:`repeated_counts` as well as in the file.
 
         Raises:
             KeyError: the topic was not added.
@@ -345,20 +370,47 @@ class BagWriter:
             if topic not in self._topics:
                 raise KeyError(f"unknown topic {topic!r}: add_topic() it first")
             self._settle_background()
-            if self._split_due(log_time_ns) if split is None else (split and self._file_first_ns is not None):
+            if self._split_due(log_time_ns) if split is None else (split and not self._file_fresh):
                 self._split()
-            assert self._storage is not None
-            try:
-                self._storage.write(topic, data, log_time_ns, publish_time_ns)
-            except OSError as error:
-                self._fail(error)
-            self._file_counts[topic] += 1
-            if self._file_first_ns is None or log_time_ns < self._file_first_ns:
-                self._file_first_ns = log_time_ns
-            if self._file_last_ns is None or log_time_ns > self._file_last_ns:
-                self._file_last_ns = log_time_ns
+            self._put(topic, data, log_time_ns, publish_time_ns)
+            if repeat:
+                self._count_repeat(topic)
+            else:
+                self._file_fresh = False
+                self._last_written = (log_time_ns, publish_time_ns)
+                kept = self._repeat.get(topic)
+                if kept is not None:
+                    kept.append((bytes(data), log_time_ns, publish_time_ns))
             if self._prepared is None and self._split_near(log_time_ns):
                 self._prepare_next()
+
+    def _put(self, topic: str, data: CdrData, log_time_ns: int, publish_time_ns: int) -> None:
+        """Write one message into the current file and count it there."""
+        assert self._storage is not None
+        try:
+            self._storage.write(topic, data, log_time_ns, publish_time_ns)
+        except OSError as error:
+            self._fail(error)
+        self._file_counts[topic] += 1
+        if self._file_first_ns is None or log_time_ns < self._file_first_ns:
+            self._file_first_ns = log_time_ns
+        if self._file_last_ns is None or log_time_ns > self._file_last_ns:
+            self._file_last_ns = log_time_ns
+
+    def _count_repeat(self, topic: str) -> None:
+        self.repeated_counts = {**self.repeated_counts, topic: self.repeated_counts.get(topic, 0) + 1}
+
+    def _write_repeats(self) -> None:
+        """Start the new file with the kept messages of the repeated topics, oldest first, at the time of the
+        last message of the previous file (see :meth:`repeat_topic`)."""
+        if self._last_written is None:
+            return
+        log_time_ns, publish_time_ns = self._last_written
+        kept = sorted(((entry[1], topic, entry[0]) for topic, entries in self._repeat.items() for entry in entries),
+                      key=lambda item: item[0])
+        for _, topic, data in kept:
+            self._put(topic, data, log_time_ns, publish_time_ns)
+            self._count_repeat(topic)
 
     def split_due(self, log_time_ns: int) -> bool:
         """Whether a message received at ``log_time_ns`` would go to a new file (the current one is full)."""
@@ -518,6 +570,7 @@ class BagWriter:
             storage = self._create_storage(self._file_path())
         self._file_counts = dict.fromkeys(self._topics, 0)
         self._file_first_ns = self._file_last_ns = None
+        self._file_fresh = True
         status = os.stat(storage.path)
         self._identity = (status.st_dev, status.st_ino)
         self._current_path = storage.path
@@ -570,8 +623,8 @@ class BagWriter:
             prepared.path.unlink(missing_ok=True)
 
     def _split_due(self, log_time_ns: int) -> bool:
-        if self._file_first_ns is None:
-            return False  # never split off an empty file
+        if self._file_fresh:
+            return False  # never split off an empty file (or one of repeated messages only: one file per message)
         assert self._storage is not None
         if self._max_size and self._storage.size >= self._max_size:
             return True
@@ -603,6 +656,7 @@ class BagWriter:
                                                listed[:drop])
         threading.Thread(target=self._close_in_background, args=(closing, closing_metadata),
                          name=f"bag_close:{storage.path.name}", daemon=True).start()
+        self._write_repeats()
 
     def _close_in_background(self, closing: _ClosingFile, metadata: BagMetadata) -> None:
         """Finish the file, write ``metadata.yaml`` naming it, then delete what circular recording drops: all

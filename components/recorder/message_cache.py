@@ -9,7 +9,10 @@ When the writer falls behind (a disk that stalls for longer than the cache lasts
 ``reserve`` before anything is dropped; a message that does not fit even then is dropped and counted for its
 topic (never silently lost). The backlog (bytes, and how far behind the oldest queued message is) is visible
 live. In snapshot mode the cache is a ring
-instead: the oldest messages make room, and nothing is written until a snapshot is requested.
+instead: the oldest messages make room (also those received more than ``max_duration`` seconds before the newest,
+rosbag2's ``max_cache_duration``: whichever limit is reached first), and nothing is written until a snapshot is
+requested. Evictions from the ring are the ring working as asked, not losses: they are counted apart
+(``evicted``).
 """
 from __future__ import annotations
 
@@ -33,6 +36,8 @@ class CachedMessage:
     size: int
     log_time_ns: int
     publish_time_ns: int
+    #: a latched message written again at the start of a snapshot (record.repeat_transient_local), not received
+    repeat: bool = False
 
 
 #: Size charged for a message whose size cannot be computed: it cannot be serialized either, and the writer
@@ -86,8 +91,10 @@ def payload_size(payload: Any) -> int:
 class MessageCache:
     """A byte-bounded FIFO with per-topic drop counts; ``take_all`` blocks until data or close."""
 
-    def __init__(self, max_bytes: int, ring: bool = False, reserve: int = 0) -> None:
+    def __init__(self, max_bytes: int, ring: bool = False, reserve: int = 0, max_duration: float = 0.0) -> None:
         self.max_bytes = max_bytes
+        #: a ring's time bound: messages received this long before the newest make room (0: none)
+        self._max_duration_ns = round(max_duration * 1e9) if ring else 0
         self.reserve = 0 if ring else reserve  # a snapshot ring keeps its size: it evicts instead
         self.peak_bytes = 0
         #: how many times the bytes held went above ``max_bytes``, into the reserve
@@ -134,7 +141,9 @@ class MessageCache:
                 return False
             self.received[message.topic] += 1
             if self._ring:
-                while self._queue and self._bytes + message.size > self.max_bytes:
+                oldest_kept = message.log_time_ns - self._max_duration_ns if self._max_duration_ns else None
+                while self._queue and (self._bytes + message.size > self.max_bytes or (
+                        oldest_kept is not None and self._queue[0].log_time_ns < oldest_kept)):
                     old = self._queue.popleft()
                     self._bytes -= old.size
                     self.evicted[old.topic] += 1

@@ -35,7 +35,7 @@ from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.type_support import check_is_valid_msg_type
 from rosbag2_interfaces.msg import WriteSplitEvent
 from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
@@ -99,6 +99,7 @@ class Recorder(ComponentNode):
                                                        self.resolve_topic_name(MESSAGES_LOST_TOPIC)})
             self._paused = self._options.start_paused
             self._topics: dict[str, TopicInfo] = {}
+            self._repeat_depths: dict[str, int] = {}  # per topic: record.repeat_transient_local depth (0: none)
             self._topic_subscriptions: dict[str, Any] = {}
             self._ignored: set[str] = set()
             self._bag_count = 0
@@ -157,7 +158,7 @@ class Recorder(ComponentNode):
                                    writer_class=self.writer_class,
                                    keyframes=self._compression.keyframes if self._compression else None)
         for info in self._topics.values():
-            session.add_topic(info)
+            session.add_topic(info, self._repeat_depths.get(info.name, 0))
         self._window_bag = None
         self._session = session
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
@@ -230,6 +231,16 @@ class Recorder(ComponentNode):
             return
         offered = [p.qos_profile for p in publishers]
         qos: QoSProfile = self._qos_overrides.get(topic) or adapt_qos(offered)
+        depth = self._repeat_depth(topic, qos)
+        if depth and qos.durability != DurabilityPolicy.TRANSIENT_LOCAL:
+            self.get_logger().warning(
+                f"{topic} is in record.repeat_transient_local, but " + (
+                    "its QoS override is not transient_local: the override is used" if topic in self._qos_overrides
+                    else "not every publisher offers transient_local: subscribing transient_local anyway, "
+                         "so volatile publishers of it are not recorded"))
+            if topic not in self._qos_overrides:  # rosbag2 Rolling asks for transient_local here too
+                qos = adapt_qos(offered)
+                qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
         type_hash = next((str(p.topic_type_hash) for p in publishers if str(p.topic_type_hash).startswith("RIHS01_")),
                          "")
         info = TopicInfo(topic, type_name, "cdr", [qos_profile_dict(q) for q in offered], type_hash)
@@ -238,8 +249,9 @@ class Recorder(ComponentNode):
         try:
             with self._lock:  # declared in the bag before the first message can reach the writer
                 if self._session is not None:
-                    self._session.add_topic(info)
+                    self._session.add_topic(info, depth)
                 self._topics[topic] = info
+                self._repeat_depths[topic] = depth
             self._topic_subscriptions[topic] = self.create_subscription(
                 msg_type, topic, functools.partial(self._intake, topic), qos, raw=True,
                 intra_process_inline=True,  # the intake only hands over to the writer thread: no executor hop
@@ -251,7 +263,17 @@ class Recorder(ComponentNode):
                 self._topics.pop(topic, None)
             self._ignore(topic, f"cannot subscribe with type {type_name} ({type(exc).__name__}: {exc})")
             return
-        self.get_logger().info(f"Subscribed to {topic} ({type_name})")
+        self.get_logger().info(f"Subscribed to {topic} ({type_name})"
+                               + (f", repeating its last {depth} at every split and snapshot" if depth else ""))
+
+    def _repeat_depth(self, topic: str, qos: QoSProfile) -> int:
+        """How many of the topic's last messages start every split file and snapshot: its entry in
+        record.repeat_transient_local, else record.repeat_all_transient_local if it is recorded transient_local
+        (0: none)."""
+        named = self._options.repeat_transient_local.get(topic)
+        if named is not None:
+            return named
+        return self._options.repeat_all_transient_local if qos.durability == DurabilityPolicy.TRANSIENT_LOCAL else 0
 
     def _intake(self, topic: str, message: Any, info: dict[str, Any]) -> None:
         """Hand the message (object or CDR bytes) to the writer thread, nothing more.

@@ -27,6 +27,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from components.bounds import Bounds
+from components.qos_profiles import absolute_topic
 from components.image_encoder.image_encoder import DEFAULTS as IMAGE_ENCODER_DEFAULTS
 from components.node_parameters import clean, declare_defaults, given_values, typed
 from components.recorder.rate_limits import parse_max_rates
@@ -52,6 +53,10 @@ RECORD_DEFAULTS: dict[str, Any] = {
     "start_paused": False,
     "qos_profile_overrides_path": "",
     "rmw_serialization_format": "cdr",
+    # rosbag2 Rolling (ros2/rosbag2#2385-#2391): latched messages written again at every split and snapshot;
+    # "TOPIC" or "TOPIC=DEPTH" strings, and the depth for every transient_local topic (0: off).
+    "repeat_transient_local": [""],
+    "repeat_all_transient_local": 0,
     # Not in rosbag2: fleet recording (components/recorder/schedule.py). Instants in seconds since the epoch.
     "start_at": 0.0,
     "stop_at": 0.0,
@@ -73,6 +78,8 @@ STORAGE_DEFAULTS: dict[str, Any] = {
     "max_bagfile_size": 0,
     "max_bagfile_duration": 0,
     "max_cache_size": 100 * 1024 * 1024,
+    # rosbag2 Rolling (ros2/rosbag2#2289): the snapshot ring holds at most this many seconds (0: no time bound)
+    "max_cache_duration": 0,
     "storage_preset_profile": "",
     "snapshot_mode": False,
     "custom_data": [""],
@@ -110,8 +117,10 @@ ALIASES: dict[str, str] = {
 #: aliases whose boolean means the opposite of their rosbag2 parameter
 INVERTED_ALIASES = frozenset({"start_recording_immediately"})
 STORAGE_IDS = ("mcap", "sqlite3")
+#: A depth (rosbag2's type) or a boolean (true: depth 1), so it is declared apart from the typed defaults.
+REPEAT_ALL = "record.repeat_all_transient_local"
 #: Durations take fractions of a second although their rosbag2 defaults are integers.
-_KINDS = {"storage.max_bagfile_duration": float}
+_KINDS = {"storage.max_bagfile_duration": float, "storage.max_cache_duration": float}
 
 # Bounds of the numbers a LoadNode request sets (see components/bounds.py for why).
 #: rosbag2_cpp's writer refuses a split size below its storage plugin's get_minimum_split_file_size(): 86016
@@ -126,6 +135,10 @@ POLLING_INTERVAL = Bounds(0.01, 60, "s")
 LOSS_BOUND_INTERVAL = Bounds(0.01, 3600, "s")
 MIN_FREE_SPACE = Bounds(1, 2**63 - 1, "bytes")
 MAX_BAG_FILES = Bounds(1, 1_000_000, "files")
+#: storage.max_cache_duration: rosbag2 takes whole seconds up to 2^32-1; fractions are allowed here
+CACHE_DURATION = Bounds(0.001, 2**32 - 1, "s")
+#: How many of a topic's last messages record.repeat_transient_local keeps: each is held in memory for good.
+REPEAT_DEPTH = Bounds(1, 1000, "messages")
 #: The cache may take at most this share of the memory available when the recorder is loaded.
 CACHE_MEMORY_SHARE = 0.5
 #: storage.stall_reserve -1 (the default) is this share of the available memory ...
@@ -183,6 +196,8 @@ class RecordOptions:
     max_bagfile_size: int = 0
     max_bagfile_duration: float = 0.0
     max_cache_size: int = 100 * 1024 * 1024
+    #: seconds (by receive time) the snapshot ring holds at most, besides max_cache_size (0: no time bound)
+    max_cache_duration: float = 0.0
     #: bytes beyond max_cache_size that a writer behind a stalled disk may fill before anything is dropped
     stall_reserve: int = 0
     storage_preset_profile: str = ""
@@ -203,6 +218,10 @@ class RecordOptions:
     max_duration_ns: int = 0
     #: record only what publishers of this container publish (in-process), never the same topic from elsewhere
     local_only: bool = False
+    #: topic -> how many of its last messages are written again at the start of every split file and snapshot
+    repeat_transient_local: dict[str, int] = field(default_factory=dict)
+    #: that depth for every topic recorded with transient_local durability (0: only the topics named above)
+    repeat_all_transient_local: int = 0
     #: per-topic rate limits, validated ``"PATTERN:RATE"`` strings (see components/recorder/rate_limits.py)
     max_rates: list[str] = field(default_factory=list)
     #: record.compress: the codec image topics are recorded in ("": raw), which topics, and the encoder's settings
@@ -220,7 +239,9 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
     parameters (component_container.undeclared_parameters) names only what the recorder does not know.
     """
     given = given_values(overrides)
-    values = declare_defaults(node, DEFAULTS, _KINDS)
+    values = declare_defaults(node, {k: v for k, v in DEFAULTS.items() if k != REPEAT_ALL}, _KINDS)
+    declared = node.declare_parameter(REPEAT_ALL, DEFAULTS[REPEAT_ALL], ParameterDescriptor(dynamic_typing=True))
+    values[REPEAT_ALL] = DEFAULTS[REPEAT_ALL] if declared.value is None else declared.value
     sources = {name: name for name in DEFAULTS}  # rosbag2 name -> the name the user gave it as
     for alias, target in ALIASES.items():
         if alias not in given:
@@ -237,6 +258,34 @@ def declare_options(node: Node, overrides: dict[str, Parameter]) -> RecordOption
         # Mirror the value to the rosbag2 name, so `ros2 param get <node> storage.uri` shows what is used.
         node.set_parameters([Parameter(target, value=values[target])])
     return _validate(values, {name: _label(name, source) for name, source in sources.items()})
+
+
+def repeat_depths(items: list[str], label: str) -> dict[str, int]:
+    """``record.repeat_transient_local``'s ``TOPIC`` / ``TOPIC=DEPTH`` strings (rosbag2's format, depth 1 when
+    omitted) as absolute topic name -> depth; ValueError naming the parameter on a bad entry."""
+    depths: dict[str, int] = {}
+    for item in clean(items):
+        topic, separator, depth = item.strip().partition("=")
+        depth = depth if separator else "1"
+        if not topic:
+            raise ValueError(f"parameter {label} entries must be 'TOPIC' or 'TOPIC=DEPTH', got '{item}'")
+        try:
+            count = int(depth)
+        except ValueError:
+            raise ValueError(f"parameter {label}: the depth of '{item}' must be an integer") from None
+        REPEAT_DEPTH.check(f"{label} ('{topic}')", count)
+        depths[absolute_topic(topic)] = count
+    return depths
+
+
+def repeat_all_depth(value: Any, label: str) -> int:
+    """``record.repeat_all_transient_local``: rosbag2's depth (0: off); ``true`` / ``false`` mean 1 / 0."""
+    if isinstance(value, bool):
+        return int(value)
+    if not isinstance(value, int):
+        raise ValueError(f"parameter {label} must be a boolean or a depth (integer), got {value!r}")
+    REPEAT_DEPTH.check(label, value, zero_means="off")
+    return value
 
 
 def custom_data_pairs(items: list[str]) -> dict[str, str]:
@@ -276,6 +325,8 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
     if values["record.rmw_serialization_format"] != "cdr":
         raise ValueError("parameter 'record.rmw_serialization_format' must be 'cdr'")
     custom = custom_data_pairs(values["storage.custom_data"])
+    CACHE_DURATION.check(labels["storage.max_cache_duration"], values["storage.max_cache_duration"],
+                         zero_means="no time bound")
     for name in ("record.regex", "record.exclude_regex", "record.compress_regex"):
         try:
             re.compile(values[name])
@@ -306,6 +357,7 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         max_bagfile_size=int(values["storage.max_bagfile_size"]),
         max_bagfile_duration=float(values["storage.max_bagfile_duration"]),
         max_cache_size=int(values["storage.max_cache_size"]),
+        max_cache_duration=float(values["storage.max_cache_duration"]),
         stall_reserve=stall_reserve(int(values["storage.stall_reserve"]), labels["storage.stall_reserve"]),
         storage_preset_profile=values["storage.storage_preset_profile"],
         snapshot_mode=values["storage.snapshot_mode"],
@@ -320,6 +372,9 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         max_duration_ns=duration_ns("record.max_duration", float(values["record.max_duration"])),
         local_only=values["record.local_only"],
         max_rates=max_rates,
+        repeat_transient_local=repeat_depths(values["record.repeat_transient_local"],
+                                             labels["record.repeat_transient_local"]),
+        repeat_all_transient_local=repeat_all_depth(values[REPEAT_ALL], labels[REPEAT_ALL]),
         compress=values["record.compress"].strip().lower(),
         compress_topics=clean(values["record.compress_topics"]),
         compress_regex=values["record.compress_regex"],

@@ -23,6 +23,11 @@ them (with ``record.compress`` to video, files begin each video topic at a keyfr
 ``finish`` is idempotent.
 Messages that ``record.max_rates`` leaves out are not drops: they are counted apart, as ``rate_limited`` per topic
 and in ``dropped_by_design`` (a bag holds what was asked for; ``dropped`` and ``drop_reasons`` are losses).
+
+Latched topics (``record.repeat_transient_local``): the writer starts every split file with their last messages
+(BagWriter.repeat_topic), and every snapshot starts with those the ring no longer holds, stamped with the receive
+and publish times of the snapshot's first message, as rosbag2 Rolling does. Those copies are counted per topic as
+``repeated``, never as ``written``: per topic, ``received`` = ``written`` + ``dropped`` + ``rate_limited`` still.
 """
 from __future__ import annotations
 
@@ -113,7 +118,10 @@ class RecordingSession:
             raise
         self._next_disk_check = 0.0
         self._written_unreleased = 0  # bytes of messages written but still counted in the cache
-        self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode, reserve=options.stall_reserve)
+        self.cache = MessageCache(options.max_cache_size, ring=options.snapshot_mode, reserve=options.stall_reserve,
+                                  max_duration=options.max_cache_duration)
+        # Snapshot mode: per latched topic, its last messages as received (the ring may have evicted them)
+        self._latched: dict[str, deque[CachedMessage]] = {}
         # The live counts are the session's own, not the writer's: reading the writer's would wait on its lock,
         # which a write to a hung disk holds forever (and ~/get_stats, health and unload must still answer).
         self._topics: set[str] = set()
@@ -168,16 +176,21 @@ class RecordingSession:
         with self._abandon_lock:
             return self._abandoned and not self._writer_done
 
-    def add_topic(self, info: TopicInfo) -> None:
-        """Declare a topic in the bag (listed even if it never gets a message).
+    def add_topic(self, info: TopicInfo, repeat_depth: int = 0) -> None:
+        """Declare a topic in the bag (listed even if it never gets a message); with ``repeat_depth``, its last
+        messages start every split file and every snapshot (see the module docstring).
 
         Raises what BagWriter.add_topic raises for a topic it cannot describe (no definition installed); a
         storage failure instead ends the session.
         """
         try:
             self.writer.add_topic(info)
+            if repeat_depth:
+                self.writer.repeat_topic(info.name, repeat_depth)
         except BagWriteError as exc:
             self._fail(exc)
+        if repeat_depth and self._snapshot_mode:
+            self._latched[info.name] = deque(self._latched.get(info.name, ()), maxlen=repeat_depth)
         self._topics.add(info.name)
 
     def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> bool | None:
@@ -187,7 +200,12 @@ class RecordingSession:
         if self._rate_limiter is not None and not self.cache.closed and \
                 not self._rate_limiter.admits(topic, log_time_ns):
             return False
-        return self.cache.push(CachedMessage(topic, payload, payload_size(payload), log_time_ns, publish_time_ns))
+        size = payload_size(payload)
+        taken = self.cache.push(CachedMessage(topic, payload, size, log_time_ns, publish_time_ns))
+        latched = self._latched.get(topic)
+        if taken and latched is not None:  # its own record: the writer lets go of the ring's once written
+            latched.append(CachedMessage(topic, payload, size, log_time_ns, publish_time_ns))
+        return taken
 
     def missed(self, topic: str) -> None:
         """A message received inside this bag's window reached the intake after the bag was closed (a busy
@@ -208,9 +226,22 @@ class RecordingSession:
                 return "the bag is finishing or has failed"
             if self._snapshot is not None:
                 return "the previous snapshot is still being written"
-            self._snapshot = self.cache.drain()  # the ring as it is now, not when the writer wakes
+            self._snapshot = self._with_latched(self.cache.drain())  # the ring as it is now, not when the writer wakes
         self._snapshot_requested.set()
         return None
+
+    def _with_latched(self, ring: list[CachedMessage]) -> list[CachedMessage]:
+        """A snapshot: the ring, after the latched messages it no longer holds, stamped with the receive and
+        publish times of its first message (rosbag2 Rolling's ``--repeat-transient-local``); those still in the
+        ring are in it already. With an empty ring they keep their own times."""
+        first = min(ring, key=_log_time, default=None)
+        kept = sorted((m for latched in self._latched.values() for m in list(latched)
+                       if first is None or m.log_time_ns < first.log_time_ns), key=_log_time)
+        if first is None:
+            return [CachedMessage(m.topic, m.payload, m.size, m.log_time_ns, m.publish_time_ns, repeat=True)
+                    for m in kept]
+        return [CachedMessage(m.topic, m.payload, m.size, first.log_time_ns, first.publish_time_ns, repeat=True)
+                for m in kept] + ring
 
     def split(self) -> bool:
         """Close the current file and go on in the next; with compressed video, at its next keyframe."""
@@ -344,10 +375,15 @@ class RecordingSession:
         log_time = message.log_time_ns
         if self._monotonic_log_times:
             log_time = self._last_log_time = max(log_time, self._last_log_time)
-        self.writer.write(message.topic, data, log_time, message.publish_time_ns, split)
+        if message.repeat:
+            self.writer.write(message.topic, data, log_time, message.publish_time_ns, split, repeat=True)
+        else:
+            self.writer.write(message.topic, data, log_time, message.publish_time_ns, split)
         if self._oldest_unflushed_ns is None:
             self._oldest_unflushed_ns = message.log_time_ns  # the receive time
         self._unsynced = True
+        if message.repeat:
+            return
         self.handed[message.topic] += 1
         self._latencies.append(time.time_ns() - message.log_time_ns)
         self._written_unreleased += message.size
@@ -432,7 +468,9 @@ class RecordingSession:
         """Per topic: written, received, queue drops and the reasons of every drop; never waits on the storage."""
         idle = self._closed_late or not self._thread.is_alive()  # only then is the writer's lock free for sure
         handed = dict(self.handed)
-        written = self.writer.written_message_counts if idle else handed
+        repeated = self.writer.repeated_counts
+        written = {t: n - repeated.get(t, 0) for t, n in self.writer.written_message_counts.items()} if idle \
+            else handed
         received, cache_full, refused = self.cache.counts()
         queue = Counter(self._queue_drops() if self._queue_drops else {})
         with self._stats_lock:
@@ -454,7 +492,7 @@ class RecordingSession:
                 if count > 0:
                     reasons[topic][reason] += count
         topics = sorted(set(written) | self._topics | set(received) | set(queue))
-        return _Counts(idle, written, received, queue, reasons, topics, rate_limited)
+        return _Counts(idle, written, received, queue, reasons, topics, rate_limited, repeated)
 
     def drop_reasons(self) -> dict[str, dict[str, int]]:
         """Per topic, per reason: messages dropped so far (what events/messages_lost reports the change of)."""
@@ -481,7 +519,8 @@ class RecordingSession:
             "write_latency_ms": _percentiles(list(self._latencies)),
             "topics": {t: {"received": counts.received[t], "written": counts.written.get(t, 0),
                            "dropped": sum(reasons[t].values()), "queue_dropped": queue[t],
-                           RATE_LIMITED: counts.rate_limited[t]} for t in counts.topics},
+                           RATE_LIMITED: counts.rate_limited[t], "repeated": counts.repeated.get(t, 0)}
+                       for t in counts.topics},
             "drop_reasons": {t: dict(reasons[t]) for t in counts.topics if reasons[t]},
             "dropped_by_design": {t: {RATE_LIMITED: n} for t, n in sorted(counts.rate_limited.items()) if n},
         }
@@ -529,6 +568,8 @@ class _Counts:
     topics: list[str]
     #: per topic: messages left out by record.max_rates (received, not lost)
     rate_limited: Counter[str]
+    #: per topic: latched messages written again at splits and snapshots (record.repeat_transient_local)
+    repeated: dict[str, int]
 
 
 def _log_time(message: CachedMessage) -> int:
