@@ -5,8 +5,10 @@ objects by reference; topics from other processes arrive through raw DDS subscri
 deserialized). Both go to the same :class:`RecordingSession`, whose writer thread serializes and writes.
 
 Services (private): ``~/pause``, ``~/resume``, ``~/toggle_paused``, ``~/is_paused``, ``~/split_bagfile``,
-``~/snapshot`` (rosbag2_interfaces), ``~/start_recording``, ``~/stop_recording`` and ``~/get_stats``
-(std_srvs/Trigger; get_stats answers the live counts as JSON in ``message``). Events: ``events/write_split``.
+``~/snapshot`` and rosbag2's remote control ``~/record``, ``~/stop``, ``~/start_discovery``, ``~/stop_discovery``,
+``~/is_discovery_running`` (rosbag2_interfaces, as rosbag2 Jazzy 0.26.10 answers them), ``~/start_recording``,
+``~/stop_recording`` and ``~/get_stats`` (std_srvs/Trigger; get_stats answers the live counts as JSON in
+``message``). Events: ``events/write_split``.
 
 Fleet recording (components/recorder/schedule.py): ``record.start_at`` / ``record.stop_at`` bound the
 recording to the messages received within a window, ``record.max_duration`` ends it even if no stop comes,
@@ -15,7 +17,7 @@ set while recording (``ros2 param set``). ``record.local_only`` records only wha
 ``record.compress`` records chosen image topics compressed by an ImageEncoder the recorder loads into its
 container (components/recorder/compression.py; video files begin at keyframes: keyframe_gate.py).
 
-Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on
+Recording starts at load (unless ``record.start_paused``) and the bag is finalized on unload, on ``~/stop`` or
 ``~/stop_recording``, when the context shuts down, and when the container receives SIGINT/SIGTERM, within the
 container's shutdown timeout. A loaded recorder is a working one or says why not: a bad message, a type that
 cannot be used here or a failing disk is logged, counted in ``~/get_stats`` and reported by :meth:`health`,
@@ -25,11 +27,10 @@ from __future__ import annotations
 
 import functools
 import json
-import os
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -38,7 +39,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.type_support import check_is_valid_msg_type
 from rosbag2_interfaces.msg import WriteSplitEvent
-from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
+from rosbag2_interfaces.srv import (IsDiscoveryRunning, IsPaused, Pause, Record, Resume, Snapshot, SplitBagfile,
+                                    StartDiscovery, Stop, StopDiscovery, TogglePaused)
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
@@ -47,6 +49,7 @@ from baglib.write.writer import BagWriter
 from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
+from components.recorder.bag_names import BagNames
 from components.recorder.compression import Compression
 from components.recorder.finished_bags import FinishedBags
 from components.recorder.recorder_health import HealthMonitor
@@ -68,6 +71,9 @@ SCHEDULE_PERIOD = 0.05
 #: ``~/get_stats`` answers the final counts of this many of the last bags closed (and how many were closed in
 #: all): every bag's would grow the container and every reply by ~0.7 kB per bag, for as long as it is loaded.
 FINISHED_STATS_KEPT = 10
+#: rosbag2's service return codes (RecorderImpl's kServiceReturnCodeSuccess / kServiceReturnCodeError)
+RETURN_CODE_SUCCESS = 0
+RETURN_CODE_ERROR = 1
 
 
 class Recorder(ComponentNode):
@@ -102,7 +108,10 @@ class Recorder(ComponentNode):
             self._repeat_depths: dict[str, int] = {}  # per topic: record.repeat_transient_local depth (0: none)
             self._topic_subscriptions: dict[str, Any] = {}
             self._ignored: set[str] = set()
-            self._bag_count = 0
+            self._names = BagNames(options.uri, functools.partial(self.resolve_path, URI_PARAMETER))
+            # Topic discovery (the polling timer) subscribes new topics while this holds: from each start of a
+            # bag until its stop or ~/stop_discovery (rosbag2's discovery_running_).
+            self._discovery_running = False
             self._finished = FinishedBags(FINISHED_STATS_KEPT)
             # The bag the end of the recording window closed, and that window: a message received inside it
             # that reaches the intake after the close is counted as lost in that bag (see _intake).
@@ -122,6 +131,11 @@ class Recorder(ComponentNode):
             self.create_service(Trigger, "~/start_recording", self._on_start_recording),
             self.create_service(Trigger, "~/stop_recording", self._on_stop_recording),
             self.create_service(Trigger, "~/get_stats", self._on_get_stats),
+            self.create_service(Record, "~/record", self._on_record),
+            self.create_service(Stop, "~/stop", self._on_stop),
+            self.create_service(StartDiscovery, "~/start_discovery", self._on_start_discovery),
+            self.create_service(StopDiscovery, "~/stop_discovery", self._on_stop_discovery),
+            self.create_service(IsDiscoveryRunning, "~/is_discovery_running", self._on_is_discovery_running),
         ]
         self.context.on_shutdown(self.stop_recording)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -136,24 +150,13 @@ class Recorder(ComponentNode):
             QOS_OVERRIDES_PARAMETER, self.resolve_path(QOS_OVERRIDES_PARAMETER, path) if path else None)
 
     # --- sessions -----------------------------------------------------------------------------------------
-    def _next_uri(self) -> Path:
-        """storage.uri for the first bag; ``<uri>_1``, ``<uri>_2``... after a stop/start, never overwriting.
-
-        Every name, the default ``rosbag2_<time>`` one included, goes through ``resolve_path``: with a bag root
-        each must lie inside it (a ``<uri>_1`` symlink planted there after the first bag is refused too).
-        """
-        base = self._options.uri or time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
-        while True:
-            name = base if self._bag_count == 0 else f"{base}_{self._bag_count}"
-            self._bag_count += 1
-            path = self.resolve_path(URI_PARAMETER, name)
-            if self._bag_count == 1 or not os.path.lexists(path):
-                return path
-
-    def _start_session(self) -> RecordingSession:
+    def _start_session(self, uri: Path | None = None) -> RecordingSession:
+        """A new bag at ``uri`` (default: the next name, see BagNames), with every topic known so far declared;
+        topic discovery runs (again)."""
         # Queue drops count per subscription since it was created; a session counts only its own.
         baseline = {topic: getattr(sub, "dropped_count", 0) for topic, sub in self._topic_subscriptions.items()}
-        session = RecordingSession(self._options, str(self._next_uri()), self.get_logger(), self._publish_split,
+        session = RecordingSession(self._options, str(uri or self._names.next()), self.get_logger(),
+                                   self._publish_split,
                                    queue_drops=functools.partial(self._queue_drops, baseline),
                                    writer_class=self.writer_class,
                                    keyframes=self._compression.keyframes if self._compression else None)
@@ -161,6 +164,7 @@ class Recorder(ComponentNode):
             session.add_topic(info, self._repeat_depths.get(info.name, 0))
         self._window_bag = None
         self._session = session
+        self._discovery_running = True
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
                                + (" paused" if self._paused else ""))
         return session
@@ -179,6 +183,7 @@ class Recorder(ComponentNode):
         """
         with self._lock:
             session, self._session = self._session, None
+            self._discovery_running = False
             if session is not None and window_ended:
                 self._window_bag = (session, self._schedule.start_ns, self._schedule.end_ns)
         if session is None:
@@ -195,6 +200,9 @@ class Recorder(ComponentNode):
 
     # --- discovery and intake -----------------------------------------------------------------------------
     def _discover_topics(self) -> None:
+        """Subscribe the selected topics that appeared since the last look; nothing while discovery is off."""
+        if not self._discovery_running:
+            return
         for topic, types in self.get_topic_names_and_types():
             if topic in self._topic_subscriptions or topic in self._ignored:
                 continue
@@ -347,6 +355,7 @@ class Recorder(ComponentNode):
         or from a value replaced whole (never waiting on the storage)."""
         session, schedule = self._session, self._schedule
         return {"recording": session is not None, "paused": self._paused,
+                "discovery_running": self._discovery_running,
                 "window_ns": [schedule.start_ns, schedule.end_ns],
                 "custom_data": dict(self._options.custom_data),
                 "current": session.stats() if session else None,
@@ -400,21 +409,34 @@ class Recorder(ComponentNode):
         response.success = refusal is None
         return response
 
+    def _start_again(self, uri: Callable[[], Path] | None = None) -> RecordingSession | str:
+        """A new bag after a stop (the caller holds the lock and there is no session): the session, or why not.
+
+        After the recording window has ended, an explicit start records from now on. Discovery runs again, and
+        at once: topics that appeared while no bag was open are in the new one from its start.
+        """
+        if self._schedule.end_ns and self._schedule.end_ns <= time.time_ns():
+            self._schedule = Schedule(time.time_ns())
+            self._finalizer = None
+        try:
+            session = self._start_session(uri() if uri is not None else None)
+        except (OSError, ValueError) as exc:
+            reason = f"cannot start recording: {exc}"
+            self.get_logger().error(reason)
+            return reason
+        self._discover_topics()
+        return session
+
     def _on_start_recording(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
             if self._session is not None:
                 response.success, response.message = False, f"already recording to {self._session.writer.path}"
                 return response
-            if self._schedule.end_ns and self._schedule.end_ns <= time.time_ns():
-                self._schedule = Schedule(time.time_ns())  # an explicit start after the window: record from now
-                self._finalizer = None
-            try:
-                session = self._start_session()
-            except (OSError, ValueError) as exc:
-                response.success, response.message = False, f"cannot start recording: {exc}"
-                self.get_logger().error(response.message)
-                return response
-        response.success, response.message = True, f"recording to {session.writer.path}"
+            started = self._start_again()
+        if isinstance(started, str):
+            response.success, response.message = False, started
+        else:
+            response.success, response.message = True, f"recording to {started.writer.path}"
         return response
 
     def _on_stop_recording(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -424,6 +446,63 @@ class Recorder(ComponentNode):
         else:  # the final counts; on failure, "error" and "serialize_errors" in them say why
             response.success = stats["error"] is None and not stats["serialize_errors"]
             response.message = json.dumps(stats)
+        return response
+
+    # --- rosbag2's remote control (rosbag2_interfaces, Jazzy 0.26.10: ros2/rosbag2#2248) -------------------
+    def _on_record(self, request: Record.Request, response: Record.Response) -> Record.Response:
+        """A new bag after a stop, at ``uri`` or, empty, where the previous one was (BagNames.record)."""
+        with self._lock:
+            if self._session is not None:
+                started: RecordingSession | str = ("Called record(uri) while already in recording "
+                                                   f"(to {self._session.writer.path}).")
+                self.get_logger().warning(f"Record request dismissed: {started}")
+            else:
+                started = self._start_again(functools.partial(self._names.record, request.uri))
+        if isinstance(started, str):
+            response.return_code, response.error_string = RETURN_CODE_ERROR, started
+        else:
+            response.return_code, response.error_string = RETURN_CODE_SUCCESS, ""
+        return response
+
+    def _on_stop(self, request: Stop.Request, response: Stop.Response) -> Stop.Response:
+        """Finalize the bag, as ~/stop_recording; Jazzy's Stop has an empty response (a return code came later,
+        in ros2/rosbag2#2312, not backported), so a stop while not recording is only logged, as rosbag2 does."""
+        if self.stop_recording() is None:
+            self.get_logger().warning("Received Stop request while not in recording. Ignoring request.")
+        return response
+
+    def _on_start_discovery(self, request: StartDiscovery.Request,
+                            response: StartDiscovery.Response) -> StartDiscovery.Response:
+        """Subscribe new topics again, at once; refused when not recording or already discovering."""
+        with self._lock:
+            if self._session is None:
+                refusal: str | None = "Recorder is not currently recording."
+            elif self._discovery_running:
+                refusal = "Discovery is already running."
+            else:
+                refusal, self._discovery_running = None, True
+                self._discover_topics()
+        self._discovery_answer(response, "StartDiscovery", refusal)
+        return response
+
+    def _on_stop_discovery(self, request: StopDiscovery.Request,
+                           response: StopDiscovery.Response) -> StopDiscovery.Response:
+        """Subscribe no new topic until ~/start_discovery (or the next bag); subscribed ones go on recording."""
+        with self._lock:
+            refusal = None if self._discovery_running else "Discovery is not running."
+            self._discovery_running = False
+        self._discovery_answer(response, "StopDiscovery", refusal)
+        return response
+
+    def _discovery_answer(self, response: Any, request_name: str, refusal: str | None) -> None:
+        if refusal is not None:
+            self.get_logger().warning(f"{request_name} request ignored: {refusal}")
+        response.return_code = RETURN_CODE_SUCCESS if refusal is None else RETURN_CODE_ERROR
+        response.error_string = refusal or ""
+
+    def _on_is_discovery_running(self, request: IsDiscoveryRunning.Request,
+                                 response: IsDiscoveryRunning.Response) -> IsDiscoveryRunning.Response:
+        response.running = self._discovery_running
         return response
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
