@@ -349,3 +349,19 @@ def test_an_unfinished_input_is_refused_with_the_recover_command(tmp_path: Path)
     with pytest.raises(ConvertError, match="bag recover"):
         convert_bags([InputBag(str(bag))], [OutputBag(str(tmp_path / "out"), all_topics=True)])
     assert not (tmp_path / "out").exists()
+
+
+def test_names_stored_without_their_slash_come_out_fully_qualified(tmp_path: Path) -> None:
+    """rosbag2 stores a name as the node gave it; its own test bags (rosbag2_py's ``wbag``, ``convert_a``) hold
+    ``HHH`` and ``a_empty``. The output names the topic the messages were published on."""
+    topics = [LegacyTopic("chatter", STRING, [RELIABLE], type_hash(STRING), message_definition(STRING))]
+    messages = [("chatter", T0 + n * MS, T0 + n * MS, bytes(serialize(String(data=f"m{n}")))) for n in range(10)]
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    write_mcap(bag / "bag_0.mcap", topics, messages, 9)
+    write_metadata(bag, metadata_document(9, "mcap", ["bag_0.mcap"], topics, [messages], ros_distro="jazzy"))
+    done = convert(tmp_path, [bag], [{"uri": str(tmp_path / "out"), "topics": ["chatter"]},
+                                     {"uri": str(tmp_path / "db"), "storage_id": "sqlite3", "regex": "^/chat"}])
+    assert done.returncode == 0, done.stderr
+    expected = [("/chatter", t, data) for _, t, _, data in messages]
+    assert read_rosbags(tmp_path / "out") == read_rosbags(tmp_path / "db") == expected

@@ -9,6 +9,9 @@ outputs' windows together can reach. The MCAP reader finds those in the file's c
 chunks that hold them (see :class:`~baglib.read.mcap_reader.McapReader`); a cut of the last tenth of a bag reads
 about a tenth of it. SQLite3 files are read by their time index the same way.
 
+Topic names are written fully qualified: rosbag2 stored a name as its node gave it (``chatter``), and the output
+gets ``/chatter``, the topic it was published on, as ``bag merge`` does (the writer takes only full names).
+
 Refused before anything is written, naming what is wrong: an input that is missing, unreadable or unfinished
 (with the ``bag recover`` command, :mod:`baglib.tools.bag_copy`), a topic of two types, a time window that holds
 no message of its bag (or of the inputs, for an output), an output that selects no topic, an output that exists
@@ -23,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from baglib.format.topic_selection import TopicSelection
+from baglib.format.topic_selection import TopicSelection, absolute_name
 from baglib.read.storage_reader import BagReadError
 from baglib.read.timeline import Timeline, TopicSources
 from baglib.tools.bag_copy import BagCopyError, refuse_unfinished, topic_info, type_descriptions
@@ -69,7 +72,7 @@ def convert_bags(inputs: Sequence[InputBag], outputs: Sequence[OutputBag]) -> Co
     with timeline:
         try:
             refuse_unfinished(timeline.bags)
-            topics = timeline.topics()
+            topics = timeline.topics(lambda _, connection: absolute_name(connection.topic))
         except (BagCopyError, BagReadError) as error:
             raise ConvertError(f"cannot convert: {error}") from None
         input_windows = [_input_window(index, bag, timeline) for index, bag in enumerate(inputs)]
@@ -189,19 +192,18 @@ def _copy(timeline: Timeline, topics: TopicSources, selected: list[list[str]],
           output_windows: list[tuple[int | None, int | None]], read_windows: list[tuple[int | None, int | None]],
           writers: list[BagWriter]) -> list[int]:
     """Write each message read to every output that takes it; the messages written per output."""
-    routes: dict[int, list[tuple[int, int, int]]] = {}  # id(connection) -> (output, start, stop)
+    routes: dict[int, list[tuple[int, str, int, int]]] = {}  # id(connection) -> (output, name, start, stop)
     for output, chosen in enumerate(selected):
         low, high = output_windows[output]
         for name in chosen:
             for _, connection in topics[name]:
                 routes.setdefault(id(connection), []).append(
-                    (output, -1 if low is None else low, 2**64 if high is None else high))
-    names = sorted({name for chosen in selected for name in chosen})
+                    (output, name, -1 if low is None else low, 2**64 if high is None else high))
+    stored = sorted({connection.topic for chosen in selected for name in chosen for _, connection in topics[name]})
     counts = [0] * len(writers)
-    for message in timeline.messages(names, windows=read_windows):
-        for output, low, high in routes[id(message.connection)]:
+    for message in timeline.messages(stored, windows=read_windows):
+        for output, name, low, high in routes[id(message.connection)]:
             if low <= message.log_time_ns < high:
-                writers[output].write(message.connection.topic, message.data, message.log_time_ns,
-                                      message.publish_time_ns)
+                writers[output].write(name, message.data, message.log_time_ns, message.publish_time_ns)
                 counts[output] += 1
     return counts
