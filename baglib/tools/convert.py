@@ -51,7 +51,8 @@ class ConvertReport:
     seconds: float
 
     def text(self) -> str:
-        written = "; ".join(f"{path}: {messages} messages on {topics} topics" for path, topics, messages in self.outputs)
+        written = "; ".join(f"{path}: {messages} messages on {topics} topics"
+                            for path, topics, messages in self.outputs)
         return f"Converted {self.inputs} bag(s) in {self.seconds:.1f} s: {written}"
 
 
@@ -102,8 +103,8 @@ def convert_bags(inputs: Sequence[InputBag], outputs: Sequence[OutputBag]) -> Co
             if isinstance(error, (OSError, ValueError, BagReadError)):
                 raise ConvertError(f"bag convert failed (no output kept): {error}") from error
             raise
-    return ConvertReport([(writer.path, len(chosen), count) for writer, chosen, count in zip(writers, selected, counts)],
-                         len(inputs), time.monotonic() - started)
+    written = [(writer.path, len(chosen), count) for writer, chosen, count in zip(writers, selected, counts)]
+    return ConvertReport(written, len(inputs), time.monotonic() - started)
 
 
 def _check_outputs(outputs: Sequence[OutputBag]) -> None:
