@@ -19,6 +19,7 @@ import difflib
 import json
 import os
 import re
+import statistics
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -298,6 +299,17 @@ FOXGLOVE_MODES = {"no_viewer": "recording, no viewer", "in_container": "viewer t
                   "video": "viewer of the video channels (H.264, 640 px, 10 Hz) through the in-container bridge"}
 
 
+def convert_table(convert: dict[str, Any]) -> list[str]:
+    bag = part(convert, "bag")
+    rows = [[name, f"{statistics.median(bag[name]['seconds']):.2f}",
+             f"{bag[name]['mb_per_s']:.0f}", f"{bag[name].get('messages', bag['messages'])}",
+             f"{bag['convert']['share_of_read']:.0%} of read" if name == "convert"
+             else f"{bag[name]['share_of_convert']:.0%} of convert" if name.startswith("cut") else ""]
+            for name in ("read", "convert", "cut_input", "cut_output")]
+    return markdown([f"pass ({bag['payload_bytes'] / 1e6:.0f} MB, {bag['messages']} messages)", "median s",
+                     "MB/s of the whole bag", "messages written", "share"], rows)
+
+
 def drop_reasons(run: dict[str, Any]) -> str:
     totals: dict[str, int] = {}
     for reasons in run.get("recorder_drop_reasons", {}).values():
@@ -423,6 +435,7 @@ TABLES: dict[str, Table] = {
     "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
     "fleet": Table("fleet", "central", "python benchmarks/fleet_bench.py", fleet_table, "Fleet"),
     "merge": Table("merge", "workloads", "python benchmarks/merge_bench.py", merge_table, "Merge"),
+    "convert": Table("convert", "bag", "python benchmarks/convert_bench.py", convert_table, "Convert"),
     "foxglove": Table("foxglove", "in_container", "python benchmarks/foxglove_bench.py", foxglove_table,
                       "Foxglove viewer"),
     "fuzz": Table("fuzz_load", "seeds", "python benchmarks/fuzz_load.py --seed 1 --seed 2 --seed 3", fuzz_table,

@@ -26,7 +26,7 @@ import sys
 import time
 from typing import Sequence
 
-from ipc_component import bag_export, bag_merge, bag_play, create, record_fleet, record_status, top
+from ipc_component import bag_convert, bag_export, bag_merge, bag_play, create, record_fleet, record_status, top
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.verb_arguments import (LOG_LEVEL_HELP, add_verb, parameter_msgs, parse_log_level,
                                           parse_unique_id, remap_rules)
@@ -284,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="Write the recovered bag to this new directory instead of in place")
         p.set_defaults(handler=run_bag_recover)
     bag_merge.register(bag_verbs)
+    bag_convert.register(bag_verbs)
     bag_export.register(bag_verbs)
     p = add_verb(bag_verbs, "play", "Play back bags (like ros2 bag play)",
                  "Several bags play as one timeline.")

@@ -112,12 +112,17 @@ class Timeline:
                                    f"in {self.bags[index_a].path}: the two cannot be one topic")
 
     def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None,
-                 stop_ns: int | None = None) -> Iterator[BagMessage]:
+                 stop_ns: int | None = None, windows: Sequence[tuple[int | None, int | None]] = ()
+                 ) -> Iterator[BagMessage]:
         """The messages of ``topics`` (``None``: all) with ``start_ns <= log time < stop_ns`` on the timeline's
         clock, in log-time order across all bags; equal times in input order (bag, then the bag's own order).
-        Each call starts a new, independent pass."""
+        ``windows`` (one per bag, instead of ``start_ns`` and ``stop_ns``) gives each bag its own
+        ``(start, stop)`` on the timeline's clock (``None``: open). Each call starts a new, independent pass."""
+        if len(windows) not in (0, len(self.bags)) or (windows and (start_ns, stop_ns) != (None, None)):
+            raise ValueError("windows needs one entry per bag, and no start_ns or stop_ns")
         names = None if topics is None else [topics] if isinstance(topics, str) else list(topics)
-        streams = [self._bag_messages(index, names, start_ns, stop_ns) for index in range(len(self.bags))]
+        windows = windows or [(start_ns, stop_ns)] * len(self.bags)
+        streams = [self._bag_messages(index, names, *windows[index]) for index in range(len(self.bags))]
         try:
             if len(streams) == 1:
                 yield from streams[0]

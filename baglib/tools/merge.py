@@ -15,10 +15,7 @@ recorder writes (MCAP, or SQLite3) and memory does not grow with the inputs' siz
   or fnmatch patterns: a topic the containers share on purpose, as ``/tf``) or a prefix keeps them apart.
   :data:`NODE_TOPICS` are always one topic: every node publishes them, and each message names its node. An input
   that does not say which container recorded it (no ``ipc.container``) is merged by name.
-* Types: the output describes each type once, with the first definition an input recorded for it (else the
-  installed one), and every topic of that type carries the type description hash that goes with that
-  definition: the hash recorded with it (empty for a bag of a rosbag2 older than Iron), or the installed type's
-  when it is the installed definition. Readers that check the hash against the definition (rosbags) open it.
+* Types and unfinished inputs: as :mod:`baglib.tools.bag_copy` says.
 * Clocks: ``align_clocks`` moves each input's log and publish times onto the commanding host's clock by its
   recorded ``ipc.clock_offset_ns`` (an input without one is refused); the messages' data are not touched.
 * ``custom_data``: input ``n``'s keys are kept as ``input.<n>.<key>``, with ``input.<n>.path`` (its absolute
@@ -40,16 +37,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from baglib.format import fleet_keys
-from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
-from baglib.format.message_definitions import (
-    MessageDefinitionNotFoundError,
-    message_definition,
-    type_hash_of_definition,
-)
-from baglib.format.metadata import TopicInfo
 from baglib.read.reader import BagReader, Connection
 from baglib.read.storage_reader import BagReadError
 from baglib.read.timeline import Timeline, TopicSources
+from baglib.tools.bag_copy import BagCopyError, refuse_unfinished, topic_info, type_descriptions
 from baglib.write.writer import BagExistsError, BagWriter
 
 __all__ = ["MergeError", "MergeReport", "NODE_TOPICS", "merge_bags"]
@@ -58,7 +49,7 @@ __all__ = ["MergeError", "MergeReport", "NODE_TOPICS", "merge_bags"]
 NODE_TOPICS = ("/rosout", "/parameter_events")
 
 
-class MergeError(Exception):
+class MergeError(BagCopyError):
     """The inputs cannot be merged, or the output cannot be written; the message says why. Nothing is left at the
     output path."""
 
@@ -97,7 +88,10 @@ def merge_bags(output: str | os.PathLike[str], inputs: Sequence[str | os.PathLik
     except BagReadError as error:
         raise MergeError(f"cannot merge: {error}") from error
     with timeline:
-        _refuse_unfinished(timeline)
+        try:
+            refuse_unfinished(timeline.bags)
+        except BagCopyError as error:
+            raise MergeError(f"cannot merge: {error}") from None
         if timeline.starting_time_ns < 0:
             raise MergeError("the clock offsets move messages before 1970: check the inputs' ipc.clock_offset_ns")
         prefixes = _prefixes(timeline, prefix_host, prefix_container)
@@ -106,12 +100,15 @@ def merge_bags(output: str | os.PathLike[str], inputs: Sequence[str | os.PathLik
         except BagReadError as error:
             raise MergeError(f"cannot merge: {error}") from error
         _refuse_mixed_containers(timeline, topics, interleave)
-        descriptions = _type_descriptions(topics)
+        try:
+            descriptions = type_descriptions(topics)
+        except BagCopyError as error:
+            raise MergeError(f"cannot merge: {error}") from None
         writer = _create(output, storage_id, _custom_data(timeline, align_clocks))
         try:
             for name, sources in topics.items():
                 definition, digest = descriptions[sources[0][1].msgtype]
-                writer.add_topic(_topic_info(name, sources, digest), definition)
+                writer.add_topic(topic_info(name, sources, digest), definition)
             written = _copy_messages(timeline, topics, writer)
             writer.close()
         except BaseException as error:
@@ -132,14 +129,6 @@ def _recorded_offset(bag: BagReader) -> int:
     except ValueError:
         raise BagReadError(f"{bag.path} has no clock offset to align ({fleet_keys.CLOCK_OFFSET_NS} is "
                            f"{text!r} in its custom_data); merge without --align-clocks") from None
-
-
-def _refuse_unfinished(timeline: Timeline) -> None:
-    for bag in timeline.bags:
-        notes = unfinished_files(bag.path, {path.name for path in bag.files} if bag.path.is_dir() else None)
-        if notes:
-            raise MergeError(f"cannot merge {bag.path}: it is unfinished ({'; '.join(notes)}). "
-                             f"Run `{RECOVER_COMMAND} {bag.path}` first.")
 
 
 def _plain_name(bag_index: int, connection: Connection) -> str:
@@ -193,36 +182,6 @@ def _refuse_mixed_containers(timeline: Timeline, topics: TopicSources, interleav
                          f"interleaved into one: {listed}. Add --prefix-container to keep each container's topics "
                          f"apart under its name, or --interleave TOPIC for a topic the containers share on purpose "
                          f"(e.g. /tf)")
-
-
-def _type_descriptions(topics: TopicSources) -> dict[str, tuple[tuple[str, str] | None, str]]:
-    """Per type: the definition the output describes it with (None: the installed one) and the type description
-    hash that goes with that definition (see module doc)."""
-    chosen: dict[str, tuple[tuple[str, str] | None, str]] = {}
-    for sources in topics.values():
-        for _, connection in sources:
-            msgtype, definition = connection.msgtype, connection.message_definition
-            if definition and chosen.get(msgtype, (None, ""))[0] is None:
-                chosen[msgtype] = (definition, type_hash_of_definition(msgtype, definition, connection.type_description_hash))
-    for sources in topics.values():
-        msgtype = sources[0][1].msgtype
-        if msgtype not in chosen:
-            try:
-                message_definition(msgtype)
-            except (MessageDefinitionNotFoundError, ValueError):
-                raise MergeError(f"cannot merge: no input records the definition of {msgtype} (topic "
-                                 f"{sources[0][1].topic}) and it is not installed here") from None
-            chosen[msgtype] = (None, "")  # the writer describes it with the installed definition and hash
-    return chosen
-
-
-def _topic_info(name: str, sources: list[tuple[int, Connection]], digest: str) -> TopicInfo:
-    """The output topic: the first input's type, every input's QoS offers (each once), the type's hash."""
-    first = sources[0][1]
-    profiles: list[dict] = []
-    for _, connection in sources:
-        profiles += [dict(profile) for profile in connection.offered_qos_profiles if profile not in profiles]
-    return TopicInfo(name, first.msgtype, first.serialization_format, profiles, digest)
 
 
 def _custom_data(timeline: Timeline, align_clocks: bool) -> dict[str, str]:
