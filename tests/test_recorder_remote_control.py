@@ -132,7 +132,8 @@ def test_stop_then_record_under_a_new_uri_makes_two_complete_bags(manager: Compo
     assert [bag["bag"] for bag in finals] == [str(first), str(second)]
     for final, count in zip(finals, (30, 30)):
         assert final["topics"][CHATTER] | {"rate_limited": 0} == {
-            "received": count, "written": count, "dropped": 0, "queue_dropped": 0, "rate_limited": 0, "repeated": 0}, final
+            "received": count, "written": count, "dropped": 0, "queue_dropped": 0, "rate_limited": 0,
+            "repeated": 0}, final
 
     # An empty uri means the previous bag's; it exists, so rosbag2 appends "(1)".
     again = request(client, Record, "record", uri="")
