@@ -4,14 +4,18 @@ miscounted, in either storage (the recorder loaded after each unload alternates 
 Two busy CPU loops (processes of their own) compete with an in-process container where two IMU drivers publish
 at 2 kHz each to a recorder that takes their messages inline, in the drivers' thread. The test cycles through
 stop + start, split, and unload + load, each once enough new messages were written, ending bags while intake
-callbacks are running. Every bag is then read back with rosbags: its final counts must report no drop, and every
+callbacks are running; some offers are held back a millisecond after the intake took its session
+(:func:`late_offers`), so that a bag's end lands between the two in every run. Every bag is then read back with rosbags: its final counts must report no drop, and every
 message counted as received must be in it, in an unbroken sequence for each driver.
 """
 from __future__ import annotations
 
 import json
+import os
+import random
 import subprocess
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any, Iterator
@@ -25,6 +29,7 @@ from std_srvs.srv import Trigger
 
 from component_container.component_manager import ComponentManager
 from component_container.startup_file import load_request
+from components.recorder.message_cache import MessageCache
 from ipc_testing import call, in_process_manager, wait_until
 
 TOPICS = ("/imu_a/imu", "/imu_b/imu")
@@ -35,6 +40,8 @@ CYCLE = ("stop", "split", "unload", "stop")
 #: The storage of each recorder loaded, in turn: every unload + load changes it.
 STORAGES = ("mcap", "sqlite3")
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+#: The share of offers delayed by a millisecond (:func:`late_offers`).
+LATE_OFFERS = 0.05
 
 
 @pytest.fixture()
@@ -52,6 +59,25 @@ def busy_loops(request: pytest.FixtureRequest) -> Iterator[None]:
         for loop in loops:
             loop.kill()
             loop.wait()
+
+
+@pytest.fixture()
+def late_offers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Some offers reach the cache a millisecond late: the drivers' thread has taken the session and then waits
+    (as a preempted thread would), while this thread stops, splits or unloads. The race this widens, a few
+    bytecodes wide otherwise, happened in 2 of 110 runs under busy loops; here it happens in every run. Seeded:
+    the seed is printed, ``IPC_STRESS_SEED`` replays it."""
+    seed = int(os.environ.get("IPC_STRESS_SEED") or random.randrange(2**32))
+    print(f"IPC_STRESS_SEED={seed}")
+    chance = random.Random(seed)
+    push = MessageCache.push
+
+    def late_push(cache: MessageCache, message: Any) -> Any:
+        if chance.random() < LATE_OFFERS:
+            time.sleep(0.001)
+        return push(cache, message)
+
+    monkeypatch.setattr(MessageCache, "push", late_push)
 
 
 @pytest.fixture()
@@ -131,7 +157,7 @@ def sequences(bag: Path) -> dict[str, list[int]]:
 
 @pytest.mark.parametrize("cycles", [50, pytest.param(500, marks=pytest.mark.sweep)])
 def test_stop_start_split_unload_under_load_lose_nothing(manager: ComponentManager, busy_loops: None,
-                                                       tmp_path: Path, cycles: int) -> None:
+                                                       late_offers: None, tmp_path: Path, cycles: int) -> None:
     for topic in TOPICS:
         loaded = manager.load(load_request({"package": "components", "plugin": "components::ImuDriver",
                                             "name": topic.split("/")[1],
