@@ -66,6 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "their events")
     parser.add_argument("--service-requests-source", default="SERVICE_INTROSPECTION",
                         choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"))
+    parser.add_argument("--message-order", default="received", choices=("received", "sent"),
+                        help="The timestamp messages are ordered and played by: when they were received "
+                             "(recorded) or when they were sent (published). With 'sent', messages are "
+                             "ordered within the read-ahead queue: raise --read-ahead-queue-size if some are "
+                             "still out of order")
     parser.add_argument("--decode", nargs="*", default=None, metavar="TOPIC",
                         help="Also play compressed image topics (sensor_msgs/CompressedImage, "
                              "foxglove_msgs/CompressedVideo) decoded as sensor_msgs/Image on <base> for "
@@ -119,6 +124,7 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.start_paused": args.start_paused,
         "play.publish_service_request": args.publish_service_requests,
         "play.service_requests_source": args.service_requests_source,
+        "play.message_order": f"{args.message_order.upper()}_TIMESTAMP",
         "play.decode": args.decode is not None,
         "play.decode_topics": args.decode or [""],
         **_duration("play.delay", args.delay),

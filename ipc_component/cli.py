@@ -162,8 +162,11 @@ def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     # Reads files only, like `ros2 bag info`: no rclpy session.
     from baglib.tools.info import BagInfoError, format_bag_info
 
+    if args.topic_name and args.verbose:
+        print("Warning! You have set both the '-t' and '-v' parameters. The '-t' parameter will be ignored.",
+              flush=True)
     try:
-        print(format_bag_info(args.bag_path), flush=True)
+        print(format_bag_info(args.bag_path, args.sort, args.verbose, args.topic_name), flush=True)
     except BagInfoError as exc:
         raise CliError(str(exc)) from exc
     return 0
@@ -272,6 +275,12 @@ def build_parser() -> argparse.ArgumentParser:
     bag_verbs.required = True
     p = add_verb(bag_verbs, "info", "Print information about a bag (like ros2 bag info)")
     p.add_argument("bag_path", help="Bag directory (with metadata.yaml), or a single .mcap / .db3 file")
+    p.add_argument("-t", "--topic-name", action="store_true", help="Only display topic names.")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="Display request/response information for services (reads every message once)")
+    p.add_argument("--sort", default="name", choices=("name", "type", "count"),
+                   help="Configuration for sorting of output. By default sorts by topic name - use this argument "
+                        "to override.")
     p.set_defaults(handler=run_bag_info)
     recover = ("Keep every intact record (MCAP) or committed row (SQLite3) of every file, rebuild indexes and "
                "summaries, regenerate metadata.yaml, and report what was cut. Crash-safe: files are replaced "

@@ -41,7 +41,7 @@ KNOWN_PARAMETERS = [
     "play.read_ahead_queue_size", "play.read_ahead_max_bytes", "play.start_paused", "play.delay.sec",
     "play.delay.nsec", "play.start_offset.sec", "play.playback_duration.sec", "play.playback_until_timestamp.nsec",
     "play.clock_publish_frequency", "play.clock_publish_on_topic_publish", "play.wait_acked_timeout.nsec",
-    "play.service_requests_source", "play.publish_service_request", "play.services_to_filter",
+    "play.service_requests_source", "play.publish_service_request", "play.services_to_filter", "play.message_order",
 ]
 #: A finished bag in the bag root (FuzzScene writes it) that a fuzzed player may open.
 REPLAY_BAG = "replay_bag"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -94,3 +95,124 @@ def test_errors_name_the_path_and_the_problem(tmp_path: Path, case: str,
     expected = {"missing": "does not exist", "empty directory": "is not a bag: no metadata.yaml",
                 "not a bag file": "notes.mcap", "under a file": "does not exist"}[case]
     assert expected in err, err
+
+
+# --- --sort, --verbose, --topic-name (rosbag2 Lyrical) --------------------------------------------------------
+def event(service: Any, kind: int, client: int, sequence: int) -> bytes:
+    """One service event of ``service`` (SetBool or Trigger) as rclpy serializes it, from client ``client``."""
+    from rclpy.serialization import serialize_message
+
+    message = service.Event()
+    message.info.event_type = kind
+    message.info.client_gid = [client] * 16
+    message.info.sequence_number = sequence
+    if kind < 2:
+        message.request = [service.Request()]
+    else:
+        message.response = [service.Response()]
+    return serialize_message(message)
+
+
+def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -> dict[str, int]:
+    """Three topics and two services whose orders by name, type and count all differ; /set_flag has 10 events
+    for 3 calls (two of them by different clients with the same sequence number; the third unanswered) and
+    /trigger_me 6 events for 3 calls (server side only): more events, fewer calls. Returns each topic's bytes."""
+    from std_msgs.msg import Bool, Int32, String
+    from std_srvs.srv import SetBool, Trigger
+    from rclpy.serialization import serialize_message
+
+    from baglib.format.metadata import TopicInfo
+    from baglib.write.writer import BagWriter
+
+    plan: list[tuple[str, bytes]] = [("/zeta", serialize_message(Bool(data=True)))] * 5
+    plan += [("/alpha", serialize_message(String(data="a")))] + [("/mid", serialize_message(Int32(data=3)))] * 3
+    for client, sequence, kinds in ((1, 1, range(4)), (1, 2, range(4)), (2, 1, range(2))):
+        plan += [("/set_flag/_service_event", event(SetBool, kind, client, sequence)) for kind in kinds]
+    for sequence in range(3):
+        plan += [("/trigger_me/_service_event", event(Trigger, kind, 1, sequence)) for kind in (1, 2)]
+    types = {"/zeta": "std_msgs/msg/Bool", "/alpha": "std_msgs/msg/String", "/mid": "std_msgs/msg/Int32",
+             "/set_flag/_service_event": "std_srvs/srv/SetBool_Event",
+             "/trigger_me/_service_event": "std_srvs/srv/Trigger_Event"}
+    sizes: dict[str, int] = {}
+    with BagWriter(path, storage_id=storage, max_bagfile_size=max_bagfile_size) as writer:
+        for topic, type_name in types.items():
+            writer.add_topic(TopicInfo(topic, type_name))
+        for n, (topic, data) in enumerate(plan):
+            writer.write(topic, data, T0 + n * 1000, T0 + n * 1000)
+            sizes[topic] = sizes.get(topic, 0) + len(data)
+    return sizes
+
+
+def info_lines(capsys: pytest.CaptureFixture[str], *arguments: str) -> list[str]:
+    assert cli_main(["bag", "info", *arguments]) == 0
+    return capsys.readouterr().out.splitlines()
+
+
+@pytest.mark.parametrize("sort", ["name", "type", "count", None])
+def test_sort_orders_topics_and_services(tmp_path: Path, sort: str | None,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    sortable_bag(tmp_path / "bag")
+    lines = info_lines(capsys, str(tmp_path / "bag"), *(["--sort", sort] if sort else []))
+    topics = {"/alpha": "Topic: /alpha | Type: std_msgs/msg/String | Count: 1 | Serialization Format: cdr",
+              "/mid": "Topic: /mid | Type: std_msgs/msg/Int32 | Count: 3 | Serialization Format: cdr",
+              "/zeta": "Topic: /zeta | Type: std_msgs/msg/Bool | Count: 5 | Serialization Format: cdr"}
+    services = {"/set_flag": "Service: /set_flag | Type: std_srvs/srv/SetBool | Event Count: 10 | "
+                             "Serialization Format: cdr",
+                "/trigger_me": "Service: /trigger_me | Type: std_srvs/srv/Trigger | Event Count: 6 | "
+                               "Serialization Format: cdr"}
+    topic_order = {"name": ["/alpha", "/mid", "/zeta"], "type": ["/zeta", "/mid", "/alpha"],
+                   "count": ["/alpha", "/mid", "/zeta"]}[sort or "name"]
+    service_order = ["/trigger_me", "/set_flag"] if sort == "count" else ["/set_flag", "/trigger_me"]
+    assert lines[7:] == [
+        "Messages:          9",
+        "Topic information: " + topics[topic_order[0]],
+        *("                   " + topics[name] for name in topic_order[1:]),
+        "Service:           2",
+        "Service information: " + services[service_order[0]],
+        "                     " + services[service_order[1]],
+    ]
+
+
+@pytest.mark.parametrize("storage,split", [("mcap", 0), ("sqlite3", 0), ("mcap", 1)])
+def test_verbose_counts_requests_and_responses_and_sizes(tmp_path: Path, storage: str, split: int,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """rosbag2's verbose output: a size contribution per topic and service, each service's distinct requests
+    and responses (client and sequence number), sorted by their sum with ``--sort count``; in a split bag
+    (a file per message), counted over the whole bag."""
+    sizes = sortable_bag(tmp_path / "bag", storage, split)
+    if split:
+        assert len(list((tmp_path / "bag").glob("*.mcap"))) > 10
+    plain = info_lines(capsys, str(tmp_path / "bag"))
+    lines = info_lines(capsys, str(tmp_path / "bag"), "--verbose", "--sort", "count")
+    messages = next(n for n, line in enumerate(lines) if line.startswith("Messages:")) + 1
+    assert lines[:messages] == plain[:messages]
+    assert lines[messages:] == [
+        f"Topic information: Topic: /alpha | Type: std_msgs/msg/String | Count: 1 | "
+        f"Size Contribution: {sizes['/alpha']} B | Serialization Format: cdr",
+        f"                   Topic: /mid | Type: std_msgs/msg/Int32 | Count: 3 | "
+        f"Size Contribution: {sizes['/mid']} B | Serialization Format: cdr",
+        f"                   Topic: /zeta | Type: std_msgs/msg/Bool | Count: 5 | "
+        f"Size Contribution: {sizes['/zeta']} B | Serialization Format: cdr",
+        "Service:           2",
+        f"Service information: Service: /set_flag | Type: std_srvs/srv/SetBool | Request Count: 3 | "
+        f"Response Count: 2 | Size Contribution: {sizes['/set_flag/_service_event']} B | Serialization Format: cdr",
+        f"                     Service: /trigger_me | Type: std_srvs/srv/Trigger | Request Count: 3 | "
+        f"Response Count: 3 | Size Contribution: {sizes['/trigger_me/_service_event']} B | "
+        f"Serialization Format: cdr",
+    ]
+
+
+def test_topic_names_only_sorted_and_ignored_with_verbose(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    sortable_bag(tmp_path / "bag")
+    assert info_lines(capsys, str(tmp_path / "bag"), "-t", "--sort", "type") == ["/zeta", "/mid", "/alpha"]
+    lines = info_lines(capsys, str(tmp_path / "bag"), "-t", "-v")
+    assert lines[0] == "Warning! You have set both the '-t' and '-v' parameters. The '-t' parameter will be ignored."
+    assert lines[1].startswith("Files:") and any("Request Count: 3" in line for line in lines)
+
+
+def test_an_unknown_sort_is_refused_by_name(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    sortable_bag(tmp_path / "bag")
+    with pytest.raises(SystemExit):
+        cli_main(["bag", "info", str(tmp_path / "bag"), "--sort", "size"])
+    assert "invalid choice: 'size' (choose from 'name', 'type', 'count')" in capsys.readouterr().err

@@ -176,3 +176,19 @@ def test_three_bags_play_as_one_timeline(probe: Node, tmp_path: Path, form: str)
 def test_bag_arguments_that_name_no_clear_set_of_bags_are_refused(arguments: list[str], message: str) -> None:
     result = subprocess.run([CLI, "bag", "play", *arguments], capture_output=True, text=True, timeout=60)
     assert result.returncode == 1 and message in result.stderr, result.stderr
+
+
+def test_message_order_sent_plays_by_publish_time(probe: Node, tmp_path: Path) -> None:
+    """``--message-order sent`` (rosbag2 Kilted #1876): messages received 0, 1, 2, ... but published in the
+    opposite order within each pair reach a subscription in another process in publish order."""
+    with BagWriter(tmp_path / "bag") as writer:
+        writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String",
+                                   offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+        for n in range(10):
+            received = T0 + n * 20_000_000
+            published = received - (30_000_000 if n % 2 else 0)  # each odd one was sent before the even one
+            writer.write("/chatter", bytes(serialize(String(data=f"message {n}"))), received, published)
+    got, _ = play_to_the_end(probe, str(tmp_path / "bag"), "--message-order", "sent")
+    assert got == [f"message {n ^ 1}" for n in range(10)]
+    got, _ = play_to_the_end(probe, str(tmp_path / "bag"), "--message-order", "received")
+    assert got == [f"message {n}" for n in range(10)]

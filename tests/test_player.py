@@ -482,6 +482,58 @@ def test_several_bags_play_as_one_timeline(container: Any, tmp_path: Path) -> No
         node.destroy_subscription(subscription)
 
 
+def crossed_bag(path: Path, storage_id: str) -> list[tuple[int, int, bytes]]:
+    """A /chatter bag whose publish times order each pair of messages the other way round from their receive
+    times: message 2k+1 was published 10 ms before message 2k, and received 10 ms after it (a slow publisher's
+    message overtaken in transport). Returns (receive offset, publish offset, CDR) in receive order."""
+    plan = []
+    for k in range(10):
+        plan.append((60 * k * MS + 20 * MS, 60 * k * MS + 10 * MS, chatter(2 * k)))
+        plan.append((60 * k * MS + 30 * MS, 60 * k * MS, chatter(2 * k + 1)))
+    with BagWriter(path, storage_id=storage_id) as writer:
+        writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String",
+                                   offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+        for received_at, published_at, data in plan:
+            writer.write("/chatter", data, T0 + received_at, T0 + published_at)
+    return plan
+
+
+@pytest.mark.parametrize("order", ["RECEIVED_TIMESTAMP", "SENT_TIMESTAMP"])
+def test_message_order_plays_by_receive_or_publish_time(container: Any, tmp_path: Path, order: str) -> None:
+    """rosbag2 Kilted's ``play.message_order`` (#1876): the subscriber gets the messages in the order and at the
+    times of the chosen timestamp. By publish time, the two messages published before the bag's start (its
+    first receive time) go out at once, in publish order; every other one no earlier than its publish time."""
+    node, client, process = container
+    plan = crossed_bag(tmp_path / "bag", "mcap")
+    handle = PlayerHandle(node, client, tmp_path / "bag", {"play.message_order": order},
+                          topics=(("/chatter", "std_msgs/msg/String"),))
+    handle.wait_finished()
+    report = handle.report()
+    start = plan[0][0]
+    if order == "SENT_TIMESTAMP":
+        by_time = sorted(plan, key=lambda entry: entry[1])
+        offsets = [max(published - start, 0) for _, published, _ in by_time]
+    else:
+        by_time = plan
+        offsets = [received_at - start for received_at, _, _ in plan]
+    assert received(report, "/chatter") == [digest(data) for _, _, data in by_time]
+    assert by_time != plan or order == "RECEIVED_TIMESTAMP"
+    assert_not_early(report["/chatter"]["times"], offsets, handle.load_sent)
+    handle.unload()
+
+
+def test_a_bag_without_publish_times_plays_in_receive_order_either_way(container: Any, tmp_path: Path) -> None:
+    """SQLite3 stores one timestamp per message (rosbag2's ``messages.timestamp``, the receive time): ordering
+    by publish time is then ordering by receive time, as rosbag2's send_timestamp falls back to recv_timestamp."""
+    node, client, process = container
+    plan = crossed_bag(tmp_path / "bag", "sqlite3")
+    handle = PlayerHandle(node, client, tmp_path / "bag", {"play.message_order": "SENT_TIMESTAMP"},
+                          topics=(("/chatter", "std_msgs/msg/String"),))
+    handle.wait_finished()
+    assert received(handle.report(), "/chatter") == [digest(data) for _, _, data in plan]
+    handle.unload()
+
+
 def test_bags_with_one_topic_of_two_types_are_refused(container: Any, tmp_path: Path) -> None:
     node, client, process = container
     strings = write_bag(tmp_path / "strings", [("/chatter", 0, chatter(0))])
@@ -635,6 +687,7 @@ def test_service_events_are_published_and_filtered(container: Any, tmp_path: Pat
     ({"play.read_ahead_queue_size": 0}, "play.read_ahead_queue_size"),
     ({"play.start_offset.nsec": 2_000_000_000}, "play.start_offset.nsec"),
     ({"play.service_requests_source": "BOTH"}, "play.service_requests_source"),
+    ({"play.message_order": "sent"}, "play.message_order"),
 ])
 def test_bad_parameters_are_named_and_the_container_stays(container: Any, tmp_path: Path,
                                                            parameters: dict[str, Any], message: str) -> None:

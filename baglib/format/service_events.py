@@ -6,18 +6,21 @@ such message per service: ``service_msgs/msg/ServiceEventInfo info``, ``<Name>_R
 ``<Name>_Response[<=1] response``). A bag stores these topics like any other; the names below are how
 recorder, player and ``bag info`` tell them apart and map them back to the service.
 
-Pure functions on names, plus :func:`event_class` (an import, no node).
+Pure functions on names, plus :func:`event_class` (an import, no node) and :func:`event_info` (the
+``ServiceEventInfo`` at the start of every event's CDR, whatever the service).
 """
 from __future__ import annotations
 
 import importlib
 import re
+import struct
 from typing import Any
 
 __all__ = [
     "EVENT_TOPIC_SUFFIX",
     "EVENT_TYPE_SUFFIX",
     "event_class",
+    "event_info",
     "event_topic",
     "event_type",
     "is_service_event_topic",
@@ -29,6 +32,13 @@ __all__ = [
 EVENT_TOPIC_SUFFIX = "/_service_event"
 #: rosidl's SERVICE_EVENT_MESSAGE_SUFFIX
 EVENT_TYPE_SUFFIX = "_Event"
+
+#: ServiceEventInfo.event_type values (service_msgs): requests sent/received, responses sent/received
+REQUEST_EVENTS = (0, 1)
+RESPONSE_EVENTS = (2, 3)
+# After the 4-byte encapsulation header: event_type uint8 @0, stamp (int32, uint32) @4, client_gid uint8[16]
+# @12, sequence_number int64 @32 (aligned to 8).
+_INFO = {endian: struct.Struct(f"{endian}B11x16s4xq") for endian in "<>"}
 
 _SERVICE_TYPE = re.compile(r"^([a-zA-Z][a-zA-Z0-9_]*)/srv/([a-zA-Z][a-zA-Z0-9_]*)$")
 
@@ -88,3 +98,11 @@ def event_class(event_type_name: str) -> Any:
     """
     package, _, name = service_type(event_type_name).split("/")
     return getattr(importlib.import_module(f"{package}.srv"), name).Event
+
+
+def event_info(data: bytes | memoryview) -> tuple[int, bytes, int]:
+    """(event_type, client_gid, sequence_number) of a serialized service event; ValueError if it is too short."""
+    if len(data) < 4 + _INFO["<"].size:
+        raise ValueError(f"a service event of {len(data)} bytes is too short for its ServiceEventInfo")
+    endian = "<" if data[1] & 1 else ">"  # CDR_LE / CDR_BE (encapsulation kind 1 / 0)
+    return _INFO[endian].unpack_from(data, 4)

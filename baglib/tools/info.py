@@ -3,25 +3,44 @@
 Like ``ros2 bag info`` it takes a bag directory or a single ``.mcap`` / ``.db3`` file. For a directory it reads
 ``metadata.yaml`` (versions 4 to 9, :mod:`baglib.read.metadata_read`) and the sizes of the files it lists; for a
 file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them
-the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed as services, not as
+the way rosbag2_py's ``format_bag_meta_data`` does: service event topics are listed as services, not as
 topics, and their messages are not counted in ``Messages:``. A bag a crash left unfinished (no
 ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with the command
 that repairs it.
+
+Lyrical's options (rosbag2 #1804 and the verbose output of ``Info::print_output_verbose``): ``sort`` orders
+topics and services by name (the default), type or count (a service's event count; with ``verbose`` its
+requests plus responses); ``verbose`` reads every message once to add each topic's and service's size
+contribution (serialized bytes) and to count each service's requests and responses: the distinct
+(client, sequence number) pairs among its request and response events, so a call seen by both client and
+server counts once. Unlike rosbag2, which lists a service once per file of a split bag with that file's counts,
+a service is listed once with the counts of the whole bag. ``topic_names_only`` prints just the topic names.
 """
 from __future__ import annotations
 
 import datetime
-from dataclasses import dataclass
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from baglib.read.metadata_read import StoredTopic, load_metadata
 from baglib.read.reader import BagReader
 from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
-from baglib.format.service_events import is_service_event_topic, service_name, service_type
+from baglib.format.service_events import (
+    REQUEST_EVENTS,
+    RESPONSE_EVENTS,
+    event_info,
+    is_service_event_topic,
+    service_name,
+    service_type,
+)
 from baglib.read.storage_reader import BagReadError
 
 _LABEL_WIDTH = 19  # "Topic information: " and the padding of every other label
 _SERVICE_LABEL_WIDTH = 21  # "Service information: ", which rosbag2 pads its service lines to
+#: ``ros2 bag info --sort`` choices (rosbag2_py's InfoSortingMethod), the first the default
+SORT_METHODS = ("name", "type", "count")
 
 
 class BagInfoError(BagReadError):
@@ -94,6 +113,56 @@ def _block(label: str, lines: list[str], width: int = _LABEL_WIDTH) -> list[str]
     return [first + (lines[0] if lines else "")] + [pad + line for line in lines[1:]]
 
 
+@dataclass
+class _Service:
+    """A recorded service: its event topic's entry, and what ``verbose`` counts."""
+
+    topic: StoredTopic
+    requests: set[tuple[bytes, int]] = field(default_factory=set)
+    responses: set[tuple[bytes, int]] = field(default_factory=set)
+
+    @property
+    def name(self) -> str:
+        return service_name(self.topic.name)
+
+    @property
+    def type(self) -> str:
+        return service_type(self.topic.type)
+
+
+def _sorted(entries: Sequence[StoredTopic] | Sequence[_Service], sort: str,
+            count: Callable[..., int]) -> list:
+    """``entries`` ordered as rosbag2's ``generate_sorted_idx`` orders them (ties in bag order)."""
+    if sort not in SORT_METHODS:
+        raise BagInfoError(f"unknown sort method '{sort}': use one of {', '.join(SORT_METHODS)}")
+    key = {"name": lambda e: e.name, "type": lambda e: e.type, "count": count}[sort]
+    return sorted(entries, key=key)
+
+
+def _read_services(bag: Path, services: dict[str, _Service]) -> dict[str, int]:
+    """Read every message once: the serialized bytes per topic, and each service's requests and responses."""
+    sizes: dict[str, int] = defaultdict(int)
+    try:
+        with BagReader(bag) as reader:
+            for message in reader.messages():
+                topic = message.connection.topic
+                sizes[topic] += len(message.data)
+                service = services.get(topic)
+                if service is None:
+                    continue
+                try:
+                    kind, client, sequence = event_info(message.data)
+                except ValueError as error:
+                    raise BagInfoError(f"{topic} at {message.log_time_ns}: {error}") from None
+                if kind in REQUEST_EVENTS:
+                    service.requests.add((client, sequence))
+                elif kind in RESPONSE_EVENTS:
+                    service.responses.add((client, sequence))
+    except BagReadError as error:
+        raise BagInfoError(str(error)) from error
+    return sizes
+
+
 def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
     """Warnings about storage files a crash left behind: unlisted ones, unfinished ones."""
     notes = unfinished_files(bag_dir, listed) if bag_dir.is_dir() else []
@@ -102,24 +171,34 @@ def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
     return [f"Warning: {note}" for note in notes]
 
 
-def format_bag_info(bag: str | Path) -> str:
+def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
+                    topic_names_only: bool = False) -> str:
     """The ``ros2 bag info`` text for ``bag``: a bag directory (``metadata.yaml`` of any version from 4 to 9) or
-    one storage file."""
+    one storage file; ``sort``, ``verbose`` and ``topic_names_only`` as ``--sort``, ``--verbose`` and
+    ``--topic-name`` (``verbose`` wins over ``topic_names_only``, as in rosbag2)."""
     bag = Path(bag)
     summary = _summary(bag)
+    topics = [t for t in summary.topics if not is_service_event_topic(t.name, t.type)]
+    services = {t.name: _Service(t) for t in summary.topics if is_service_event_topic(t.name, t.type)}
+    sizes = _read_services(bag, services) if verbose else {}
+    by_count: Callable[..., int] = ((lambda s: len(s.requests) + len(s.responses)) if verbose
+                                    else (lambda s: s.topic.message_count))
+    topics = _sorted(topics, sort, lambda t: t.message_count)
+    listed = _sorted(list(services.values()), sort, by_count)
+    if topic_names_only and not verbose:
+        return "\n".join(topic.name for topic in topics)
+    size = (lambda topic: f"Size Contribution: {_file_size(sizes.get(topic, 0))} | ") if verbose else (lambda _: "")
+    topic_lines = [f"Topic: {t.name} | Type: {t.type} | Count: {t.message_count} | {size(t.name)}"
+                   f"Serialization Format: {t.serialization_format}" for t in topics]
+    if verbose:
+        service_lines = [f"Service: {s.name} | Type: {s.type} | Request Count: {len(s.requests)} | "
+                         f"Response Count: {len(s.responses)} | {size(s.topic.name)}"
+                         f"Serialization Format: {s.topic.serialization_format}" for s in listed]
+    else:
+        service_lines = [f"Service: {s.name} | Type: {s.type} | Event Count: {s.topic.message_count} | "
+                         f"Serialization Format: {s.topic.serialization_format}" for s in listed]
     start, duration = summary.starting_time_ns, summary.duration_ns
-    topics: list[str] = []
-    services: list[str] = []
-    service_messages = 0
-    for topic in summary.topics:
-        if is_service_event_topic(topic.name, topic.type):
-            service_messages += topic.message_count
-            services.append(f"Service: {service_name(topic.name)} | Type: {service_type(topic.type)} | "
-                            f"Event Count: {topic.message_count} | "
-                            f"Serialization Format: {topic.serialization_format}")
-        else:
-            topics.append(f"Topic: {topic.name} | Type: {topic.type} | Count: {topic.message_count} | "
-                          f"Serialization Format: {topic.serialization_format}")
+    service_messages = sum(service.topic.message_count for service in services.values())
     lines = [
         *_block("Files:", summary.files),
         *_block("Bag size:", [_file_size(summary.size)]),
@@ -129,9 +208,9 @@ def format_bag_info(bag: str | Path) -> str:
         *_block("Start:", [_time(start)]),
         *_block("End:", [_time(start + duration)]),
         *_block("Messages:", [str(summary.message_count - service_messages)]),
-        *_block("Topic information:", topics),
-        *_block("Service:", [str(len(services))]),
-        *_block("Service information:", services, _SERVICE_LABEL_WIDTH),
+        *_block("Topic information:", topic_lines),
+        *_block("Service:", [str(len(service_lines))]),
+        *_block("Service information:", service_lines, _SERVICE_LABEL_WIDTH),
         *(_unfinished(bag, summary.files) if bag.is_dir() else []),
     ]
     return "\n".join(line.rstrip() for line in lines)

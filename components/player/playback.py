@@ -3,8 +3,9 @@
 The shape is rosbag2_transport's PlayerImpl: ``play()`` starts a run (delay, then from the start offset to the
 end or the "until" time, again and again with ``loop``); ``pause``/``resume``/``set_rate`` steer the clock;
 ``play_next``, ``burst`` and ``seek`` take over the next message from the main loop under one lock, so a
-message is never published twice or skipped; ``stop`` ends the run. Messages with equal timestamps keep the
-bag's order (the reader's guarantee; the queue never reorders).
+message is never published twice or skipped; ``stop`` ends the run. Each message is due at its ``time_ns``
+(its receive time, or its publish time with ``play.message_order`` SENT_TIMESTAMP: read_ahead.py orders the
+queue); messages with equal times keep the bag's order (the reader's guarantee; the queue never reorders them).
 
 Preparing: turning a recorded message into the object in-process subscribers get (deserializing a 6 MB
 frame: 0.3 to several ms, holding the GIL) is done by this same thread, in the time it would otherwise sleep:
@@ -52,8 +53,8 @@ class RunLimits:
     start_ns: int
     until_ns: int = -1
 
-    def stops_at(self, log_time_ns: int) -> bool:
-        return self.until_ns == 0 or (self.until_ns > -1 and log_time_ns > self.until_ns)
+    def stops_at(self, time_ns: int) -> bool:
+        return self.until_ns == 0 or (self.until_ns > -1 and time_ns > self.until_ns)
 
 
 class PublishTiming:
@@ -107,7 +108,7 @@ class Playback:
         self._thread: threading.Thread | None = None
         self.limits = RunLimits(bag_start_ns)
         self.timing = PublishTiming()
-        self.position_ns = bag_start_ns     # log time of the last message published
+        self.position_ns = bag_start_ns     # bag time of the last message published
         self.behind_count = 0
         self.behind_ns = 0                  # total schedule shift, steady ns
         self._last_warning = 0
@@ -188,25 +189,25 @@ class Playback:
                     self.clock.sleep_until(self.clock.now() + 1)
                     continue
                 return True
-            log_time = item.message.log_time_ns
-            if self.limits.stops_at(log_time):
+            due = item.time_ns
+            if self.limits.stops_at(due):
                 return False
             self._prepare(item)
-            self._prepare_ahead(self.clock.steady_for(log_time))
-            if not self.clock.sleep_until(log_time):
+            self._prepare_ahead(self.clock.steady_for(due))
+            if not self.clock.sleep_until(due):
                 continue  # the schedule moved (pause, rate, seek, take-over, stop): look again
             with self._take_over:
                 if self._skip:
                     self._skip = False
                     continue
-                scheduled = self.clock.steady_for(log_time)
+                scheduled = self.clock.steady_for(due)
                 if scheduled is None:  # paused between the wake-up and here
                     continue
                 late = time.monotonic_ns() - scheduled  # when publishing starts: the message's publish time
                 self.timing.add(late)
                 self._publish_now(item)
                 if late > BEHIND_NS:
-                    self._fall_behind(log_time, late)
+                    self._fall_behind(due, late)
         return False
 
     def _prepare(self, item: Queued) -> None:
@@ -242,12 +243,12 @@ class Playback:
     def _publish_now(self, item: Queued) -> bool:
         self._prepare(item)
         published = self._publish(item)
-        self.position_ns = item.message.log_time_ns
+        self.position_ns = item.time_ns
         self._read_ahead.pop()
         return published
 
-    def _fall_behind(self, log_time: int, late_ns: int) -> None:
-        self.clock.jump(log_time)  # the message just published is "now": the rest keep their spacing
+    def _fall_behind(self, due: int, late_ns: int) -> None:
+        self.clock.jump(due)  # the message just published is "now": the rest keep their spacing
         self.behind_count += 1
         self.behind_ns += late_ns
         self._latest_late_ns = late_ns
@@ -282,10 +283,10 @@ class Playback:
                     if self._read_ahead.at_end:
                         return False
                     continue
-                if self.limits.stops_at(item.message.log_time_ns):
+                if self.limits.stops_at(item.time_ns):
                     return False
                 published = self._publish_now(item)
-                self.clock.jump(item.message.log_time_ns)
+                self.clock.jump(item.time_ns)
                 if published:
                     return True
             return False

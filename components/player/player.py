@@ -100,7 +100,8 @@ class Player(ComponentNode):
             self._split_events = self.create_publisher(ReadSplitEvent, SPLIT_EVENT_TOPIC, 1)
             self._file_index = [self._reader.file_range(bag).start for bag in range(len(self._reader.bags))]
             self._read_ahead = ReadAhead(self._reader, list(self._senders), self._options.read_ahead_queue_size,
-                                         self._options.read_ahead_max_bytes, self._on_read_error, self._decoding)
+                                         self._options.read_ahead_max_bytes, self._on_read_error, self._decoding,
+                                         self._options.message_order == "SENT_TIMESTAMP")
             clock = PlaybackClock(self._reader.starting_time_ns, self._options.rate, self._options.start_paused)
             if low_latency() is None:
                 self.get_logger().warning(

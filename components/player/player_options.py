@@ -7,6 +7,8 @@ that (only its command line does), so these two names are this player's.
 They are read the way rosbag2_transport's ``get_play_options_from_node_params`` reads them, durations included:
 ``play.delay``, ``play.start_offset``, ``play.playback_duration``, ``play.playback_until_timestamp`` and
 ``play.wait_acked_timeout`` are each a ``.sec`` / ``.nsec`` pair, negative when either part is negative.
+``play.message_order`` (Kilted's ``PlayOptions::message_order``) takes the names of rosbag2's ``MessageOrder``
+values, as ``play.service_requests_source`` takes those of ``ServiceRequestsSource``.
 ``play.read_ahead_max_bytes`` is not rosbag2's: its read-ahead queue counts messages only, and 1000 1080p frames
 are 6 GB. Neither are ``play.decode`` and ``play.decode_topics``: compressed image topics played also as
 ``sensor_msgs/Image`` (components/player/decoded_topics.py).
@@ -56,12 +58,15 @@ DEFAULTS: dict[str, Any] = {
     "play.disable_loan_message": False,
     "play.service_requests_source": "SERVICE_INTROSPECTION",
     "play.publish_service_request": False,
+    "play.message_order": "RECEIVED_TIMESTAMP",
     "play.decode": False,
     "play.decode_topics": [""],
     **{f"{name}.{part}": value for name, pair in _DURATIONS.items() for part, value in zip(("sec", "nsec"), pair)},
 }
 STORAGE_IDS = ("", "mcap", "sqlite3")
 SERVICE_REQUEST_SOURCES = ("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION")
+#: rosbag2_transport::MessageOrder (Kilted, #1876): play in receive-time or in publish-time order.
+MESSAGE_ORDERS = ("RECEIVED_TIMESTAMP", "SENT_TIMESTAMP")
 #: rosbag2: read_ahead_queue_size in [1, INT64_MAX]; more than a million queued messages is a memory bug here.
 READ_AHEAD_QUEUE = Bounds(1, 1_000_000, "messages")
 READ_AHEAD_BYTES = Bounds(1024 * 1024, 2**40, "bytes")
@@ -101,6 +106,7 @@ class PlayOptions:
     wait_acked_timeout_ns: int
     service_requests_source: str
     publish_service_requests: bool
+    message_order: str           # one of MESSAGE_ORDERS
     decode: bool                 # every played compressed image topic also as sensor_msgs/Image
     decode_topics: list[str]     # only these (implies decode)
 
@@ -162,6 +168,9 @@ def _validate(values: dict[str, Any]) -> PlayOptions:
     if values["play.service_requests_source"] not in SERVICE_REQUEST_SOURCES:
         raise ValueError(f"parameter 'play.service_requests_source' must be one of "
                          f"{', '.join(SERVICE_REQUEST_SOURCES)}, got '{values['play.service_requests_source']}'")
+    if values["play.message_order"] not in MESSAGE_ORDERS:
+        raise ValueError(f"parameter 'play.message_order' must be one of {', '.join(MESSAGE_ORDERS)}, "
+                         f"got '{values['play.message_order']}'")
     durations = {name: _duration_ns(values, name) for name in _DURATIONS}
     return PlayOptions(
         uris=uris,
@@ -189,6 +198,7 @@ def _validate(values: dict[str, Any]) -> PlayOptions:
         wait_acked_timeout_ns=durations["play.wait_acked_timeout"],
         service_requests_source=values["play.service_requests_source"],
         publish_service_requests=values["play.publish_service_request"],
+        message_order=values["play.message_order"],
         decode=values["play.decode"],
         decode_topics=clean(values["play.decode_topics"]),
     )

@@ -9,12 +9,21 @@ turning messages into objects is left to the playback thread (see playback.py), 
 The exception is decoding compressed images (a :class:`Decoder`, components/player/decoded_topics.py): a
 stream's decoder needs its messages in recorded order, each pass from its start, which is this thread's order;
 the codecs release the GIL while they work. The byte bound counts the decoded pictures.
+
+Publish-time order (``play.message_order`` SENT_TIMESTAMP, rosbag2 #1876): the bag is read in receive-time
+order, so the loader sorts a window of messages by publish time before queueing them, as rosbag2 sorts its
+read-ahead priority queue: the window holds up to the queue's count and bytes bounds (a message published
+earlier than one that left the window already goes out late, at once; a larger read-ahead fixes that). A message
+without a publish time (MCAP publish_time 0) counts at its receive time; SQLite3 bags store no publish time at
+all, so there both orders are the same. A message published before the pass's start (the bag's first messages:
+publish precedes receipt) is due at the start, in its publish order.
 """
 from __future__ import annotations
 
+import heapq
 import threading
 from collections import deque
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterable, Iterator
 from itertools import islice
 from typing import Any, Protocol
 
@@ -31,13 +40,14 @@ class Decoder(Protocol):
 
 
 class Queued:
-    """A queued message, what the playback thread prepared for it (``None``: not yet, or nothing) and its
-    decoded picture (``None``: none)."""
+    """A queued message, the bag time it is due at (``time_ns``: its receive or publish time), what the
+    playback thread prepared for it (``None``: not yet, or nothing) and its decoded picture (``None``: none)."""
 
-    __slots__ = ("decoded", "message", "prepared", "ready", "size")
+    __slots__ = ("decoded", "message", "prepared", "ready", "size", "time_ns")
 
-    def __init__(self, message: BagMessage) -> None:
+    def __init__(self, message: BagMessage, time_ns: int) -> None:
         self.message = message
+        self.time_ns = time_ns
         self.prepared: Any = None
         self.ready = False
         self.decoded: Any = None
@@ -58,9 +68,11 @@ class ReadAhead:
     """A loader thread over the bags' timeline; the playback thread ``peek``s and ``pop``s."""
 
     def __init__(self, reader: Timeline, topics: Collection[str], max_messages: int, max_bytes: int,
-                 on_error: Callable[[BaseException], None], decoder: Decoder | None = None) -> None:
+                 on_error: Callable[[BaseException], None], decoder: Decoder | None = None,
+                 by_publish_time: bool = False) -> None:
         self._reader = reader
         self._decoder = decoder
+        self._by_publish_time = by_publish_time
         self._topics = list(topics)
         self._max_messages = max_messages
         self._max_bytes = max_bytes
@@ -141,11 +153,11 @@ class ReadAhead:
         messages = self._reader.messages(self._topics, start_ns, stop_ns)
         if self._decoder is not None:
             self._decoder.start_pass()
+        items = self._items(messages)
+        if self._by_publish_time:
+            items = publish_order(items, start_ns, self._max_messages, self._max_bytes)
         try:
-            for message in messages:
-                item = Queued(message)
-                if self._decoder is not None:
-                    item.add_decoded(self._decoder)
+            for item in items:
                 with self._changed:
                     self._changed.wait_for(lambda: self._pass != current or not self._full(item.size))
                     if self._pass != current:
@@ -156,8 +168,42 @@ class ReadAhead:
         finally:
             messages.close()  # type: ignore[attr-defined]  # a generator: releases its files' positions
 
+    def _items(self, messages: Iterable[BagMessage]) -> Iterator[Queued]:
+        """The messages as read (receive-time order), decoded where a decoder wants them."""
+        for message in messages:
+            item = Queued(message, message.log_time_ns)
+            if self._decoder is not None:
+                item.add_decoded(self._decoder)
+            yield item
+
     def _full(self, size: int) -> bool:
         if not self._queue:
             return False  # one message always fits, however big
         return len(self._queue) >= self._max_messages or self._bytes + size > self._max_bytes
 
+
+
+def publish_order(items: Iterable[Queued], start_ns: int, max_messages: int, max_bytes: int) -> Iterator[Queued]:
+    """``items`` (in receive-time order) sorted by publish time within a window of ``max_messages`` messages
+    and ``max_bytes`` bytes (always at least one), equal times in bag order. Each is due at its publish time
+    (its receive time if it has none), but never before ``start_ns`` nor before the message sent before it:
+    the due times never go back, so one late message does not move the schedule of the rest."""
+    window: list[tuple[int, int, Queued]] = []
+    size = 0
+    floor = start_ns
+
+    def due() -> Queued:
+        nonlocal size, floor
+        publish_ns, _, item = heapq.heappop(window)
+        size -= item.size
+        floor = item.time_ns = max(publish_ns, floor)
+        return item
+
+    for sequence, item in enumerate(items):
+        message = item.message
+        heapq.heappush(window, (message.publish_time_ns or message.log_time_ns, sequence, item))
+        size += item.size
+        while len(window) > max_messages or (size > max_bytes and len(window) > 1):
+            yield due()
+    while window:
+        yield due()
