@@ -19,7 +19,8 @@ from typing import Any
 
 from composition_interfaces.srv import LoadNode, UnloadNode
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rosbag2_interfaces.srv import IsPaused, Pause, Resume, Snapshot, SplitBagfile, TogglePaused
+from rosbag2_interfaces.srv import (IsDiscoveryRunning, IsPaused, Pause, Record, Resume, Snapshot, SplitBagfile,
+                                    StartDiscovery, Stop, StopDiscovery, TogglePaused)
 from std_srvs.srv import Trigger
 
 MARKER = "ipcfuzz"
@@ -51,7 +52,8 @@ EXTRA_ARGUMENTS = ["use_intra_process_comms", "forward_global_arguments", "use_g
 RECORDER_SERVICES: dict[str, Any] = {
     "pause": Pause, "resume": Resume, "toggle_paused": TogglePaused, "is_paused": IsPaused,
     "split_bagfile": SplitBagfile, "snapshot": Snapshot, "start_recording": Trigger,
-    "stop_recording": Trigger, "get_stats": Trigger,
+    "stop_recording": Trigger, "get_stats": Trigger, "record": Record, "stop": Stop,
+    "start_discovery": StartDiscovery, "stop_discovery": StopDiscovery, "is_discovery_running": IsDiscoveryRunning,
 }
 INT64_MIN, INT64_MAX = -2**63, 2**63 - 1
 UINT64_MAX = 2**64 - 1
@@ -196,4 +198,6 @@ class RequestGenerator:
     def recorder_call(self) -> tuple[str, Any]:
         """(service name under the recorder, request)."""
         service = self.rng.choice(list(RECORDER_SERVICES))
+        if service == "record":  # rosbag2's ~/record takes a uri: escapes and odd names, as for parameters
+            return service, Record.Request(uri=self.path())
         return service, RECORDER_SERVICES[service].Request()
