@@ -4,7 +4,9 @@ Like ``ros2 bag info`` it takes a bag directory or a single ``.mcap`` / ``.db3``
 ``metadata.yaml`` (versions 4 to 9, :mod:`baglib.read.metadata_read`) and the sizes of the files it lists; for a
 file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them
 the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed as services, not as
-topics, and their messages are not counted in ``Messages:``. A bag a crash left unfinished (no
+topics, and their messages are not counted in ``Messages:``. An action's five topics (Kilted,
+:mod:`baglib.format.action_topics`) are listed as actions, each with its topics and services, as Kilted does; an
+action recorded without its service events (no action introspection where it ran) says so. A bag a crash left unfinished (no
 ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with the command
 that repairs it.
 """
@@ -16,6 +18,8 @@ from pathlib import Path
 
 from baglib.read.metadata_read import StoredTopic, load_metadata
 from baglib.read.reader import BagReader
+from baglib.format.action_topics import SERVICE_INTERFACES, action_interface, action_name, \
+    action_type, is_action_topic
 from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
 from baglib.format.service_events import is_service_event_topic, service_name, service_type
 from baglib.read.storage_reader import BagReadError
@@ -102,6 +106,28 @@ def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
     return [f"Warning: {note}" for note in notes]
 
 
+def _actions(actions: dict[str, dict[str, StoredTopic]]) -> list[str]:
+    """The ``Actions:`` part, as rosbag2 Kilted prints it (nothing when the bag holds no action)."""
+    if not actions:
+        return []
+    lines = [*_block("Actions:", [str(len(actions))]), "Action information:"]
+    for name, parts in actions.items():
+        types = [action_type(topic.type) for topic in parts.values()]
+        known = next((t for t in types if t), "unknown")
+        services = [interface for interface in SERVICE_INTERFACES if interface in parts]
+        formats = sorted({topic.serialization_format for topic in parts.values()})
+        lines.append(f"  Action: {name} | Type: {known} | Topics: {len(parts) - len(services)} | "
+                     f"Services: {len(services)} | Serialization Format: {', '.join(formats)}")
+        for interface in ("feedback", "status", *SERVICE_INTERFACES):
+            if interface in parts:
+                kind, count = ("Service", "Event Count") if interface in SERVICE_INTERFACES else ("Topic", "Count")
+                lines.append(f"    {kind}: {interface} | {count}: {parts[interface].message_count}")
+        if not services:
+            lines.append("    Note: no service events (no action introspection where it ran): its goals cannot "
+                         "be replayed")
+    return lines
+
+
 def format_bag_info(bag: str | Path) -> str:
     """The ``ros2 bag info`` text for ``bag``: a bag directory (``metadata.yaml`` of any version from 4 to 9) or
     one storage file."""
@@ -111,8 +137,12 @@ def format_bag_info(bag: str | Path) -> str:
     topics: list[str] = []
     services: list[str] = []
     service_messages = 0
+    actions: dict[str, dict[str, StoredTopic]] = {}
     for topic in summary.topics:
-        if is_service_event_topic(topic.name, topic.type):
+        if is_action_topic(topic.name, topic.type):
+            service_messages += topic.message_count
+            actions.setdefault(action_name(topic.name), {})[action_interface(topic.name) or ""] = topic
+        elif is_service_event_topic(topic.name, topic.type):
             service_messages += topic.message_count
             services.append(f"Service: {service_name(topic.name)} | Type: {service_type(topic.type)} | "
                             f"Event Count: {topic.message_count} | "
@@ -132,6 +162,7 @@ def format_bag_info(bag: str | Path) -> str:
         *_block("Topic information:", topics),
         *_block("Service:", [str(len(services))]),
         *_block("Service information:", services, _SERVICE_LABEL_WIDTH),
+        *_actions(actions),
         *(_unfinished(bag, summary.files) if bag.is_dir() else []),
     ]
     return "\n".join(line.rstrip() for line in lines)

@@ -26,6 +26,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from baglib.format.action_topics import action_topics
 from components.bounds import Bounds
 from components.qos_profiles import absolute_topic
 from components.image_encoder.image_encoder import DEFAULTS as IMAGE_ENCODER_DEFAULTS
@@ -38,6 +39,10 @@ ENCODER_SETTINGS = ("preset", "quality", "bitrate", "keyframe_interval", "width"
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
     "all_services": False,
+    # rosbag2 Kilted (ros2/rosbag2#1939): actions by name, their feedback, status and service event topics.
+    "all_actions": False,
+    "actions": [""],
+    "exclude_actions": [""],
     "topics": [""],
     "topic_types": [""],
     "services": [""],
@@ -184,6 +189,11 @@ class RecordOptions:
     exclude_topics: list[str] = field(default_factory=list)
     exclude_topic_types: list[str] = field(default_factory=list)
     exclude_services: list[str] = field(default_factory=list)
+    #: every action (its five topics, see baglib.format.action_topics)
+    all_actions: bool = False
+    #: action names (``/fibonacci``)
+    actions: list[str] = field(default_factory=list)
+    exclude_actions: list[str] = field(default_factory=list)
     regex: str = ""
     exclude_regex: str = ""
     include_hidden_topics: bool = False
@@ -299,6 +309,18 @@ def custom_data_pairs(items: list[str]) -> dict[str, str]:
     return pairs
 
 
+def action_names(values: list[str], label: str) -> list[str]:
+    """record.actions / record.exclude_actions: action names, each checked (an action's own topic, such as
+    ``/fibonacci/_action/status``, names no action: rosbag2 would record nothing for it)."""
+    names = clean(values)
+    for name in names:
+        try:
+            action_topics(absolute_topic(name))
+        except ValueError as error:
+            raise ValueError(f"parameter {label}: {error}") from None
+    return names
+
+
 def _label(name: str, source: str) -> str:
     """How an error names a parameter: as the user gave it."""
     return f"'{name}'" if source == name else f"'{source}' (alias of '{name}')"
@@ -345,6 +367,9 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         exclude_topics=clean(values["record.exclude_topics"]),
         exclude_topic_types=clean(values["record.exclude_topic_types"]),
         exclude_services=clean(values["record.exclude_services"]),
+        all_actions=values["record.all_actions"],
+        actions=action_names(values["record.actions"], labels["record.actions"]),
+        exclude_actions=action_names(values["record.exclude_actions"], labels["record.exclude_actions"]),
         regex=values["record.regex"],
         exclude_regex=values["record.exclude_regex"],
         include_hidden_topics=values["record.include_hidden_topics"],
