@@ -26,11 +26,10 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from baglib.format.action_topics import action_topics
 from components.bounds import Bounds
 from components.qos_profiles import absolute_topic
 from components.image_encoder.image_encoder import DEFAULTS as IMAGE_ENCODER_DEFAULTS
-from components.node_parameters import clean, declare_defaults, given_values, typed
+from components.node_parameters import action_names, clean, declare_defaults, given_values, typed
 from components.recorder.rate_limits import parse_max_rates
 from components.recorder.schedule import duration_ns, instant_ns
 
@@ -307,18 +306,6 @@ def custom_data_pairs(items: list[str]) -> dict[str, str]:
             raise ValueError(f"parameter 'storage.custom_data' entries must be 'key=value', got '{item}'")
         pairs[key] = value
     return pairs
-
-
-def action_names(values: list[str], label: str) -> list[str]:
-    """record.actions / record.exclude_actions: action names, each checked (an action's own topic, such as
-    ``/fibonacci/_action/status``, names no action: rosbag2 would record nothing for it)."""
-    names = clean(values)
-    for name in names:
-        try:
-            action_topics(absolute_topic(name))
-        except ValueError as error:
-            raise ValueError(f"parameter {label}: {error}") from None
-    return names
 
 
 def _label(name: str, source: str) -> str:
