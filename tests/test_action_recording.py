@@ -1,8 +1,8 @@
-"""Recording actions as rosbag2 Kilted does (ros2/rosbag2#1939): ``record.actions`` / ``record.all_actions`` /
+"""Recording and replaying actions as rosbag2 Kilted does (ros2/rosbag2#1939): ``record.actions`` / ``record.all_actions`` /
 ``record.exclude_actions`` take an action's feedback and status topics and its three services' event topics,
 named and typed as Kilted stores them; ``bag info`` lists them as actions; on Jazzy the container's
 ``ComponentNode.create_action_server`` / ``create_action_client`` publish those events (Kilted's action
-introspection).
+introspection); the player with ``play.send_actions_as_client`` sends the recorded goals to a running server.
 
 The end-to-end test runs a real rclpy action server and client (test_msgs/action/Fibonacci) in a context of their
 own, a recorder in an in-process container, and reads the bag back with rosbags (AnyReader: it parses every
@@ -16,7 +16,7 @@ from typing import Any, Iterator
 
 import pytest
 import rclpy
-from rclpy.action import ActionServer, GoalResponse
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -155,15 +155,19 @@ def load_recorder(manager: ComponentManager, uri: Path, **parameters: Any) -> Re
 
 class FibonacciProcess:
     """What another process would run: an introspected action server and client on ComponentNodes, and a plain
-    rclpy action server (``/plain``, no introspection), spun by an executor of their own context."""
+    rclpy action server (``/plain``, no introspection), spun by an executor of their own context. The server
+    notes every goal it executes and every cancel request it gets; a goal of order 6 runs until canceled."""
 
     def __init__(self) -> None:
+        self.executed: list[tuple[bytes, int]] = []
+        self.cancel_requests: list[bytes] = []
         self.context = Context()
         rclpy.init(context=self.context)
         self.server_node = ComponentNode("fibonacci_server", context=self.context)
         self.client_node = ComponentNode("fibonacci_client", context=self.context)
         self.server = self.server_node.create_action_server(Fibonacci, FIB, self._execute,
-                                                            goal_callback=self._accept)
+                                                            goal_callback=self._accept,
+                                                            cancel_callback=self._on_cancel)
         self.plain = ActionServer(self.server_node, Fibonacci, "/plain", self._execute)
         self.client = self.client_node.create_action_client(Fibonacci, FIB)
         self.plain_client = self.client_node.create_action_client(Fibonacci, "/plain")
@@ -179,8 +183,16 @@ class FibonacciProcess:
     def _accept(goal: Any) -> GoalResponse:
         return GoalResponse.ACCEPT if goal.order <= 10 else GoalResponse.REJECT
 
-    @staticmethod
-    def _execute(goal_handle: Any) -> Any:
+    def _on_cancel(self, goal_handle: Any) -> CancelResponse:
+        self.cancel_requests.append(bytes(goal_handle.goal_id.uuid))
+        return CancelResponse.ACCEPT
+
+    def _execute(self, goal_handle: Any) -> Any:
+        self.executed.append((bytes(goal_handle.goal_id.uuid), goal_handle.request.order))
+        if goal_handle.request.order == 6:
+            wait_until(lambda: goal_handle.is_cancel_requested, 20.0)
+            goal_handle.canceled()
+            return Fibonacci.Result()
         sequence = [0, 1]
         for _ in range(goal_handle.request.order - 1):
             sequence.append(sequence[-1] + sequence[-2])
@@ -272,3 +284,54 @@ def test_an_action_is_recorded_with_its_service_events_and_listed_by_bag_info(
     assert "  Action: /plain | Type: test_msgs/action/Fibonacci | Topics: 2 | Services: 0" in info
     assert "no service events (no action introspection where it ran)" in info
     assert "_action" not in info.split("Action information:")[0]  # not listed as topics or services
+
+
+# --- replaying goals --------------------------------------------------------------------------------------
+def goal_event(kind: int, goal_id: bytes, order: int) -> Any:
+    event = Fibonacci.Impl.SendGoalService.Event()
+    event.info.event_type = kind
+    request = Fibonacci.Impl.SendGoalService.Request(goal=Fibonacci.Goal(order=order))
+    request.goal_id.uuid = list(goal_id)
+    event.request = [request]
+    return event
+
+
+def test_the_player_sends_recorded_goals_to_the_running_action_server(tmp_path: Path,
+                                                                     fibonacci: FibonacciProcess) -> None:
+    """Goals with their recorded ids, only the server side's requests (the client's REQUEST_SENT twins and the
+    responses are skipped), a cancel for the goal it names; the recorded feedback is not published."""
+    first, second = bytes(range(16)), bytes(range(16, 32))
+    writer = BagWriter(tmp_path / "bag")
+    for topic in (SEND_GOAL, CANCEL_GOAL, FEEDBACK):
+        writer.add_topic(TopicInfo(topic, TYPES[topic]))
+    cancel = Fibonacci.Impl.CancelGoalService.Event()
+    cancel.info.event_type = ServiceEventInfo.REQUEST_RECEIVED
+    cancel_request = Fibonacci.Impl.CancelGoalService.Request()
+    cancel_request.goal_info.goal_id.uuid = list(second)
+    cancel.request = [cancel_request]
+    feedback = message_class(TYPES[FEEDBACK])(feedback=Fibonacci.Feedback(sequence=[0, 1]))
+    recorded = [(SEND_GOAL, goal_event(ServiceEventInfo.REQUEST_SENT, first, 4)),
+                (SEND_GOAL, goal_event(ServiceEventInfo.REQUEST_RECEIVED, first, 4)),
+                (SEND_GOAL, goal_event(ServiceEventInfo.RESPONSE_SENT, first, 4)),
+                (FEEDBACK, feedback),
+                (SEND_GOAL, goal_event(ServiceEventInfo.REQUEST_RECEIVED, second, 6)),
+                (CANCEL_GOAL, cancel)]
+    for i, (topic, message) in enumerate(recorded):
+        writer.write(topic, serialize_message(message), T0 + i * 10_000_000, T0 + i * 10_000_000)
+    writer.close()
+
+    with in_process_manager("action_replay_test") as manager:
+        player = manager.load(load_request({
+            "package": "components", "plugin": "components::Player", "name": "action_player",
+            "parameters": {"storage.uri": str(tmp_path / "bag"), "play.send_actions_as_client": True,
+                           "play.start_paused": True}}, 1)).node
+        assert FEEDBACK not in player.stats()["published"]
+        # the player's action client must know the server before the first goal (else rosbag2 skips it too)
+        replay_client = player._senders[SEND_GOAL]._replay.client
+        assert wait_until(replay_client.server_is_ready, 20.0)
+        player.resume()
+        assert wait_until(lambda: len(fibonacci.executed) == 2 and fibonacci.cancel_requests, 20.0), \
+            (fibonacci.executed, fibonacci.cancel_requests, player.stats())
+        assert player.stats()["published"] == {SEND_GOAL: 2, CANCEL_GOAL: 1}
+    assert sorted(fibonacci.executed) == [(first, 4), (second, 6)]
+    assert fibonacci.cancel_requests == [second]
