@@ -10,7 +10,11 @@ definition and checks its RIHS01 hash against the topic's).
 """
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -37,7 +41,7 @@ from component_container.startup_file import load_request
 from components.recorder.recorder import Recorder
 from components.recorder.recorder_options import RecordOptions
 from components.recorder.topic_selection import TopicFilter
-from ipc_testing import in_process_manager, wait_until
+from ipc_testing import ContainerProcess, in_process_manager, wait_until
 
 FIB = "/fibonacci"
 SEND_GOAL = "/fibonacci/_action/send_goal/_service_event"
@@ -50,6 +54,7 @@ TYPES = {SEND_GOAL: "test_msgs/action/Fibonacci_SendGoal_Event", CANCEL_GOAL: "a
          FEEDBACK: "test_msgs/action/Fibonacci_FeedbackMessage", STATUS: "action_msgs/msg/GoalStatusArray"}
 EVENT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 T0 = 1_700_000_000_000_000_000
+REPO = Path(__file__).resolve().parents[1]
 
 
 # --- names and selection ----------------------------------------------------------------------------------
@@ -284,6 +289,37 @@ def test_an_action_is_recorded_with_its_service_events_and_listed_by_bag_info(
     assert "  Action: /plain | Type: test_msgs/action/Fibonacci | Topics: 2 | Services: 0" in info
     assert "no service events (no action introspection where it ran)" in info
     assert "_action" not in info.split("Action information:")[0]  # not listed as topics or services
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ipc_component.cli", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=90)
+
+
+def test_record_start_actions_records_another_processes_action(tmp_path: Path, fibonacci: FibonacciProcess) -> None:
+    """``ipc-component record start --actions`` on a container process; the action server and client are in this
+    process: the events cross a process boundary over DDS."""
+    with ContainerProcess("--bag-root", str(tmp_path), name="/ax/container", cwd=REPO,
+                          log_path=tmp_path / "container.log"):
+        at = time.time() + 1.0
+        started = cli("record", "start", "/ax/container", "--session", "act", "--at", str(at), "--actions", FIB,
+                      "--no-local-only")
+        assert started.returncode == 0, started.stdout + started.stderr
+        assert wait_until(lambda: time.time() > at, 20.0)  # the recording window has begun
+        graph = fibonacci.server_node
+        assert wait_until(lambda: all(graph.count_subscribers(t) >= (2 if t in (FEEDBACK, STATUS) else 1)
+                                      for t in TYPES), 60.0), "the recorder did not subscribe every action topic"
+        assert fibonacci.client.wait_for_server(timeout_sec=20.0)
+        accepted = done(fibonacci.client.send_goal_async(Fibonacci.Goal(order=5)))
+        done(accepted.get_result_async())
+        bag = tmp_path / "act" / f"{os.uname().nodename}_ax_container"
+        # the events are transient_local: what the recorder has not taken yet it still gets before the stop
+        stopped = cli("record", "stop", "--session", "act", "--in", "2")
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+    decoded = rosbags_messages(bag)
+    assert {topic: len(decoded.get(topic, [])) for topic in (SEND_GOAL, GET_RESULT, FEEDBACK)} == \
+        {SEND_GOAL: 4, GET_RESULT: 4, FEEDBACK: 4}
+    assert not [topic for topic in decoded if "_action" not in topic]  # only the action was selected
 
 
 # --- replaying goals --------------------------------------------------------------------------------------
