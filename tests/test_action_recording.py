@@ -233,7 +233,7 @@ def fibonacci() -> Iterator[FibonacciProcess]:
 
 
 def test_an_action_is_recorded_with_its_service_events_and_listed_by_bag_info(
-        tmp_path: Path, fibonacci: FibonacciProcess) -> None:
+        tmp_path: Path, fibonacci: FibonacciProcess, capfd: pytest.CaptureFixture[str]) -> None:
     with in_process_manager("action_recording_test") as manager:
         recorder = load_recorder(manager, tmp_path / "bag", **{"record.actions": [FIB, "/plain"]})
         graph = fibonacci.server_node
@@ -259,6 +259,10 @@ def test_an_action_is_recorded_with_its_service_events_and_listed_by_bag_info(
         assert wait_until(lambda: all(written(recorder, t) >= n for t, n in expected.items())
                           and written(recorder, "/plain/_action/feedback") >= 2, 20.0), recorder.stats()
         recorder.stop_recording()
+    warnings = capfd.readouterr().err  # rcutils logs to the process's stderr
+    assert ("record.actions: action /plain recorded without its send_goal, cancel_goal, get_result topics "
+            "(service events exist only where") in warnings, warnings
+    assert "action /fibonacci recorded without" not in warnings
 
     decoded = rosbags_messages(tmp_path / "bag")
     assert {topic: len(decoded[topic]) for topic in expected} == expected
