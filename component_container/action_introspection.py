@@ -142,7 +142,22 @@ def _swap(endpoint: Any, attribute: str, make: Callable[[], Any], events: _Actio
     old.destroy_when_not_in_use()
 
 
-class IntrospectedActionServer(ActionServer):
+class _Introspectable:
+    """Kilted's ``configure_introspection`` on an action server or client whose ``_events`` publish."""
+
+    _events: _ActionEvents
+
+    def configure_introspection(self, clock: Clock, service_event_qos_profile: QoSProfile,
+                                introspection_state: ServiceIntrospectionState) -> None:
+        """Publish the action's service events (Kilted's ``configure_introspection``)."""
+        self._events.configure(clock, service_event_qos_profile, introspection_state)
+
+    def destroy(self) -> None:
+        self._events.destroy()
+        super().destroy()  # type: ignore[misc]
+
+
+class IntrospectedActionServer(_Introspectable, ActionServer):
     """rclpy's ``ActionServer`` with Kilted's ``configure_introspection`` (see module doc)."""
 
     def __init__(self, node: Node, action_type: Any, action_name: str, execute_callback: Callable[..., Any],
@@ -160,11 +175,6 @@ class IntrospectedActionServer(ActionServer):
                 a["status_pub_qos_profile"].get_c_qos_profile(),
                 a["result_timeout"]), self._events)
 
-    def configure_introspection(self, clock: Clock, service_event_qos_profile: QoSProfile,
-                                introspection_state: ServiceIntrospectionState) -> None:
-        """Publish the action's service events (Kilted's ``ActionServer.configure_introspection``)."""
-        self._events.configure(clock, service_event_qos_profile, introspection_state)
-
     def take_data(self) -> dict[str, Any]:
         data = super().take_data()
         for interface, (_, key) in _SERVICES.items():
@@ -174,12 +184,8 @@ class IntrospectedActionServer(ActionServer):
                                      request=request)
         return data
 
-    def destroy(self) -> None:
-        self._events.destroy()
-        super().destroy()
 
-
-class IntrospectedActionClient(ActionClient):
+class IntrospectedActionClient(_Introspectable, ActionClient):
     """rclpy's ``ActionClient`` with Kilted's ``configure_introspection`` (see module doc)."""
 
     def __init__(self, node: Node, action_type: Any, action_name: str, **kwargs: Any) -> None:
@@ -195,11 +201,6 @@ class IntrospectedActionClient(ActionClient):
                 a["feedback_sub_qos_profile"].get_c_qos_profile(),
                 a["status_sub_qos_profile"].get_c_qos_profile()), self._events)
 
-    def configure_introspection(self, clock: Clock, service_event_qos_profile: QoSProfile,
-                                introspection_state: ServiceIntrospectionState) -> None:
-        """Publish the action's service events (Kilted's ``ActionClient.configure_introspection``)."""
-        self._events.configure(clock, service_event_qos_profile, introspection_state)
-
     def take_data(self) -> dict[str, Any]:
         data = super().take_data()
         for interface, (_, key) in _SERVICES.items():
@@ -208,7 +209,3 @@ class IntrospectedActionClient(ActionClient):
                 self._events.publish(interface, ServiceEventInfo.RESPONSE_RECEIVED, sequence_number,
                                      response=response)
         return data
-
-    def destroy(self) -> None:
-        self._events.destroy()
-        super().destroy()

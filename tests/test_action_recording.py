@@ -1,5 +1,5 @@
-"""Recording and replaying actions as rosbag2 Kilted does (ros2/rosbag2#1939): ``record.actions`` / ``record.all_actions`` /
-``record.exclude_actions`` take an action's feedback and status topics and its three services' event topics,
+"""Recording and replaying actions as rosbag2 Kilted does (ros2/rosbag2#1939, #1955): ``record.actions`` /
+``record.all_actions`` / ``record.exclude_actions`` take an action's feedback and status topics and its three services' event topics,
 named and typed as Kilted stores them; ``bag info`` lists them as actions; on Jazzy the container's
 ``ComponentNode.create_action_server`` / ``create_action_client`` publish those events (Kilted's action
 introspection); the player with ``play.send_actions_as_client`` sends the recorded goals to a running server.
@@ -26,7 +26,6 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from rclpy.service_introspection import ServiceIntrospectionState
-from rosbags.highlevel import AnyReader
 from service_msgs.msg import ServiceEventInfo
 from test_msgs.action import Fibonacci
 
@@ -42,6 +41,7 @@ from components.recorder.recorder import Recorder
 from components.recorder.recorder_options import RecordOptions
 from components.recorder.topic_selection import TopicFilter
 from ipc_testing import ContainerProcess, in_process_manager, wait_until
+from test_service_recording import rosbags_messages
 
 FIB = "/fibonacci"
 SEND_GOAL = "/fibonacci/_action/send_goal/_service_event"
@@ -132,14 +132,6 @@ def test_generated_action_types_have_definitions_hashes_and_classes(tmp_path: Pa
     decoded = rosbags_messages(tmp_path / "bag")
     assert decoded[SEND_GOAL][0].request[0].goal.order == 7
     assert list(decoded[FEEDBACK][0].feedback.sequence) == [0, 1, 1]
-
-
-def rosbags_messages(bag: Path) -> dict[str, list[Any]]:
-    found: dict[str, list[Any]] = {}
-    with AnyReader([bag]) as reader:
-        for connection, _, raw in reader.messages():
-            found.setdefault(connection.topic, []).append(reader.deserialize(raw, connection.msgtype))
-    return found
 
 
 # --- bad input --------------------------------------------------------------------------------------------

@@ -228,5 +228,6 @@ _OUTPUT_KEYS: dict[str, Callable[[str, Any], Any]] = {
     **_INPUT_KEYS, "max_bagfile_size": _size, "max_bagfile_duration": _size, "storage_preset_profile": _text,
     "custom_data": _pairs, "all_topics": _boolean, "all_services": _boolean, "topics": _names,
     "topic_types": _names, "services": _names, "exclude_topics": _names, "exclude_topic_types": _names,
-    "exclude_services": _names, "all_actions": _boolean, "actions": _names, "exclude_actions": _names, "regex": _text, "exclude_regex": _text, "include_hidden_topics": _boolean,
+    "exclude_services": _names, "all_actions": _boolean, "actions": _names, "exclude_actions": _names,
+    "regex": _text, "exclude_regex": _text, "include_hidden_topics": _boolean,
 }

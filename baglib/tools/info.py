@@ -6,9 +6,9 @@ file it reads what the file itself holds (its topics, counts and times, through 
 the way rosbag2_py's ``format_bag_meta_data`` (Jazzy) does: service event topics are listed as services, not as
 topics, and their messages are not counted in ``Messages:``. An action's five topics (Kilted,
 :mod:`baglib.format.action_topics`) are listed as actions, each with its topics and services, as Kilted does; an
-action recorded without its service events (no action introspection where it ran) says so. A bag a crash left unfinished (no
-``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with the command
-that repairs it.
+action recorded without its service events (no action introspection where it ran) says so. A bag a crash left
+unfinished (no ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with
+the command that repairs it.
 """
 from __future__ import annotations
 
