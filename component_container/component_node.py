@@ -4,6 +4,8 @@ A component is an ordinary rclpy ``Node``; deriving from :class:`ComponentNode` 
 provides on top of rclpy: when loaded with ``use_intra_process_comms``, ``create_publisher`` and
 ``create_subscription`` return endpoints that take part in the container's intra-process manager
 (component_container.intra_process) while still talking to the rest of the ROS graph over DDS.
+``create_action_server`` and ``create_action_client`` return rclpy action endpoints that can publish their
+service events as Kilted's action introspection does (component_container.action_introspection).
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.subscription import Subscription
 
+from component_container.action_introspection import IntrospectedActionClient, IntrospectedActionServer
 from component_container.bag_root import confine
 from component_container.health import Health
 from component_container.intra_process import (
@@ -127,6 +130,15 @@ class ComponentNode(Node):
     def __count(self, publisher: IntraProcessPublisher | CountingPublisher) -> None:
         if self.__counted is not None:
             self.__counted.append(publisher)
+
+    def create_action_server(self, action_type: Any, action_name: str, execute_callback: Callable[..., Any],
+                             **kwargs: Any) -> IntrospectedActionServer:
+        """rclpy's ``ActionServer(self, ...)`` (same arguments) with Kilted's ``configure_introspection``."""
+        return IntrospectedActionServer(self, action_type, action_name, execute_callback, **kwargs)
+
+    def create_action_client(self, action_type: Any, action_name: str, **kwargs: Any) -> IntrospectedActionClient:
+        """rclpy's ``ActionClient(self, ...)`` (same arguments) with Kilted's ``configure_introspection``."""
+        return IntrospectedActionClient(self, action_type, action_name, **kwargs)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
                             qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,

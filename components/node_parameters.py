@@ -14,6 +14,9 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from baglib.format.action_topics import action_topics
+from components.qos_profiles import absolute_topic
+
 __all__ = ["clean", "declare_defaults", "given_values", "typed"]
 
 
@@ -63,3 +66,15 @@ def declare_defaults(node: Node, defaults: Mapping[str, Any],
         kind = (kinds or {}).get(name, type(default))
         values[name] = default if value is None else typed(kind, value, f"'{name}'")
     return values
+
+
+def action_names(values: list[str], label: str) -> list[str]:
+    """record.actions, play.actions_to_filter and their excludes: action names, each checked (an action's own
+    topic, such as ``/fibonacci/_action/status``, names no action: rosbag2 would take nothing for it)."""
+    names = clean(values)
+    for name in names:
+        try:
+            action_topics(absolute_topic(name))
+        except ValueError as error:
+            raise ValueError(f"parameter {label}: {error}") from None
+    return names

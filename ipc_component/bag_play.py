@@ -42,10 +42,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-l", "--loop", action="store_true", help="Enables loop playback")
     parser.add_argument("--topics", nargs="+", default=[], help="Topics to replay, separated by space")
     parser.add_argument("--services", nargs="+", default=[], help="Services to replay, separated by space")
-    parser.add_argument("-e", "--regex", default="", help="Play only topics and services matching this regex")
-    parser.add_argument("-x", "--exclude-regex", default="", help="Exclude topics and services matching this")
+    parser.add_argument("--actions", nargs="+", default=[], help="Actions to replay, separated by space")
+    parser.add_argument("-e", "--regex", default="",
+                        help="Play only topics, services and actions matching this regex")
+    parser.add_argument("-x", "--exclude-regex", default="",
+                        help="Exclude topics, services and actions matching this")
     parser.add_argument("--exclude-topics", nargs="+", default=[], help="Topics not to replay")
     parser.add_argument("--exclude-services", nargs="+", default=[], help="Services not to replay")
+    parser.add_argument("--exclude-actions", nargs="+", default=[], help="Actions not to replay")
     parser.add_argument("--qos-profile-overrides-path", default="", help="QoS overrides file (YAML)")
     parser.add_argument("--remap", "-m", nargs="+", default=[], help="Remappings, in the 'from:=to' form")
     parser.add_argument("--read-ahead-queue-size", type=int, default=1000,
@@ -64,8 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--publish-service-requests", action="store_true",
                         help="Call the recorded services with the recorded requests instead of publishing "
                              "their events")
+    parser.add_argument("--send-actions-as-client", action="store_true",
+                        help="Send the recorded goals, cancel and result requests to the running action servers "
+                             "instead of publishing the actions' topics")
     parser.add_argument("--service-requests-source", default="SERVICE_INTROSPECTION",
-                        choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"))
+                        choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"),
+                        help="Which side's recorded requests are sent (services and actions)")
     parser.add_argument("--message-order", default="received", choices=("received", "sent"),
                         help="The timestamp messages are ordered and played by: when they were received "
                              "(recorded) or when they were sent (published). With 'sent', messages are "
@@ -125,6 +133,9 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.publish_service_request": args.publish_service_requests,
         "play.service_requests_source": args.service_requests_source,
         "play.message_order": f"{args.message_order.upper()}_TIMESTAMP",
+        "play.actions_to_filter": args.actions or [""],
+        "play.exclude_actions_to_filter": args.exclude_actions or [""],
+        "play.send_actions_as_client": args.send_actions_as_client,
         "play.decode": args.decode is not None,
         "play.decode_topics": args.decode or [""],
         **_duration("play.delay", args.delay),

@@ -42,7 +42,7 @@ STOP_AHEAD = 1.0
 FINALIZE_TIMEOUT = 30.0
 #: Parameters that select topics: when one is given, the recorder is not told to record all topics.
 SELECTION = ("record.all_topics", "record.topics", "record.topic_types", "record.regex", "record.services",
-             "record.all_services", "topics", "topic_names", "record_all")
+             "record.all_services", "record.actions", "record.all_actions", "topics", "topic_names", "record_all")
 
 
 def recorder_node(session: str) -> str:
@@ -95,7 +95,13 @@ def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse
         ours["record.repeat_all_transient_local"] = args.repeat_all_transient_local
     if args.max_cache_duration:
         ours["storage.max_cache_duration"] = float(args.max_cache_duration)
-    if not names & set(SELECTION):
+    if args.actions:
+        ours["record.actions"] = list(args.actions)
+    if args.all_actions:
+        ours["record.all_actions"] = True
+    if args.exclude_actions:
+        ours["record.exclude_actions"] = list(args.exclude_actions)
+    if not names & set(SELECTION) and not (args.actions or args.all_actions):
         ours["record.all_topics"] = True
     clash = names & set(ours)
     if clash:
@@ -362,6 +368,12 @@ def add_record_parser(verbs: Any) -> Any:
     p.add_argument("--max-cache-duration", type=float, default=0.0, metavar="SECONDS",
                    help="snapshot mode (-p storage.snapshot_mode:=true): the ring holds at most the last SECONDS "
                         "(storage.max_cache_duration)")
+    p.add_argument("--actions", nargs="+", metavar="ACTION",
+                   help="record these actions: feedback, status and their services' events (record.actions, as "
+                        "ros2 bag record's); without a topic selection, only them")
+    p.add_argument("--all-actions", action="store_true", help="record every action (record.all_actions)")
+    p.add_argument("--exclude-actions", nargs="+", metavar="ACTION",
+                   help="do not record these actions (record.exclude_actions)")
     p.add_argument("-p", "--parameter", action="append", dest="parameters",
                    help="a recorder parameter, in the 'name:=value' form")
     p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")

@@ -2,7 +2,7 @@
 
     ipc_component (CLI)          may use everything below
     components                   may use component_container and baglib
-    component_container          may use baglib only where a runtime needs it (today: nowhere)
+    component_container          may use baglib only where a runtime needs it (today: the action topic names)
     baglib.tools                 may use baglib.read, baglib.write, baglib.format
     baglib.read | baglib.write   may use baglib.format, never each other nor the tools
     baglib.format                the bottom: no other layer of the project

@@ -116,11 +116,23 @@ def _find_file(package: str, folder: str, name: str, extension: str) -> Path | N
 def _read_definition(type_name: str, extension: str) -> str:
     package, folder, name = _split_type_name(type_name)
     path = _find_file(package, folder, name, extension)
+    if path is None and folder == "action" and extension == ".idl":
+        generated = _action_idl(package, name)
+        if generated is not None and _find_file(package, folder, _action_of(name), ".idl") is not None:
+            return generated
     if path is None:
         raise MessageDefinitionNotFoundError(f"no {extension} file for {type_name}")
     # newline="" keeps the bytes as written, exactly as rosbag2 reads them.
     with open(path, encoding="utf-8", newline="") as file:
         return file.read()
+
+
+def _action_of(name: str) -> str:
+    """``Fib_SendGoal_Request`` -> ``Fib``: the action a generated struct belongs to."""
+    event = _ACTION_EVENT.match(name)
+    if event:
+        return event.group(1)
+    return next(name[: -len(suffix) - 1] for suffix in _ACTION_STRUCTS if name.endswith(f"_{suffix}"))
 
 
 def _dependencies(text: str, type_name: str, extension: str) -> list[str]:
@@ -193,6 +205,52 @@ def _service_event_definition(type_name: str) -> str:
                              clean=lambda text: _INCLUDE_LINE.sub("", text))
 
 
+#: The structs rosidl generates for an action ``pkg/action/Name`` beyond its ``.idl`` file's Goal, Result and
+#: Feedback: their fields, in rosidl's order (``{a}`` is ``pkg::action::Name``).
+_ACTION_STRUCTS = {
+    "SendGoal_Request": ("unique_identifier_msgs::msg::UUID goal_id;", "{a}_Goal goal;"),
+    "SendGoal_Response": ("boolean accepted;", "builtin_interfaces::msg::Time stamp;"),
+    "GetResult_Request": ("unique_identifier_msgs::msg::UUID goal_id;",),
+    "GetResult_Response": ("int8 status;", "{a}_Result result;"),
+    "FeedbackMessage": ("unique_identifier_msgs::msg::UUID goal_id;", "{a}_Feedback feedback;"),
+}
+_ACTION_EVENT = re.compile(r"^(.+)_(SendGoal|GetResult)_Event$")
+_ACTION_INCLUDES = ("unique_identifier_msgs/msg/UUID", "builtin_interfaces/msg/Time",
+                    "service_msgs/msg/ServiceEventInfo")
+
+
+def _action_idl(package: str, name: str) -> str | None:
+    """The IDL of a type rosidl generates for an action (``pkg/action/Fib_SendGoal_Event``, ``_FeedbackMessage``,
+    a service's ``_Request`` / ``_Response``): no file has it. None for any other name."""
+    event = _ACTION_EVENT.match(name)
+    action, part = (event.group(1), event.group(2)) if event else next(
+        ((name[: -len(suffix) - 1], suffix) for suffix in _ACTION_STRUCTS if name.endswith(f"_{suffix}")),
+        (None, None))
+    if action is None:
+        return None
+    qualified = f"{package}::action::{action}"
+    if event:
+        fields = ("service_msgs::msg::ServiceEventInfo info;",
+                  f"sequence<{qualified}_{part}_Request, 1> request;",
+                  f"sequence<{qualified}_{part}_Response, 1> response;")
+    else:
+        fields = tuple(field.format(a=qualified) for field in _ACTION_STRUCTS[part])
+    includes = [*_ACTION_INCLUDES, f"{package}/action/{action}"]
+    if event:
+        includes += [f"{package}/action/{action}_{part}_Request", f"{package}/action/{action}_{part}_Response"]
+    body = "".join(f"      {field}\n\n" for field in fields).rstrip("\n") + "\n"
+    return ("".join(f'#include "{include}.idl"\n' for include in includes) + "\n"
+            f"module {package} {{\n  module action {{\n    struct {name} {{\n{body}    }};\n  }};\n}};\n")
+
+
+def _action_definition(type_name: str, text: str) -> str:
+    """The ``ros2idl`` text of an action's generated type (see :func:`_action_idl`), like a service event's:
+    rosbag2 Kilted stores the ``.action`` text, which describes no message on the topic."""
+    root = f"{_SEPARATOR}IDL: {type_name}\n"
+    return root + _full_text(type_name, ".idl", "IDL", root_text=text,
+                             clean=lambda section: _INCLUDE_LINE.sub("", section))
+
+
 @cache
 def message_definition(type_name: str) -> tuple[str, str]:
     """Return ``(encoding, text)`` of a message type as rosbag2 stores it in a bag.
@@ -212,6 +270,8 @@ def message_definition(type_name: str) -> tuple[str, str]:
     try:
         if folder == "srv" and name.endswith(EVENT_TYPE_SUFFIX):
             return "ros2idl", _service_event_definition(root)
+        if folder == "action" and (generated := _action_idl(package, name)) is not None:
+            return "ros2idl", _action_definition(root, generated)
         try:
             return "ros2msg", _full_text(type_name, ".msg", "MSG")
         except MessageDefinitionNotFoundError:
@@ -264,6 +324,8 @@ def type_hash(type_name: str) -> str:
     path = _find_file(package, folder, name, ".json")
     if path is None and folder == "srv" and name.endswith(EVENT_TYPE_SUFFIX):
         path = _find_file(package, folder, name[: -len(EVENT_TYPE_SUFFIX)], ".json")
+    if path is None and folder == "action" and _action_idl(package, name) is not None:
+        path = _find_file(package, folder, _action_of(name), ".json")
     if path is None:
         raise MessageDefinitionNotFoundError(f"no type description (.json) for {type_name}")
     with open(path, encoding="utf-8") as file:
@@ -298,4 +360,7 @@ def message_class(type_name: str) -> Any:
     package, folder, name = parts
     if folder == "srv":
         return event_class(type_name)
-    return getattr(importlib.import_module(f"{package}.{folder}"), name)
+    module = importlib.import_module(f"{package}.{folder}")
+    if folder == "action" and not hasattr(module, name) and name.endswith("_FeedbackMessage"):
+        return getattr(module, name[: -len("_FeedbackMessage")]).Impl.FeedbackMessage
+    return getattr(module, name)

@@ -11,6 +11,11 @@ Service event topics (``<service>/_service_event`` of type ``pkg/srv/Name_Event`
 or ``regex`` matching the *service* name; minus ``exclude_services`` and ``exclude_regex`` (again on the service
 name). The topic options never apply to them, although their names are hidden.
 
+An action's five topics (see :mod:`baglib.format.action_topics`; rosbag2 Kilted) are selected apart again, before
+the service rule (its ``cancel_goal`` events are typed ``action_msgs/srv/CancelGoal_Event``): ``all_actions``, or
+the action named in ``actions``, or ``regex`` matching the *action* name; minus ``exclude_actions`` and
+``exclude_regex`` (on the action name). Neither the topic nor the service options take them.
+
 Names in the lists may leave out the leading ``/``.
 """
 from __future__ import annotations
@@ -19,6 +24,7 @@ import re
 from collections.abc import Sequence
 from typing import Protocol
 
+from baglib.format.action_topics import action_name, action_topics, is_action_topic
 from baglib.format.service_events import event_topic, is_service_event_topic, service_name
 
 __all__ = ["SelectionOptions", "TopicSelection", "absolute_name"]
@@ -35,6 +41,9 @@ class SelectionOptions(Protocol):
     exclude_topics: Sequence[str]
     exclude_topic_types: Sequence[str]
     exclude_services: Sequence[str]
+    all_actions: bool
+    actions: Sequence[str]
+    exclude_actions: Sequence[str]
     regex: str
     exclude_regex: str
     include_hidden_topics: bool
@@ -50,6 +59,7 @@ class TopicSelection:
 
     Raises:
         re.error: ``regex`` or ``exclude_regex`` is not a regular expression.
+        ValueError: a name in ``actions`` / ``exclude_actions`` is no action name (see ``action_topics``).
     """
 
     def __init__(self, options: SelectionOptions) -> None:
@@ -61,10 +71,14 @@ class TopicSelection:
         # rosbag2 compares the event topic names the services map to
         self._services = {event_topic(absolute_name(service)) for service in options.services}
         self._exclude_services = {event_topic(absolute_name(service)) for service in options.exclude_services}
+        self._actions = _action_names(options.actions)
+        self._exclude_actions = _action_names(options.exclude_actions)
 
     def selects(self, topic: str, type_name: str) -> bool:
         o = self._options
         topic = absolute_name(topic)
+        if is_action_topic(topic, type_name):
+            return self._selects_action(action_name(topic))
         if is_service_event_topic(topic, type_name):
             return self._selects_service(topic)
         explicitly_named = topic in self._topics
@@ -86,6 +100,22 @@ class TopicSelection:
         if not wanted or topic in self._exclude_services:
             return False
         return not (self._exclude_regex and self._exclude_regex.search(service))
+
+    def _selects_action(self, action: str) -> bool:
+        """The action options for one of an action's topics; the regexes see the action's name."""
+        wanted = (self._options.all_actions or action in self._actions
+                  or bool(self._regex and self._regex.search(action)))
+        if not wanted or action in self._exclude_actions:
+            return False
+        return not (self._exclude_regex and self._exclude_regex.search(action))
+
+
+def _action_names(names: Sequence[str]) -> set[str]:
+    """The absolute action names; ValueError (from ``action_topics``) for a name that is no action's."""
+    absolute = {absolute_name(name) for name in names}
+    for name in absolute:
+        action_topics(name)
+    return absolute
 
 
 def _is_hidden(topic: str) -> bool:

@@ -165,7 +165,8 @@ def _selected(bag: OutputBag, topics: TopicSources) -> list[str]:
     chosen = [name for name, sources in topics.items() if selection.selects(name, sources[0][1].msgtype)]
     if not chosen:
         raise ConvertError(f"output bag {bag.uri} selects none of the inputs' {len(topics)} topics: give it "
-                           f"all_topics: true, topics, topic_types, regex, all_services or services")
+                           f"all_topics: true, topics, topic_types, regex, all_services, services, "
+                           f"all_actions or actions")
     return chosen
 
 

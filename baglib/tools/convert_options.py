@@ -79,6 +79,9 @@ class OutputBag:
     exclude_topics: tuple[str, ...] = ()
     exclude_topic_types: tuple[str, ...] = ()
     exclude_services: tuple[str, ...] = ()
+    all_actions: bool = False
+    actions: tuple[str, ...] = ()
+    exclude_actions: tuple[str, ...] = ()
     regex: str = ""
     exclude_regex: str = ""
     include_hidden_topics: bool = False
@@ -106,11 +109,12 @@ def load_output_options(path: str | os.PathLike[str]) -> list[OutputBag]:
     bags = []
     for where, entry in _entries(path, "output_bags"):
         entry = dict(entry)
-        if "all" in entry:  # rosbag2: `all` for backward compatibility sets both
+        if "all" in entry:  # rosbag2: `all` for backward compatibility sets all three
             every = _boolean(f"{where}: all", entry.pop("all"))
             if every:
                 entry.setdefault("all_topics", True)
                 entry.setdefault("all_services", True)
+                entry.setdefault("all_actions", True)
         if "exclude" in entry:  # rosbag2: `exclude` for backward compatibility is `exclude_regex`
             entry.setdefault("exclude_regex", entry.pop("exclude"))
         for key, defaults in UNSUPPORTED.items():
@@ -224,5 +228,6 @@ _OUTPUT_KEYS: dict[str, Callable[[str, Any], Any]] = {
     **_INPUT_KEYS, "max_bagfile_size": _size, "max_bagfile_duration": _size, "storage_preset_profile": _text,
     "custom_data": _pairs, "all_topics": _boolean, "all_services": _boolean, "topics": _names,
     "topic_types": _names, "services": _names, "exclude_topics": _names, "exclude_topic_types": _names,
-    "exclude_services": _names, "regex": _text, "exclude_regex": _text, "include_hidden_topics": _boolean,
+    "exclude_services": _names, "all_actions": _boolean, "actions": _names, "exclude_actions": _names,
+    "regex": _text, "exclude_regex": _text, "include_hidden_topics": _boolean,
 }

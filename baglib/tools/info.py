@@ -4,9 +4,11 @@ Like ``ros2 bag info`` it takes a bag directory or a single ``.mcap`` / ``.db3``
 ``metadata.yaml`` (versions 4 to 9, :mod:`baglib.read.metadata_read`) and the sizes of the files it lists; for a
 file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them
 the way rosbag2_py's ``format_bag_meta_data`` does: service event topics are listed as services, not as
-topics, and their messages are not counted in ``Messages:``. A bag a crash left unfinished (no
-``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with the command
-that repairs it.
+topics, and their messages are not counted in ``Messages:``. An action's five topics (Kilted,
+:mod:`baglib.format.action_topics`) are listed as actions, each with its topics and services, as Kilted does; an
+action recorded without its service events (no action introspection where it ran) says so. A bag a crash left
+unfinished (no ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with
+the command that repairs it.
 
 Lyrical's options (rosbag2 #1804 and the verbose output of ``Info::print_output_verbose``): ``sort`` orders
 topics and services by name (the default), type or count (a service's event count; with ``verbose`` its
@@ -26,6 +28,8 @@ from pathlib import Path
 
 from baglib.read.metadata_read import StoredTopic, load_metadata
 from baglib.read.reader import BagReader
+from baglib.format.action_topics import SERVICE_INTERFACES, action_interface, action_name, \
+    action_type, is_action_topic
 from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
 from baglib.format.service_events import (
     REQUEST_EVENTS,
@@ -171,6 +175,28 @@ def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
     return [f"Warning: {note}" for note in notes]
 
 
+def _actions(actions: dict[str, dict[str, StoredTopic]]) -> list[str]:
+    """The ``Actions:`` part, as rosbag2 Kilted prints it (nothing when the bag holds no action)."""
+    if not actions:
+        return []
+    lines = [*_block("Actions:", [str(len(actions))]), "Action information:"]
+    for name, parts in actions.items():
+        types = [action_type(topic.type) for topic in parts.values()]
+        known = next((t for t in types if t), "unknown")
+        services = [interface for interface in SERVICE_INTERFACES if interface in parts]
+        formats = sorted({topic.serialization_format for topic in parts.values()})
+        lines.append(f"  Action: {name} | Type: {known} | Topics: {len(parts) - len(services)} | "
+                     f"Services: {len(services)} | Serialization Format: {', '.join(formats)}")
+        for interface in ("feedback", "status", *SERVICE_INTERFACES):
+            if interface in parts:
+                kind, count = ("Service", "Event Count") if interface in SERVICE_INTERFACES else ("Topic", "Count")
+                lines.append(f"    {kind}: {interface} | {count}: {parts[interface].message_count}")
+        if not services:
+            lines.append("    Note: no service events (no action introspection where it ran): its goals cannot "
+                         "be replayed")
+    return lines
+
+
 def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
                     topic_names_only: bool = False) -> str:
     """The ``ros2 bag info`` text for ``bag``: a bag directory (``metadata.yaml`` of any version from 4 to 9) or
@@ -178,8 +204,13 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
     ``--topic-name`` (``verbose`` wins over ``topic_names_only``, as in rosbag2)."""
     bag = Path(bag)
     summary = _summary(bag)
-    topics = [t for t in summary.topics if not is_service_event_topic(t.name, t.type)]
-    services = {t.name: _Service(t) for t in summary.topics if is_service_event_topic(t.name, t.type)}
+    actions: dict[str, dict[str, StoredTopic]] = {}
+    for topic in summary.topics:
+        if is_action_topic(topic.name, topic.type):
+            actions.setdefault(action_name(topic.name), {})[action_interface(topic.name) or ""] = topic
+    plain = [t for t in summary.topics if not is_action_topic(t.name, t.type)]
+    topics = [t for t in plain if not is_service_event_topic(t.name, t.type)]
+    services = {t.name: _Service(t) for t in plain if is_service_event_topic(t.name, t.type)}
     sizes = _read_services(bag, services) if verbose else {}
     by_count: Callable[..., int] = ((lambda s: len(s.requests) + len(s.responses)) if verbose
                                     else (lambda s: s.topic.message_count))
@@ -198,7 +229,8 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
         service_lines = [f"Service: {s.name} | Type: {s.type} | Event Count: {s.topic.message_count} | "
                          f"Serialization Format: {s.topic.serialization_format}" for s in listed]
     start, duration = summary.starting_time_ns, summary.duration_ns
-    service_messages = sum(service.topic.message_count for service in services.values())
+    service_messages = sum(service.topic.message_count for service in services.values()) + sum(
+        topic.message_count for parts in actions.values() for topic in parts.values())
     lines = [
         *_block("Files:", summary.files),
         *_block("Bag size:", [_file_size(summary.size)]),
@@ -211,6 +243,7 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
         *_block("Topic information:", topic_lines),
         *_block("Service:", [str(len(service_lines))]),
         *_block("Service information:", service_lines, _SERVICE_LABEL_WIDTH),
+        *_actions(actions),
         *(_unfinished(bag, summary.files) if bag.is_dir() else []),
     ]
     return "\n".join(line.rstrip() for line in lines)

@@ -51,6 +51,7 @@ from std_srvs.srv import Trigger
 from baglib.read.reader import BagMessage, BagReadError
 from baglib.read.timeline import Timeline
 from baglib.format.message_definitions import message_class
+from baglib.format.action_topics import SERVICE_INTERFACES, action_interface, action_name, is_action_topic
 from baglib.format.service_events import is_service_event_topic
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
@@ -61,6 +62,7 @@ from components.player.playback_clock import PlaybackClock
 from components.player.player_options import PlayOptions, declare_play_options
 from components.player.player_topics import TopicPublisher, allow_topic, publisher_qos
 from components.player.read_ahead import Queued, ReadAhead
+from components.player.action_goals import ActionRequestSender, action_replays
 from components.player.service_requests import ServiceRequestSender
 from components.qos_profiles import load_qos_overrides
 
@@ -151,19 +153,27 @@ class Player(ComponentNode):
                                f"{timeline.message_count} messages, {timeline.duration_ns / 1e9:.3f} s")
         return timeline
 
-    def _make_publishers(self) -> dict[str, TopicPublisher | ServiceRequestSender]:
+    def _make_publishers(self) -> dict[str, TopicPublisher | ServiceRequestSender | ActionRequestSender]:
         assert self._reader is not None
         path = self._options.qos_profile_overrides_path
         overrides = load_qos_overrides(
             QOS_OVERRIDES_PARAMETER, self.resolve_path(QOS_OVERRIDES_PARAMETER, path) if path else None, 10)
-        publishers: dict[str, TopicPublisher | ServiceRequestSender] = {}
+        publishers: dict[str, TopicPublisher | ServiceRequestSender | ActionRequestSender] = {}
+        actions = action_replays(self, self._reader.connections, self._options.service_requests_source) \
+            if self._options.send_actions_as_client else {}
         for connection in self._reader.connections:
             if connection.topic in publishers or not allow_topic(connection, self._options):
                 continue
             try:
                 msg_class = message_class(connection.msgtype)
+                if is_action_topic(connection.topic, connection.msgtype) and self._options.send_actions_as_client:
+                    replay = actions.get(action_name(connection.topic))
+                    if replay is not None and action_interface(connection.topic) in SERVICE_INTERFACES:
+                        publishers[connection.topic] = ActionRequestSender(replay, connection)
+                    continue  # feedback and status come from the server
                 if self._options.publish_service_requests and is_service_event_topic(connection.topic,
-                                                                                     connection.msgtype):
+                                                                                     connection.msgtype) \
+                        and not is_action_topic(connection.topic, connection.msgtype):
                     publishers[connection.topic] = ServiceRequestSender(
                         self, connection, self._options.service_requests_source)
                     continue

@@ -23,7 +23,8 @@ from rclpy.node import Node
 
 from baglib.format.service_events import event_topic
 from components.bounds import Bounds
-from components.node_parameters import clean, declare_defaults
+from components.qos_profiles import absolute_topic
+from components.node_parameters import action_names, clean, declare_defaults
 
 _DURATIONS = {  # name -> (default sec, default nsec), from get_play_options_from_node_params
     "play.delay": (0, 0),
@@ -59,6 +60,10 @@ DEFAULTS: dict[str, Any] = {
     "play.service_requests_source": "SERVICE_INTROSPECTION",
     "play.publish_service_request": False,
     "play.message_order": "RECEIVED_TIMESTAMP",
+    # rosbag2 Kilted (ros2/rosbag2#1955): actions by name; their recorded goals sent to the live server.
+    "play.actions_to_filter": [""],
+    "play.exclude_actions_to_filter": [""],
+    "play.send_actions_as_client": False,
     "play.decode": False,
     "play.decode_topics": [""],
     **{f"{name}.{part}": value for name, pair in _DURATIONS.items() for part, value in zip(("sec", "nsec"), pair)},
@@ -107,6 +112,9 @@ class PlayOptions:
     service_requests_source: str
     publish_service_requests: bool
     message_order: str           # one of MESSAGE_ORDERS
+    actions: list[str]           # action names (``/fibonacci``)
+    exclude_actions: list[str]
+    send_actions_as_client: bool
     decode: bool                 # every played compressed image topic also as sensor_msgs/Image
     decode_topics: list[str]     # only these (implies decode)
 
@@ -199,6 +207,11 @@ def _validate(values: dict[str, Any]) -> PlayOptions:
         service_requests_source=values["play.service_requests_source"],
         publish_service_requests=values["play.publish_service_request"],
         message_order=values["play.message_order"],
+        actions=[absolute_topic(a) for a in action_names(values["play.actions_to_filter"],
+                                                         "'play.actions_to_filter'")],
+        exclude_actions=[absolute_topic(a) for a in action_names(values["play.exclude_actions_to_filter"],
+                                                                 "'play.exclude_actions_to_filter'")],
+        send_actions_as_client=values["play.send_actions_as_client"],
         decode=values["play.decode"],
         decode_topics=clean(values["play.decode_topics"]),
     )

@@ -1,7 +1,8 @@
 """Which recorded topics the player publishes, with which QoS, and how one message goes out.
 
 Selection is rosbag2_transport's ``allow_topic``: service event topics and ordinary topics have their own
-include/exclude lists, the regexes apply to both. QoS is rosbag2's ``publisher_qos_for_topic``: an override
+include/exclude lists, the regexes apply to both; an action's five topics (rosbag2 Kilted) have theirs, by action
+name, and the regexes see the action's name. QoS is rosbag2's ``publisher_qos_for_topic``: an override
 file entry wins; otherwise, when every recorded publisher offered an effectively equal profile (reliability,
 durability, deadline, liveliness and lease duration), that profile with the default history (keep_last 10);
 otherwise rosbag2's default offer (reliable, volatile, keep_last 10).
@@ -21,6 +22,7 @@ from rclpy.qos import QoSProfile
 
 from baglib.format.cdr_read import deserialize
 from baglib.read.reader import Connection
+from baglib.format.action_topics import action_name, is_action_topic
 from baglib.format.service_events import is_service_event_topic
 from components.player.player_options import PlayOptions
 from components.qos_profiles import profile_from_dict
@@ -32,13 +34,16 @@ _COMPATIBILITY = ("reliability", "durability", "deadline", "liveliness", "liveli
 
 def allow_topic(connection: Connection, options: PlayOptions) -> bool:
     """rosbag2's ``allow_topic``: excludes first, then the include list (or the regex) if any is set."""
-    is_service = is_service_event_topic(connection.topic, connection.msgtype)
-    name = connection.topic
-    if name in (options.exclude_services if is_service else options.exclude_topics):
+    if is_action_topic(connection.topic, connection.msgtype):
+        name, exclude, include = action_name(connection.topic), options.exclude_actions, options.actions
+    elif is_service_event_topic(connection.topic, connection.msgtype):
+        name, exclude, include = connection.topic, options.exclude_services, options.services
+    else:
+        name, exclude, include = connection.topic, options.exclude_topics, options.topics
+    if name in exclude:
         return False
     if options.exclude_regex and re.fullmatch(options.exclude_regex, name):
         return False
-    include = options.services if is_service else options.topics
     if not include and not options.regex:
         return True
     if name in include:

@@ -46,9 +46,11 @@ from std_srvs.srv import Trigger
 from component_container.component_node import ComponentNode
 from component_container.health import Health
 from baglib.write.writer import BagWriter
+from baglib.format.action_topics import INTERFACES, SERVICE_INTERFACES, actions_of
 from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
+from components.qos_profiles import absolute_topic
 from components.recorder.bag_names import BagNames
 from components.recorder.compression import Compression
 from components.recorder.finished_bags import FinishedBags
@@ -188,10 +190,24 @@ class Recorder(ComponentNode):
                 self._window_bag = (session, self._schedule.start_ns, self._schedule.end_ns)
         if session is None:
             return None
+        self._warn_missing_action_topics()
         session.finish(timeout=FINISH_SHARE * self.shutdown_timeout,
                        on_late_close=functools.partial(self._finished.changed, session))
         self._loss_events.close_bag(session)
         return self._finished.add(session, may_change=window_ended or session.writing_after_finish)
+
+    def _warn_missing_action_topics(self) -> None:
+        """A warning per action of ``record.actions`` whose five topics were not all recorded (rosbag2 is silent):
+        an action of a process without action introspection has no service events."""
+        recorded = actions_of((info.name, info.type) for info in self._topics.values())
+        for action in self._options.actions:
+            missing = [i for i in INTERFACES if i not in recorded.get(absolute_topic(action), {})]
+            if missing:
+                hint = (" (service events exist only where the action's server and client enable introspection: "
+                        "configure_introspection, see docs/recorder.md#actions)"
+                        if set(missing) & set(SERVICE_INTERFACES) else "")
+                self.get_logger().warning(f"record.actions: action {action} recorded without its "
+                                          f"{', '.join(missing)} topic{'s' if len(missing) > 1 else ''}{hint}")
 
     def _publish_split(self, closed_file: str, opened_file: str) -> None:
         if self.context.ok():

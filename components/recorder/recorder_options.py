@@ -29,7 +29,7 @@ from rclpy.parameter import Parameter
 from components.bounds import Bounds
 from components.qos_profiles import absolute_topic
 from components.image_encoder.image_encoder import DEFAULTS as IMAGE_ENCODER_DEFAULTS
-from components.node_parameters import clean, declare_defaults, given_values, typed
+from components.node_parameters import action_names, clean, declare_defaults, given_values, typed
 from components.recorder.rate_limits import parse_max_rates
 from components.recorder.schedule import duration_ns, instant_ns
 
@@ -38,6 +38,10 @@ ENCODER_SETTINGS = ("preset", "quality", "bitrate", "keyframe_interval", "width"
 RECORD_DEFAULTS: dict[str, Any] = {
     "all_topics": False,
     "all_services": False,
+    # rosbag2 Kilted (ros2/rosbag2#1939): actions by name, their feedback, status and service event topics.
+    "all_actions": False,
+    "actions": [""],
+    "exclude_actions": [""],
     "topics": [""],
     "topic_types": [""],
     "services": [""],
@@ -184,6 +188,11 @@ class RecordOptions:
     exclude_topics: list[str] = field(default_factory=list)
     exclude_topic_types: list[str] = field(default_factory=list)
     exclude_services: list[str] = field(default_factory=list)
+    #: every action (its five topics, see baglib.format.action_topics)
+    all_actions: bool = False
+    #: action names (``/fibonacci``)
+    actions: list[str] = field(default_factory=list)
+    exclude_actions: list[str] = field(default_factory=list)
     regex: str = ""
     exclude_regex: str = ""
     include_hidden_topics: bool = False
@@ -345,6 +354,9 @@ def _validate(values: dict[str, Any], labels: dict[str, str]) -> RecordOptions:
         exclude_topics=clean(values["record.exclude_topics"]),
         exclude_topic_types=clean(values["record.exclude_topic_types"]),
         exclude_services=clean(values["record.exclude_services"]),
+        all_actions=values["record.all_actions"],
+        actions=action_names(values["record.actions"], labels["record.actions"]),
+        exclude_actions=action_names(values["record.exclude_actions"], labels["record.exclude_actions"]),
         regex=values["record.regex"],
         exclude_regex=values["record.exclude_regex"],
         include_hidden_topics=values["record.include_hidden_topics"],
