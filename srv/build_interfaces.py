@@ -23,14 +23,17 @@ import inspect
 import logging
 import os
 import pathlib
+import re
 import shutil
 import subprocess
 import sys
 import sysconfig
+import tomllib
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 SRV_ROOT = pathlib.Path(__file__).resolve().parent
+PYPROJECT = SRV_ROOT.parent / "pyproject.toml"
 TYPESUPPORTS = ("c", "fastrtps_c", "introspection_c")
 #: The file in a build folder that names the inputs of the complete build it holds (see :func:`build_all`).
 STAMP = "inputs.sha256"
@@ -277,18 +280,41 @@ def _install_share(package: str, work: pathlib.Path, build_dir: pathlib.Path) ->
 
 def inputs_digest() -> str:
     """A digest of everything a build's output depends on: the files under srv/ (definitions and this script),
-    the Python (its version and extension suffix), the compilers named by $CC/$CXX, and the versions of the
-    ROS wheels and numpy the code is generated from and compiled against."""
+    the Python (its version and extension suffix), the compilers named by $CC/$CXX, and the versions of the ROS
+    wheels and numpy among what the build requirements pull in: the code is generated from them and compiled
+    against them. Not the test extras' ROS wheels (test_msgs, installed after the build: the wheel the tests
+    build must not compile again), nor the build tools (which packages a build process sees varies)."""
     digest = hashlib.sha256()
     for path in sorted(p for p in SRV_ROOT.rglob("*") if p.is_file() and "__pycache__" not in p.parts):
         digest.update(f"{path.relative_to(SRV_ROOT).as_posix()}\0".encode())
         digest.update(path.read_bytes())
-    distributions = sorted({f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions()
-                            if d.metadata["Name"].lower().replace("_", "-").startswith(("ros-", "numpy"))})
+    distributions = sorted(f"{d.metadata['Name']}=={d.version}" for d in _build_distributions()
+                           if d.metadata["Name"].lower().replace("_", "-").startswith(("ros-", "numpy")))
     for item in (sys.version, sysconfig.get_config_var("EXT_SUFFIX"), os.environ.get("CC", "gcc"),
                  os.environ.get("CXX", "g++"), str(_ros_prefix()), *distributions):
         digest.update(f"{item}\0".encode())
     return digest.hexdigest()
+
+
+def _build_distributions() -> list[importlib.metadata.Distribution]:
+    """The installed distributions named by pyproject.toml's build requirements, and everything they require."""
+    def name(requirement: str) -> str:
+        return re.match(r"[A-Za-z0-9._-]+", requirement).group(0).lower().replace("_", "-")
+
+    requires = tomllib.loads(PYPROJECT.read_text())["build-system"]["requires"]
+    found: dict[str, importlib.metadata.Distribution] = {}
+    pending = [name(r) for r in requires]
+    while pending:
+        wanted = pending.pop()
+        if wanted in found:
+            continue
+        try:
+            distribution = importlib.metadata.distribution(wanted)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+        found[wanted] = distribution
+        pending += [name(r) for r in distribution.requires or []]  # every marker: more, never fewer
+    return list(found.values())
 
 
 def _already_built(build_dir: pathlib.Path, digest: str) -> list[BuiltPackage] | None:
