@@ -70,7 +70,8 @@ def measure(codec: str, preset: str, pictures: list[np.ndarray], keyframe_interv
     cpu_ms = (time.process_time() - cpu_before) * 1e3 / len(pictures)
     encoder.close()
     decoder = av.CodecContext.create(VIDEO_DECODERS[codec], "r")
-    decoded = [frame.to_ndarray(format="rgb24") for unit in units for frame in decoder.decode(av.Packet(unit))]
+    packets = [av.Packet(unit) for unit in units] + [None]  # None: flush the decoder's delayed frames
+    decoded = [frame.to_ndarray(format="rgb24") for packet in packets for frame in decoder.decode(packet)]
     if len(decoded) != len(pictures):
         raise RuntimeError(f"{codec} {preset}: {len(decoded)} frames decoded of {len(pictures)}")
     mse = statistics.fmean(float(np.mean((a.astype(np.float32) - b) ** 2)) for a, b in zip(decoded, pictures))
