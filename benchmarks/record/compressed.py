@@ -123,8 +123,8 @@ def run_compressed(bench: Bench, scenario: Scenario, label: str, beside: bool = 
                    "cpu_per_camera": result["total_cpu_s"] / window_s / scenario.cameras,
                    "peak_rss_mb": window.rss})
     result["hours_per_tb"] = TB / (result["mb_per_s"] * MB) / 3600 if result["mb_per_s"] else None
-    result["lossless"] = (result["lost"] == 0 and result["info_lost"] == 0 and result["min_pub_ratio"] >= PUBLISH_RATE_OK
-                          and not result["recorder_error"])
+    result["lossless"] = (result["lost"] == 0 and result["info_lost"] == 0
+                          and result["min_pub_ratio"] >= PUBLISH_RATE_OK and not result["recorder_error"])
     return result
 
 
@@ -201,13 +201,14 @@ def run_s4(bench: Bench) -> dict[str, Any]:
 
 def sizing(s4: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per codec, what one 1080p30 camera costs: from its largest lossless step (CPU and bytes per camera) and its
-    run beside raw (PSNR)."""
+    run beside raw (PSNR). A codec that lost frames with one camera already is shown with that step: the CPU it
+    got then, while frames were skipped (its ``largest_lossless`` is 0)."""
     out = {}
     for codec in s4["codecs"]:
-        steps = [s for s in s4["steps"] if s["codec"] == codec and good(s) and s["lossless"]]
+        steps = [s for s in s4["steps"] if s["codec"] == codec and good(s)]
         if not steps:
             continue
-        step = max(steps, key=lambda s: s["cameras"])
+        step = max((s for s in steps if s["lossless"]), key=lambda s: s["cameras"], default=steps[0])
         beside = next((b for b in s4["beside"] if b["codec"] == codec and good(b)), None)
         per_camera = step["mb_per_s"] / step["cameras"]
         out[codec] = {"cameras": step["cameras"], "cpu_per_camera": step["cpu_per_camera"],
