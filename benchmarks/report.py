@@ -181,7 +181,8 @@ def s4_table(record: dict[str, Any]) -> list[str]:
             continue
         lat = step.get("latency_ms") or {}
         beside = f"raw lost {step['raw']['lost']} of {step['raw']['published']}" if step.get("beside") else ""
-        rows.append([label, str(step["cameras"]), f"{step['lost']} of {step['published']}", fmt(step["mb_per_s"]),
+        rows.append([label, str(step["cameras"]), f"{step['lost']} of {step['published']}",
+                     fmt(step["mb_per_s"], ".2f"),
                      f"{fmt(step['raw_pct'], '.2f')} %", fmt((step.get("psnr") or {}).get("psnr_db")),
                      fmt(step["cpu_per_camera"], ".2f"), f"{fmt(lat.get('p50'))} / {fmt(lat.get('p99'))} ms",
                      fmt(step["hours_per_tb"], ".1f"), beside or ("yes" if step["lossless"] else "no")])
@@ -200,7 +201,8 @@ def s4_sizing_table(record: dict[str, Any]) -> list[str]:
     sizing = part(record, "S4").get("sizing")
     if not sizing:
         raise Missing("no codec of S4 recorded a camera without loss")
-    rows = [[codec, fmt(c["cpu_per_camera"], ".2f"), fmt(c["mb_per_s_per_camera"]), f"{fmt(c['raw_pct'], '.2f')} %",
+    rows = [[codec, fmt(c["cpu_per_camera"], ".2f"), fmt(c["mb_per_s_per_camera"], ".2f"),
+             f"{fmt(c['raw_pct'], '.2f')} %",
              fmt(c.get("psnr_db")), f"{c['hours_per_tb_per_camera']:,.0f}",
              f"{c['largest_lossless']}" + ("" if c["limit_reached"] else "+")] for codec, c in sizing.items()]
     return markdown(["codec", "CPU cores per camera", "MB/s per camera", "of raw", "PSNR dB", "hours per TB",

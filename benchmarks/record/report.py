@@ -254,7 +254,7 @@ def s4_row(step: dict[str, Any]) -> list[str]:
     lat = step.get("latency_ms") or {}
     quality = (step.get("psnr") or {}).get("psnr_db")
     return [label, str(step["cameras"]), f"{step['lost']}/{step['published']}", fmt(step.get("encoder_skipped"), "d"),
-            fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".1f"), fmt(step["raw_pct"], ".2f"),
+            fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".2f"), fmt(step["raw_pct"], ".2f"),
             fmt(quality, ".1f"), fmt(step["cpu_per_camera"], ".2f"), fmt(lat.get("p50"), ".1f"),
             fmt(lat.get("p99"), ".1f"), fmt(step["hours_per_tb"], ".1f"), "yes" if step["lossless"] else "NO"]
 
@@ -264,7 +264,7 @@ def sizing_lines(s4: dict[str, Any]) -> list[str]:
     lines = []
     for codec, c in s4.get("sizing", {}).items():
         lines.append(f"{codec}: {c['cpu_per_camera']:.2f} CPU cores (driver, encoder and recorder), "
-                     f"{c['mb_per_s_per_camera']:.1f} MB/s ({c['raw_pct']:.2f} % of raw"
+                     f"{c['mb_per_s_per_camera']:.2f} MB/s ({c['raw_pct']:.2f} % of raw"
                      + (f", {c['psnr_db']:.1f} dB" if c.get("psnr_db") is not None else "")
                      + f"), {c['hours_per_tb_per_camera']:.0f} h per TB; {c['largest_lossless']} camera(s) "
                      + ("without loss" if c["limit_reached"] else f"without loss up to the cap of {s4['cap']}"))
