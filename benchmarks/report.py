@@ -171,6 +171,45 @@ def s3_table(record: dict[str, Any]) -> list[str]:
                      "recorder CPU per message"], rows)
 
 
+def s4_table(record: dict[str, Any]) -> list[str]:
+    """S4: each codec's ramp and its run beside raw, then S4's targets."""
+    s4, config = part(record, "S4"), record["config"]
+    rows = []
+    for step in [*s4["steps"], *s4["beside"]]:
+        label = f"{step['codec']}" + (" + raw" if step.get("beside") else "")
+        if not measured(step):
+            rows.append([label, str(step["cameras"]), f"failed: {step['error'][:80]}"] + [""] * 7)
+            continue
+        lat = step.get("latency_ms") or {}
+        beside = f"raw lost {step['raw']['lost']} of {step['raw']['published']}" if step.get("beside") else ""
+        rows.append([label, str(step["cameras"]), f"{step['lost']} of {step['published']}",
+                     fmt(step["mb_per_s"], ".2f"),
+                     f"{fmt(step['raw_pct'], '.2f')} %", fmt((step.get("psnr") or {}).get("psnr_db")),
+                     fmt(step["cpu_per_camera"], ".2f"), f"{fmt(lat.get('p50'))} / {fmt(lat.get('p99'))} ms",
+                     fmt(step["hours_per_tb"], ".1f"), beside or ("yes" if step["lossless"] else "no")])
+    targets = [f"* {t['result']}: {t['target']}: {t['detail']}." for t in record.get("targets", [])
+               if t["target"].startswith("S4")]
+    return [*markdown(["codec", "cameras", "frames lost", "MB/s", "of raw", "PSNR dB", "CPU cores per camera",
+                       "receive-to-write p50 / p99", "hours per TB", "lossless"], rows), "",
+            f"{config['width']}x{config['height']} rgb8 cameras at {config['fps']:g} Hz with photo content, "
+            f"{s4['seconds']:g} s windows, drivers, "
+            "encoder and recorder in one container; 1, 2, 4 ... cameras per codec until a frame is lost (cap "
+            f"{s4['cap']}). Targets of the same run:", "", *targets]
+
+
+def s4_sizing_table(record: dict[str, Any]) -> list[str]:
+    """What one 1080p30 camera costs per codec (S4's largest lossless step of each)."""
+    sizing = part(record, "S4").get("sizing")
+    if not sizing:
+        raise Missing("no codec of S4 recorded a camera without loss")
+    rows = [[codec, fmt(c["cpu_per_camera"], ".2f"), fmt(c["mb_per_s_per_camera"], ".2f"),
+             f"{fmt(c['raw_pct'], '.2f')} %",
+             fmt(c.get("psnr_db")), f"{c['hours_per_tb_per_camera']:,.0f}",
+             f"{c['largest_lossless']}" + ("" if c["limit_reached"] else "+")] for codec, c in sizing.items()]
+    return markdown(["codec", "CPU cores per camera", "MB/s per camera", "of raw", "PSNR dB", "hours per TB",
+                     "cameras without loss (this machine)"], rows)
+
+
 def targets_table(record: dict[str, Any]) -> list[str]:
     rows = [[t["target"], f"{t['result']}: {t['detail']}"] for t in part(record, "targets")]
     return markdown(["target", "result"], rows)
@@ -429,6 +468,10 @@ TABLES: dict[str, Table] = {
     "s2_repeat": Table("record", "S2 with --repeat", "python benchmarks/record_bench.py --scenarios s2 --repeat 5",
                        s2_repeat_table, "S2 repeated"),
     "s3": Table("record", "S3", "python benchmarks/record_bench.py --scenarios s3", s3_table, "S3 IMU storm"),
+    "s4": Table("record", "S4", "python benchmarks/record_bench.py --scenarios s4", s4_table,
+                "S4 compressed recording"),
+    "s4_sizing": Table("record", "S4", "python benchmarks/record_bench.py --scenarios s4", s4_sizing_table,
+                       "S4: one 1080p30 camera per codec"),
     "targets": Table("record", "targets of S1, S2 and S3", "make bench", full_run_targets_table, ""),
     "run_targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),

@@ -1,4 +1,4 @@
-"""Command line and sequence of a recording benchmark run: the direct-write limit, then S1, S2 and S3 as
+"""Command line and sequence of a recording benchmark run: the direct-write limit, then S1, S2, S3 and S4 as
 selected, the targets, the text report, the result folder."""
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from typing import Any, Optional
 import rclpy
 
 from benchmarks.record.bench import Bench, guarded
+from benchmarks.record.compressed import CODECS, codec_of, run_s4
 from benchmarks.record.disk import DIRECT_BLOCK, run_ceiling, run_direct_write
 from benchmarks.record.figures import (apply_direct_share, apply_recorder_cpu, good, repeat_summary,
                                        s2_repeat_summary)
@@ -47,6 +48,14 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--s3-seconds", type=float, default=10.0)
     p.add_argument("--s3-imus", type=int, default=10)
     p.add_argument("--s3-rate", type=float, default=1000.0)
+    p.add_argument("--s4-seconds", type=float, default=5.0, help="S4 window per run")
+    p.add_argument("--s4-codecs", default=",".join(CODECS), help="S4 codecs (comma-separated subset of "
+                   + ",".join(CODECS) + "), each at the encoder's defaults, or codec:preset (h264:ultrafast)")
+    p.add_argument("--s4-max-cameras", type=int, default=8, help="S4 ramp cap (1, 2, 4 ... up to this)")
+    p.add_argument("--s4-beside-cameras", type=int, default=1,
+                   help="S4: cameras recorded raw and compressed at once, per codec")
+    p.add_argument("--s4-psnr-frames", type=int, default=30,
+                   help="S4: frames of camera 0 compared with their raw frames, spread over the window")
     p.add_argument("--baseline", metavar="REV",
                    help="S3 also records ipc with the code of this git revision (a temporary worktree) and the "
                         "single executor, for the target 'drivers + recorder CPU per message at most half of it'")
@@ -107,7 +116,7 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--quick", action="store_true",
                    help="smoke run: S1 only, 3 s window, 3 s page pause, one ceiling and direct-write run, no retries")
-    p.add_argument("--scenarios", default="s1,s2,s3", help="comma-separated subset of s1,s2,s3")
+    p.add_argument("--scenarios", default="s1,s2,s3,s4", help="comma-separated subset of s1,s2,s3,s4")
     p.add_argument("--modes", default="ipc,split,dds,drivers,ceiling",
                    help="S1/S3 modes to run (S2 always ipc,dds); split = ipc with --split-mb files (S1 only)")
     p.add_argument("--split-mb", type=float, default=256.0, help="storage.max_bagfile_size of the split mode, MiB")
@@ -119,11 +128,13 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
         apply_quick(args)
     args.scenario_set = {s.strip().lower() for s in args.scenarios.split(",") if s.strip()}
     args.mode_set = {m.strip().lower() for m in args.modes.split(",") if m.strip()}
-    unknown = (args.scenario_set - {"s1", "s2", "s3"}) | (args.mode_set - {*RECORDER_MODES, "drivers", "ceiling"})
+    unknown = (args.scenario_set - {"s1", "s2", "s3", "s4"}) | (args.mode_set - {*RECORDER_MODES, "drivers", "ceiling"})
     if unknown:
         p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
-    if args.repeat < 0 or args.s2_cameras < 1:
-        p.error("--repeat must be >= 0, --s2-cameras >= 1")
+    if args.repeat < 0 or min(args.s2_cameras, args.s4_max_cameras, args.s4_beside_cameras) < 1:
+        p.error("--repeat must be >= 0, --s2-cameras, --s4-max-cameras and --s4-beside-cameras >= 1")
+    if {codec_of(c.strip())[0] for c in args.s4_codecs.split(",") if c.strip()} - set(CODECS):
+        p.error(f"--s4-codecs: each of {', '.join(CODECS)}, optionally with ':preset'")
     if 0 < args.direct_mb < DIRECT_BLOCK / 2**20:
         p.error(f"--direct-mb must be 0 (skip) or at least {DIRECT_BLOCK // 2**20}")
     return args
@@ -214,7 +225,7 @@ def measure(bench: Bench, report: dict[str, Any]) -> None:
     """Every selected part of the run, in order, into ``report``."""
     if bench.args.direct_mb > 0:
         report["direct_write"] = guarded(bench, "direct-write limit", lambda: run_direct_write(bench), retry=False)
-    for key, run in (("s1", run_s1), ("s2", run_s2), ("s3", run_s3)):
+    for key, run in (("s1", run_s1), ("s2", run_s2), ("s3", run_s3), ("s4", run_s4)):
         if key in bench.args.scenario_set:
             report[key.upper()] = run(bench)
 

@@ -163,8 +163,9 @@ def warm_up(services: RecorderServices, topics: dict[str, TopicSpec], deadline: 
 
 
 def record_window(bench: Bench, processes: Processes, services: RecorderServices, topics: dict[str, TopicSpec],
-                  seconds: float) -> Window:
-    """Steps 2 to 4 of the protocol (module docstring)."""
+                  seconds: float, started_recording: Optional[Callable[[], None]] = None) -> Window:
+    """Steps 2 to 4 of the protocol (module docstring); ``started_recording`` is called right after the measured
+    bag began."""
     started = time.monotonic()
     deadline = started + bench.args.startup_timeout
     services.wait(deadline, processes.alive)
@@ -175,6 +176,8 @@ def record_window(bench: Bench, processes: Processes, services: RecorderServices
     services.trigger("stop_recording")
     services.trigger("start_recording")
     writer_tids = set(thread_cpu(recorder_pid)) - threads_before  # the new session's writer thread
+    if started_recording is not None:
+        started_recording()
     time.sleep(bench.args.settle)
     pids = processes.pids()
     start = Sample.take(pids)

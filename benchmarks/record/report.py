@@ -246,6 +246,48 @@ def print_s3(s3: dict[str, Any], scenario: Scenario) -> None:
         print("  * " + line)
 
 
+def s4_row(step: dict[str, Any]) -> list[str]:
+    """One S4 run: frames, bytes, PSNR (beside raw), CPU per camera, latency, hours per TB."""
+    label = step["codec"] + (" + raw" if step.get("beside") else "")
+    if "error" in step:
+        return [label, str(step["cameras"]), "ERROR " + step["error"][:50]] + [""] * 10
+    lat = step.get("latency_ms") or {}
+    quality = (step.get("psnr") or {}).get("psnr_db")
+    return [label, str(step["cameras"]), f"{step['lost']}/{step['published']}", fmt(step.get("encoder_skipped"), "d"),
+            fmt(100 * step["min_pub_ratio"], ".1f"), fmt(step["mb_per_s"], ".2f"), fmt(step["raw_pct"], ".2f"),
+            fmt(quality, ".1f"), fmt(step["cpu_per_camera"], ".2f"), fmt(lat.get("p50"), ".1f"),
+            fmt(lat.get("p99"), ".1f"), fmt(step["hours_per_tb"], ".1f"), "yes" if step["lossless"] else "NO"]
+
+
+def sizing_lines(s4: dict[str, Any]) -> list[str]:
+    """What one 1080p30 camera costs per codec, one sentence each."""
+    lines = []
+    for codec, c in s4.get("sizing", {}).items():
+        lines.append(f"{codec}: {c['cpu_per_camera']:.2f} CPU cores (driver, encoder and recorder), "
+                     f"{c['mb_per_s_per_camera']:.2f} MB/s ({c['raw_pct']:.2f} % of raw"
+                     + (f", {c['psnr_db']:.1f} dB" if c.get("psnr_db") is not None else "")
+                     + f"), {c['hours_per_tb_per_camera']:.0f} h per TB; {c['largest_lossless']} camera(s) "
+                     + ("without loss" if c["limit_reached"] else f"without loss up to the cap of {s4['cap']}"))
+    return lines
+
+
+def print_s4(s4: dict[str, Any]) -> None:
+    print(f"\n== {s4['scenario']['title'].split(',')[0]}: {s4['scenario']['describe']}; 1, 2, 4 ... cameras up to "
+          f"{s4['cap']} per codec until one is lost; each codec beside raw")
+    print(table(["codec", "cameras", "lost/published", "enc skipped", "min pub %nom", "MB/s", "% raw", "PSNR dB",
+                 "CPU/camera", "lat p50 ms", "p99 ms", "h per TB", "lossless"],
+                [s4_row(step) for step in [*s4["steps"], *s4["beside"]]]))
+    for run in s4["beside"]:
+        if good(run):
+            p = run["psnr"]
+            print(f"  beside {run['codec']}: raw lost {run['raw']['lost']} of {run['raw']['published']}; PSNR over "
+                  f"{p['frames']} frames of camera 0, lowest frame {fmt(p['psnr_min_db'], '.1f')} dB"
+                  + (f", {p['unmatched']} raw frames without a decoded frame" if p["unmatched"] else ""))
+    print("  one 1080p30 camera costs:")
+    for line in sizing_lines(s4):
+        print("    " + line)
+
+
 def print_report(report: dict[str, Any], args: argparse.Namespace, scenarios: dict[str, Scenario]) -> None:
     """Every table of the run, the targets and a closing line (code measured, run time)."""
     if "direct_write" in report:
@@ -256,6 +298,8 @@ def print_report(report: dict[str, Any], args: argparse.Namespace, scenarios: di
         print_s2(report["S2"])
     if "S3" in report:
         print_s3(report["S3"], scenarios["S3"])
+    if "S4" in report:
+        print_s4(report["S4"])
     print("\n== Targets")
     for t in report["targets"]:
         print(f"  {t['result']:4}  {t['target']}: {t['detail']}")

@@ -2,7 +2,9 @@
 
 * S1, a multi-camera rig: cameras (default two 1920x1080 rgb8 at 30 Hz), a LiDAR and one IMU;
 * S2, a ramp: 1080p cameras added one at a time (on top of the S1 LiDAR and IMU unless ``--s2-base cameras``);
-* S3, an IMU storm: many IMU topics at a high rate (default ten at 1 kHz): per-message cost, not bytes.
+* S3, an IMU storm: many IMU topics at a high rate (default ten at 1 kHz): per-message cost, not bytes;
+* S4, compressed recording: 1080p cameras with photographic content (``content:=photo``) recorded raw or
+  compressed (benchmarks/record/compressed.py).
 """
 from __future__ import annotations
 
@@ -40,11 +42,13 @@ class Scenario:
     lidar_rate: float = 10.0
     imus: int = 0
     imu_rate: float = 200.0
+    content: str = "random"  # the cameras' content: random bytes or "photo"
 
     def describe(self) -> str:
         parts = []
         if self.cameras:
-            parts.append(f"{self.cameras}x camera {self.width}x{self.height} rgb8 @ {self.fps:g} Hz")
+            parts.append(f"{self.cameras}x camera {self.width}x{self.height} rgb8 @ {self.fps:g} Hz"
+                         + (f", {self.content} content" if self.content != "random" else ""))
         if self.lidar_points:
             parts.append(f"lidar {self.lidar_points} pts @ {self.lidar_rate:g} Hz")
         if self.imus:
@@ -65,7 +69,7 @@ class Scenario:
         for i in range(self.cameras):
             out.append({"package": "components", "plugin": "components::CameraDriver", "name": f"cam{i}",
                         "parameters": {"width": self.width, "height": self.height, "fps": float(self.fps),
-                                       "encoding": "rgb8", "frame_id": f"cam{i}"},
+                                       "encoding": "rgb8", "frame_id": f"cam{i}", "content": self.content},
                         "extra_arguments": dict(ipc)})
         if self.lidar_points:
             out.append({"package": "components", "plugin": "components::LidarDriver", "name": "lidar",

@@ -27,6 +27,9 @@ S2_CAMERAS = 5                # S2: ipc records this many 1080p30 cameras (with 
 OVERLOAD_CEILING_SHARE = 0.7  # S2: past its lossless limit, ipc still writes >= this share of the ceiling
 S3_RECORDER_RATIO = 1 / 3     # S3: the ipc recorder's CPU per message at most a third of the dds recorder's
 S3_BASELINE_RATIO = 0.5       # S3: drivers + recorder CPU per message at most half of --baseline's
+#: S4, per codec at the encoder's defaults: (at most % of the raw bytes, at least PSNR dB, at least cameras
+#: without loss, drivers included)
+S4_CODEC_TARGETS = {"jpeg": (15.0, 38.0, 4), "h264": (3.0, 36.0, 1)}
 REPEAT_RUNS = 5               # --repeat: ipc lossless in every one of at least this many runs
 REPEAT_CPU_RATIO = 0.33       # --repeat: ipc / dds total CPU per GB in every run
 
@@ -222,6 +225,40 @@ def previous_target(report: dict[str, Any], results: Path, targets: Targets) -> 
                 "; ".join(change.text() for change in changes) + f"; {where}")
 
 
+def s4_targets(s4: dict[str, Any], targets: Targets) -> None:
+    """Per codec of S4_CODEC_TARGETS: bytes against raw (its largest lossless step, else its first), PSNR (its
+    run beside raw) and the largest camera count without loss; and raw beside every codec loses nothing."""
+    for codec, (raw_pct, min_db, cameras) in S4_CODEC_TARGETS.items():
+        name = (f"S4 {codec} at the defaults: <= {raw_pct:g} % of raw bytes at >= {min_db:g} dB, >= {cameras} "
+                "camera(s) without loss")
+        steps = [s for s in s4["steps"] if s["codec"] == codec and good(s)]
+        beside = next((b for b in s4["beside"] if b["codec"] == codec and good(b)), None)
+        quality = (beside or {}).get("psnr", {}).get("psnr_db")
+        if not steps or quality is None:
+            targets.add(name, None, "not measured" if codec in s4["codecs"] else f"{codec} not in --s4-codecs")
+            continue
+        lossless = [s for s in steps if s["lossless"]]
+        step = max(lossless, key=lambda s: s["cameras"]) if lossless else steps[0]
+        count = s4["largest_lossless"][codec]
+        capped = "" if s4["limit_reached"][codec] else f" (no loss up to the cap of {s4['cap']})"
+        enough = count >= cameras or (None if not s4["limit_reached"][codec] else False)
+        ok = step["raw_pct"] <= raw_pct and quality >= min_db and enough
+        targets.add(name, None if ok is None else bool(ok),
+                    f"{step['raw_pct']:.2f} % of raw at {step['cameras']} camera(s), {quality:.1f} dB, largest "
+                    f"lossless camera count {count}{capped}")
+    name = "S4 raw recorded beside each encoder loses no frame"
+    runs = [b for b in s4["beside"] if good(b)]
+    if not runs:
+        targets.add(name, None, "not measured")
+        return
+    failed = [b["codec"] for b in s4["beside"] if not good(b)]
+    targets.add(name, not failed and all(b["raw"]["lost"] == 0 and b["raw"]["min_pub_ratio"] >= PUBLISH_RATE_OK
+                                         and b["info_lost"] == 0 for b in runs),
+                "; ".join(f"beside {b['codec']}: raw lost {b['raw']['lost']} of {b['raw']['published']}, drivers at "
+                          f">= {100 * b['raw']['min_pub_ratio']:.1f} % of nominal" for b in runs)
+                + (f"; failed: {', '.join(failed)}" if failed else ""))
+
+
 def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
     targets = Targets()
     s1 = report.get("S1") or {}
@@ -233,4 +270,6 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
     if (report.get("S2") or {}).get("repeat"):
         s2_repeat_target(report["S2"]["repeat"], args, targets)
     s3_targets(report.get("S3") or {}, args, targets)
+    if report.get("S4"):
+        s4_targets(report["S4"], targets)
     return targets.rows
