@@ -65,6 +65,8 @@ QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.R
                  durability=DurabilityPolicy.VOLATILE)
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 REPO = Path(__file__).resolve().parents[1]
+#: Interface packages of the test extras, not of what the product runs with (test_msgs: the action tests' Fibonacci).
+TEST_ONLY_PACKAGES = {"test_msgs"}
 
 
 # --- what is installed -------------------------------------------------------------------------------
@@ -76,7 +78,7 @@ def interface_packages() -> list[str]:
     The srv/ packages are listed by folder because an editable install serves them through an import
     hook that ``pkgutil`` does not enumerate.
     """
-    candidates = {module.name for module in pkgutil.iter_modules() if module.ispkg}
+    candidates = {module.name for module in pkgutil.iter_modules() if module.ispkg} - TEST_ONLY_PACKAGES
     candidates |= {path.name for path in (REPO / "srv").iterdir() if path.is_dir()}
     packages = []
     for name in sorted(candidates):
