@@ -26,7 +26,7 @@ from component_container.component_manager import ComponentConstructionError, Co
 from component_container.component_node import ComponentNode
 from component_container.health import DROPPED
 from component_container.startup_file import load_request
-from components.image_encoder import codecs
+from components.image_encoder import codecs, scheduling
 from components.sensor_driver import stamp_from_ns
 from ffmpeg_tools import ffmpeg
 from ipc_testing import call, in_process_manager, wait_until
@@ -305,6 +305,24 @@ def real_time_threads() -> list[int]:
         except OSError:  # a thread that ended meanwhile
             pass
     return found
+
+
+def test_without_sys_nice_alone_keeps_svt_av1_threads_ordinary(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The capability drop is what stops SVT-AV1 (as root) from making its threads real-time, at open and while
+    encoding, not the restoring afterwards; the calling thread gets its capabilities back."""
+    before = scheduling._capabilities()
+    monkeypatch.setattr(codecs, "ordinary_scheduling", scheduling.without_sys_nice)
+    codec = codecs.VideoCodec(codecs.choose("av1", "", -1, 0, 30), 64, 64)
+    assert real_time_threads() == [], f"as root: {os.geteuid() == 0}"
+    pixels = np.random.default_rng(8).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    for number in range(12):
+        codec.encode(pixels, "rgb8", keyframe=number == 0)
+    assert real_time_threads() == [], f"as root: {os.geteuid() == 0}"
+    after = scheduling._capabilities()
+    assert (before is None) == (after is None)
+    if before is not None and after is not None:
+        assert after[1][0].effective == before[1][0].effective
+    del codec
 
 
 def test_an_av1_encoder_leaves_the_process_scheduling_as_it_was() -> None:

@@ -26,7 +26,7 @@ import simplejpeg
 from av.video.frame import PictureType
 
 from components.bounds import Bounds
-from components.image_encoder.scheduling import unchanged_scheduling
+from components.image_encoder.scheduling import ordinary_scheduling, without_sys_nice
 
 #: The short names of the video formats CompressedVideo carries, and the FFmpeg encoder each one means.
 VIDEO_ENCODERS = {"h264": "libx264", "h265": "libx265", "av1": "libsvtav1"}
@@ -203,7 +203,7 @@ class VideoCodec:
         if choice.bitrate:
             context.bit_rate = choice.bitrate
         context.options = options
-        with unchanged_scheduling():  # SVT-AV1 as root makes the process real-time
+        with ordinary_scheduling():  # SVT-AV1 as root makes threads real-time
             context.open()
         self._context = context
         self._pts = 0
@@ -219,7 +219,9 @@ class VideoCodec:
         frame.pts, self._pts = self._pts, self._pts + 1
         if keyframe:
             frame.pict_type = PictureType.I
-        return [(p.pts, p.is_keyframe, bytes(p)) for p in self._context.encode(frame)]
+        with without_sys_nice():  # SVT-AV1 starts threads while encoding too: never real-time ones
+            packets = self._context.encode(frame)
+        return [(p.pts, p.is_keyframe, bytes(p)) for p in packets]
 
     def close(self) -> None:
         self._context = None
