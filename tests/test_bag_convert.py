@@ -5,6 +5,8 @@ back by the independent reader ``rosbags``. No ROS graph is needed: the command 
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import resource
 import subprocess
@@ -26,6 +28,7 @@ from baglib.read.mcap_reader import McapReader
 from baglib.tools.convert import ConvertError, convert_bags
 from baglib.tools.convert_options import InputBag, OutputBag
 from baglib.write.writer import BagWriter
+from ipc_component.cli import main as cli_main
 from legacy_bags import LegacyTopic, metadata_document, write_mcap, write_metadata, write_sqlite
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
@@ -96,17 +99,22 @@ def read_rosbags(bag: Path) -> Messages:
 def convert(tmp_path: Path, inputs: list[Any], outputs: list[dict[str, Any]], input_options: list[dict] | None = None
             ) -> subprocess.CompletedProcess[str]:
     """Run ``ipc-component bag convert`` with ``-i`` per input (a path, or [path, storage id]), or with an
-    ``--input-options`` file of ``input_options``."""
+    ``--input-options`` file of ``input_options``: the command's own ``main`` in this process (the installed
+    command in a process of its own is what :func:`test_refusals_name_what_is_wrong_and_leave_nothing` ends
+    with), its output captured."""
     output_file = tmp_path / f"output{len(list(tmp_path.glob('output*.yaml')))}.yaml"
     output_file.write_text(yaml.safe_dump({"output_bags": outputs}))
-    arguments = [CLI, "bag", "convert", "-o", str(output_file)]
+    arguments = ["bag", "convert", "-o", str(output_file)]
     for each in inputs:
         arguments += ["-i", *map(str, each if isinstance(each, list) else [each])]
     if input_options is not None:
         input_file = tmp_path / "input.yaml"
         input_file.write_text(yaml.safe_dump({"input_bags": input_options}))
         arguments += ["--input-options", str(input_file)]
-    return subprocess.run(arguments, capture_output=True, text=True, timeout=120)
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        status = cli_main(arguments)
+    return subprocess.CompletedProcess([CLI, *arguments], status, stdout.getvalue(), stderr.getvalue())
 
 
 def each_file(bag: Path) -> Iterator[Path]:
