@@ -6,7 +6,9 @@ play`` is a container with the player component in it, whose messages a plain rc
 over Fast DDS) on each bag of :data:`CASES`, once through a read-only bind mount of the bags and once in their
 writable directory. Afterwards the bag's directory is the same, byte for byte, with the same names, sizes and
 modification times (of the directory too: a file made and removed again shows there), and the temporary
-directory the command was given is empty again. A verb that reads bags is one entry in :data:`VERBS`.
+directory the command was given is empty again. ``bag info`` runs once per bag (a verb that reads one bag is one
+entry in :data:`VERBS`); ``bag play`` plays every bag in one run, several bags being one timeline of bags each
+read as it is read alone.
 
 The SQLite3 cases include a database in WAL mode, as rosbag2's ``resilient`` preset leaves it: a read-only
 connection to it would create ``-wal`` and ``-shm`` files next to it, and cannot open it at all where it may
@@ -173,32 +175,7 @@ def bag_info(run: Run) -> None:
     assert counted == COUNT
 
 
-def bag_play(run: Run) -> None:
-    """``bag play``, started paused and resumed once this node's subscription has matched the player: every
-    message arrives, in order."""
-    got: list[str] = []
-    subscription = run.node.create_subscription(String, "/chatter", lambda msg: got.append(msg.data), RELIABLE)
-    resume = run.node.create_client(Resume, "/rosbag2_player/resume")
-    process = subprocess.Popen([CLI, "bag", "play", str(run.bag), "--start-paused", "--no-progress"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=run.env)
-    try:
-        assert wait_until(lambda: subscription.get_publisher_count() > 0 or process.poll() is not None, 30.0,
-                          run.node)
-        if process.poll() is None:
-            call(run.node, resume, Resume.Request(), 30.0, again=True)
-            wait_until(lambda: process.poll() is not None, 30.0, run.node)  # spinning: taken while it plays
-        stdout, stderr = process.communicate(timeout=10)
-        assert process.returncode == 0, stderr
-        assert got == [f"message {n}" for n in range(COUNT)], (stdout, stderr)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-        run.node.destroy_client(resume)
-        run.node.destroy_subscription(subscription)
-
-
-VERBS: dict[str, Callable[[Run], None]] = {"info": bag_info, "play": bag_play}
+VERBS: dict[str, Callable[[Run], None]] = {"info": bag_info}
 
 
 @pytest.mark.parametrize("medium", MEDIA)
@@ -212,6 +189,40 @@ def test_reading_leaves_the_bag_as_it_was(verb: str, case: str, medium: str, she
     temporary.mkdir()
     VERBS[verb](Run(bag, probe, tmp_path, {**os.environ, "TMPDIR": str(temporary)}))
     assert snapshot(shelf.writable / case) == before
+    assert not list(temporary.iterdir()), "the command left temporary files"
+
+
+@pytest.mark.parametrize("medium", MEDIA)
+def test_playing_leaves_every_bag_as_it_was(medium: str, shelf: Shelf, probe: Node, tmp_path: Path) -> None:
+    """``bag play`` of every bag of :data:`CASES` at once (several bags play as one timeline: each is read as
+    it would be alone), started paused and resumed once this node's subscription has matched the player: every
+    message of every bag arrives, in time order, and no bag changed."""
+    bags = [shelf.bag(case, medium) for case in CASES]
+    before = {case: snapshot(shelf.writable / case) for case in CASES}
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    got: list[str] = []
+    subscription = probe.create_subscription(String, "/chatter", lambda msg: got.append(msg.data), RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    process = subprocess.Popen([CLI, "bag", "play", *map(str, bags), "--start-paused", "--no-progress"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "TMPDIR": str(temporary)})
+    try:
+        assert wait_until(lambda: subscription.get_publisher_count() > 0 or process.poll() is not None, 30.0,
+                          probe)
+        if process.poll() is None:
+            call(probe, resume, Resume.Request(), 30.0, again=True)
+            wait_until(lambda: process.poll() is not None, 30.0, probe)  # spinning: taken while it plays
+        stdout, stderr = process.communicate(timeout=10)
+        assert process.returncode == 0, stderr
+        assert got == [f"message {n}" for n in range(COUNT) for _ in CASES], (stdout, stderr)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+        probe.destroy_client(resume)
+        probe.destroy_subscription(subscription)
+    assert {case: snapshot(shelf.writable / case) for case in CASES} == before
     assert not list(temporary.iterdir()), "the command left temporary files"
 
 
