@@ -28,7 +28,7 @@ from fuzz_scene import FuzzScene, environment_seed, file_listing, rss_bytes
 TMP = pathlib.Path("/tmp")
 RSS_GROWTH_LIMIT = 10 * 1024 * 1024  # over the last 2500 requests (see the sweep for what was measured)
 DEFAULT_SEED = 20210621
-DEFAULT_REQUESTS = 1000
+DEFAULT_REQUESTS = 600
 SWEEP_REQUESTS = 7500
 
 
