@@ -324,7 +324,7 @@ def test_the_current_file_is_never_none_during_a_split(tmp_path: Path) -> None:
         watcher = threading.Thread(target=watch, args=(writer,))
         watcher.start()
         try:
-            for n in range(100):
+            for n in range(10):
                 writer.write("/t", b"\x00\x01\x00\x00\x01\x00\x00\x00\x00", n + 1, n + 1)
                 writer.split()
         finally:
