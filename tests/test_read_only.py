@@ -202,7 +202,8 @@ def test_playing_leaves_every_bag_as_it_was(medium: str, shelf: Shelf, probe: No
     temporary = tmp_path / "tmp"
     temporary.mkdir()
     got: list[str] = []
-    subscription = probe.create_subscription(String, "/chatter", lambda msg: got.append(msg.data), RELIABLE)
+    every = QoSProfile(depth=COUNT * len(CASES), reliability=ReliabilityPolicy.RELIABLE)  # equal stamps: bursts
+    subscription = probe.create_subscription(String, "/chatter", lambda msg: got.append(msg.data), every)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
     process = subprocess.Popen([CLI, "bag", "play", *map(str, bags), "--start-paused", "--no-progress"],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
