@@ -1,11 +1,11 @@
-"""The soak benchmark's short run (``benchmarks/soak.py --short``, 20 s): the S1 rig's shape with small frames in
-one container, an extra camera loaded and unloaded every 2 s, the recorder handed over every 6.5 s (three
+"""The soak benchmark's short run (``benchmarks/soak.py --short``, 14 s): the S1 rig's shape with small frames in
+one container, an extra camera loaded and unloaded every 2 s, the recorder handed over every 3.5 s (three
 recorders, splitting every 2 s), a player replaying a bag in a loop.
 
 Checked from its report: every sequence number of every stream is in the union of the bags, no recorder
 dropped anything or reported a loss, every bag is finalized and every file was read by baglib and, in full,
 by rosbags; the container's open file descriptors and threads at the comparable moments of the last third
-are at most a few above those of the first third (10 extra drivers loaded and unloaded in between: a
+are at most a few above those of the first third (6 extra drivers loaded and unloaded in between: a
 descriptor or a thread left behind by each would show), and it stops with exit status 0. The 30-minute run
 with its fitted slopes is the benchmark's (docs/performance.md).
 
@@ -96,11 +96,11 @@ def test_short_soak_loses_nothing_and_leaves_nothing_behind(tmp_path: pathlib.Pa
     assert not failed, (failed, report["problems"][:5])
     accounting = report["accounting"]
     assert accounting["lost"] == 0 and accounting["duplicates_in_one_bag"] == 0, accounting
-    assert report["churn"]["extra_instances"] >= 7 and report["churn"]["recorders"] == 3, report["churn"]
+    assert report["churn"]["extra_instances"] >= 5 and report["churn"]["recorders"] == 3, report["churn"]
     assert accounting["extra"]["recorded_messages"] > 0 and not accounting["extra"]["not_recorded"]
     assert accounting["/soak_replay/chatter"]["published"] > 0
     files = report["files"]
-    assert files["count"] >= 3 * 3 and files["rosbags_read_messages"] == files["messages"] > 0, files
+    assert files["count"] >= 3 * 2 and files["rosbags_read_messages"] == files["messages"] > 0, files
     assert all(bag["files"] and not bag["problems"] for bag in report["bags"]), report["bags"]
     for metric in ("fds", "threads"):
         line = next(line for name, line in verdicts.items() if name.startswith(f"{metric}:"))

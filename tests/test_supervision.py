@@ -38,7 +38,7 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 SUPERVISOR_ERRORS = re.compile(r"\(id \d+\) failed: |Container thread '.*' died")
 # Load/unload cycles of the 1080p60 camera: a fixed subset by default, the full count with `make sweep`
 # (IPC_CYCLES overrides both).
-CYCLES, SWEEP_CYCLES = 40, 200
+CYCLES, SWEEP_CYCLES = 24, 200
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--minutes", type=float, default=30.0, help="length of the churn (the S1 rig at full size)")
     p.add_argument("--short", action="store_true",
-                   help="the test suite's run: 20 s, small frames, every period shortened")
+                   help="the test suite's run: 14 s, small frames, every period shortened")
     p.add_argument("--output-dir", default=".", help="where the temporary directory of the bags is created")
     p.add_argument("--keep-bags", action="store_true", help="do not delete the bags (debugging)")
     p.add_argument("--results", default=str(RESULTS),

@@ -2,7 +2,7 @@
 
 The full run records the S1 rig (two 1920x1080 rgb8 cameras at 30 Hz with their CameraInfo, a LiDAR of 131072
 points at 10 Hz, an IMU at 200 Hz: 405 MB/s) for ``--minutes``; the short run (``--short``, the test suite's) the
-same rig with small frames, every period shortened, for 20 s.
+same rig with small frames, every period shortened, for 14 s.
 """
 from __future__ import annotations
 
@@ -107,11 +107,11 @@ def full_plan(minutes: float) -> SoakPlan:
 
 
 def short_plan() -> SoakPlan:
-    """20 s for the test suite: the rig's shape with 320x240 cameras and a 4096-point LiDAR, splits every 2 s,
-    an extra driver every 2 s, a new recorder every 6.5 s (three in all); three files kept, so that a file stays
+    """14 s for the test suite: the rig's shape with 320x240 cameras and a 4096-point LiDAR, splits every 2 s,
+    an extra driver every 2 s, a new recorder every 3.5 s (three in all); three files kept, so that a file stays
     listed for 4 s even on a busy machine."""
-    seconds = 20.0
+    seconds = 14.0
     rig = Scenario("S1", "S1 rig, small frames", seconds, cameras=2, width=320, height=240, fps=30.0,
                    lidar_points=4096, lidar_rate=10.0, imus=1, imu_rate=200.0)
-    return SoakPlan(seconds=seconds, split_s=2.0, extra_period_s=2.0, extra_alive_s=1.0, handover_period_s=6.5,
-                    warmup_s=4.0, rig=rig, extra_width=160, extra_height=120, max_bag_files=3)
+    return SoakPlan(seconds=seconds, split_s=2.0, extra_period_s=2.0, extra_alive_s=1.0, handover_period_s=3.5,
+                    warmup_s=3.0, rig=rig, extra_width=160, extra_height=120, max_bag_files=3)
