@@ -157,7 +157,8 @@ def test_a_writer_given_up_on_at_the_stop_leaves_counts_that_match_the_bag(manag
     assert settled, recorder.stats()["finished"][-1]
     counts = settled["topics"][IMU]
     assert accounted(settled, IMU) and counts["received"] == final["topics"][IMU]["received"], settled
-    assert bag_counts(bag)[IMU] == counts["written"] > final["topics"][IMU]["written"], settled
+    # what the writer held at the give-up is written later (none when the stop met it between two batches)
+    assert bag_counts(bag)[IMU] == counts["written"] >= final["topics"][IMU]["written"], settled
     manager.unload(loaded.unique_id)
 
 
