@@ -21,7 +21,7 @@ import glob
 import json
 import re
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from baglib.format import fleet_keys
 from ipc_component.fleet_link import ContainerLink, Fleet
@@ -67,6 +67,21 @@ def instant_ns(args: argparse.Namespace, default_in: float) -> int:
     return time.time_ns() + round((default_in if args.in_seconds is None else args.in_seconds) * 1e9)
 
 
+#: ``record start`` options passed on to each recorder when given: (option, recorder parameter, conversion).
+FLAG_PARAMETERS: list[tuple[str, str, Callable[[Any], Any]]] = [
+    ("max_duration", "record.max_duration", float),
+    ("compress", "record.compress", str),
+    ("compress_regex", "record.compress_regex", str),
+    ("max_rates", "record.max_rates", list),
+    ("repeat_transient_local", "record.repeat_transient_local", list),
+    ("repeat_all_transient_local", "record.repeat_all_transient_local", lambda value: value),
+    ("max_cache_duration", "storage.max_cache_duration", float),
+    ("actions", "record.actions", list),
+    ("all_actions", "record.all_actions", bool),
+    ("exclude_actions", "record.exclude_actions", list),
+]
+
+
 def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse.Namespace) -> list[Any]:
     from rclpy.parameter import Parameter
 
@@ -81,26 +96,10 @@ def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse
             "record.start_at": (start_ns + offset.offset_ns) / 1e9,
             "record.local_only": args.local_only,
             "storage.custom_data": [f"{key}={value}" for key, value in custom.items()]}
-    if args.max_duration:
-        ours["record.max_duration"] = float(args.max_duration)
-    if args.compress:
-        ours["record.compress"] = args.compress
-    if args.compress_regex:
-        ours["record.compress_regex"] = args.compress_regex
-    if args.max_rates:
-        ours["record.max_rates"] = list(args.max_rates)
-    if args.repeat_transient_local:
-        ours["record.repeat_transient_local"] = list(args.repeat_transient_local)
-    if args.repeat_all_transient_local:
-        ours["record.repeat_all_transient_local"] = args.repeat_all_transient_local
-    if args.max_cache_duration:
-        ours["storage.max_cache_duration"] = float(args.max_cache_duration)
-    if args.actions:
-        ours["record.actions"] = list(args.actions)
-    if args.all_actions:
-        ours["record.all_actions"] = True
-    if args.exclude_actions:
-        ours["record.exclude_actions"] = list(args.exclude_actions)
+    for option, parameter, convert in FLAG_PARAMETERS:
+        value = getattr(args, option)
+        if value:
+            ours[parameter] = convert(value)
     if not names & set(SELECTION) and not (args.actions or args.all_actions):
         ours["record.all_topics"] = True
     clash = names & set(ours)
