@@ -271,7 +271,10 @@ def test_an_action_is_recorded_with_its_service_events_and_listed_by_bag_info(
     assert sorted(responses) == [False, True]
     results = [e.response[0] for e in decoded[GET_RESULT] if e.info.event_type == ServiceEventInfo.RESPONSE_SENT]
     assert [list(r.result.sequence) for r in results] == [[0, 1, 1, 2, 3, 5]]
-    assert [list(m.feedback.sequence) for m in decoded[FEEDBACK]] == feedback
+    recorded = [list(m.feedback.sequence) for m in decoded[FEEDBACK]]
+    assert recorded == [[0, 1, 1], [0, 1, 1, 2], [0, 1, 1, 2, 3], [0, 1, 1, 2, 3, 5]]  # every feedback published
+    # rclpy's client drops feedback that arrives after the goal's result: what it got is the start of the bag's
+    assert feedback and recorded[:len(feedback)] == feedback
     assert decoded[STATUS], "no status recorded"
     assert "/plain/_action/send_goal/_service_event" not in decoded  # no introspection there
 
