@@ -21,16 +21,20 @@ from std_msgs.msg import String
 
 from container_process import wait_until
 from installed import REPO, InstalledEnv
+from ipc_testing.client import ContainerClient
 
 #: Folders of the tree that are not shipped: tests, benchmarks, examples (their own packages), the interface
 #: sources (shipped as the generated packages) and docs.
 NOT_SHIPPED = {"tests", "benchmarks", "examples", "srv", "docs", "build", "dist"}
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 #: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port, a topic and codec.
-PLUGIN_ARGUMENTS = {"Recorder": ("-p", "storage.uri:=bag"), "Player": ("-p", "storage.uri:=missing_bag"),
-                    "FoxgloveBridge": ("-p", "port:=0"),
-                    # h264: the installed wheel's foxglove_msgs and PyAV's libx264 (opened at load)
-                    "ImageEncoder": ("-p", "topics:=[/camera/image_raw]", "-p", "codec:=h264")}
+PLUGIN_PARAMETERS = {"Recorder": {"storage.uri": "bag"}, "Player": {"storage.uri": "missing_bag"},
+                     "FoxgloveBridge": {"port": 0},
+                     # h264: the installed wheel's foxglove_msgs and PyAV's libx264 (opened at load)
+                     "ImageEncoder": {"topics": ["/camera/image_raw"], "codec": "h264"}}
+#: The plugin loaded and unloaded through the installed ``ipc-component`` (its parameters as the CLI takes them);
+#: every plugin is loaded through LoadNode as well.
+CLI_LOAD = ("components", "components::ImageEncoder", "-p", "topics:=[/camera/image_raw]", "-p", "codec:=h264")
 
 
 def source_package_folders() -> set[str]:
@@ -89,29 +93,34 @@ def test_installed_commands_and_modules_come_from_the_wheel(installed_env: Insta
 
 
 @pytest.mark.long
-def test_installed_container_loads_every_registered_plugin(installed_env: InstalledEnv) -> None:
+def test_installed_container_loads_every_registered_plugin(installed_env: InstalledEnv, probe: Node) -> None:
     container = subprocess.Popen([str(installed_env.python), "-m", "component_container", "--bag-root",
                                   str(installed_env.root), "--ros-args", "-r", "__node:=installed"],
                                  cwd=installed_env.root, env=installed_env.env(), stdout=subprocess.PIPE,
                                  stderr=subprocess.STDOUT, text=True)
     cli = installed_env.script("ipc-component")
+    client = ContainerClient(probe, "/installed")
     try:
         types = installed_env.run(cli, "types")
         assert types.returncode == 0, types.stderr
         listed = {line.strip() for line in types.stdout.splitlines()}
         assert set(registered_plugins()) <= listed
+        by_cli = installed_env.run(cli, "load", "/installed", *CLI_LOAD, "-n", "by_cli")
+        assert by_cli.stdout.startswith("Loaded component"), (by_cli.stdout, by_cli.stderr)
+        unloaded = installed_env.run(cli, "unload", "/installed", by_cli.stdout.split()[2])
+        assert unloaded.returncode == 0, unloaded.stderr
+        client.wait()
         for n, (plugin, target) in enumerate(sorted(registered_plugins().items()), start=1):
             package = target.split(".")[0]  # rclcpp_components' package: where the class is defined
-            loaded = installed_env.run(cli, "load", "/installed", package, plugin, "-n", f"plugin_{n}",
-                                       *PLUGIN_ARGUMENTS.get(plugin.split("::")[-1], ()))
-            assert loaded.returncode == 0 or "Player" in plugin, (plugin, loaded.stdout, loaded.stderr)
+            loaded = client.load(plugin, package, name=f"plugin_{n}",
+                                 parameters=PLUGIN_PARAMETERS.get(plugin.split("::")[-1]))
             if "Player" in plugin:  # it loads its module and class, then refuses the missing bag by name
-                assert "missing_bag" in loaded.stderr, loaded.stderr
+                assert not loaded.success and "missing_bag" in loaded.error_message, loaded.error_message
                 continue
-            assert loaded.stdout.startswith("Loaded component"), loaded.stdout
-            unloaded = installed_env.run(cli, "unload", "/installed", loaded.stdout.split()[2])
-            assert unloaded.returncode == 0, unloaded.stderr
+            assert loaded.success, (plugin, loaded.error_message)
+            assert client.unload(loaded.unique_id).success, plugin
     finally:
+        client.destroy()
         container.send_signal(signal.SIGINT)
         try:
             output = container.communicate(timeout=30)[0]
