@@ -166,6 +166,14 @@ def undescribed_bag(path: Path, storage: str, schema: int) -> list[tuple[str, in
     messages = [("/thing" if n % 2 else "/chatter", T0 + n * 1000, T0 + n * 1000 - 7,
                  bytes(serialize(String(data=f"hello {n}"))) if n % 2 == 0 else bytes([0, 1, 0, 0, n, 0, 0, 0]))
                 for n in range(20)]
+    legacy_bag(path, storage, schema, topics, messages)
+    return messages
+
+
+def legacy_bag(path: Path, storage: str, schema: int, topics: list[LegacyTopic],
+               messages: list[tuple[str, int, int, bytes]]) -> None:
+    """One file in rosbag2's layout: Jazzy's MCAP or SQLite3 ``schema`` 4 (metadata version 9), or Humble's
+    SQLite3 schema 3 (metadata version 5)."""
     path.mkdir()
     name = f"{path.name}_0.{'mcap' if storage == 'mcap' else 'db3'}"
     version = 9 if schema == 4 else 5
@@ -174,7 +182,6 @@ def undescribed_bag(path: Path, storage: str, schema: int) -> list[tuple[str, in
     else:
         write_sqlite(path / name, schema, topics, messages, version)
     write_metadata(path, metadata_document(version, storage, [name], topics, [messages]))
-    return messages
 
 
 @pytest.mark.parametrize("storage", STORAGES)
@@ -199,3 +206,18 @@ def test_a_type_nobody_describes_is_copied_with_a_warning(source: tuple[str, int
     again.mkdir()
     assert THING in run(again, tmp_path / "out", {"storage_id": "sqlite3" if storage == "mcap" else "mcap"})
     assert content(again / "out") == expected
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_an_empty_message_type_keeps_its_recorded_empty_definition(storage: str, tmp_path: Path) -> None:
+    """A message without fields has an empty definition text (``test_msgs/msg/Empty`` in rosbag2's
+    ``convert_a`` bag); recorded with its encoding, it is a definition like any other, also where the type is not
+    installed: no warning, and the output records it."""
+    nothing = LegacyTopic("/nothing", "not_installed_msgs/msg/Nothing", definition=("ros2msg", ""))
+    messages = [("/nothing", T0 + n, T0 + n, b"\0\1\0\0\0\0\0\0") for n in range(3)]
+    bag = tmp_path / "bag"
+    legacy_bag(bag, storage, 4, [nothing], messages)
+    assert run(tmp_path, bag, {"storage_id": "sqlite3" if storage == "mcap" else "mcap"}) == ""
+    with Reader(tmp_path / "out") as reader:
+        assert [(c.msgdef.format, c.msgdef.data) for c in reader.connections] == [(MessageDefinitionFormat.MSG, "")]
+    assert content(tmp_path / "out") == {"/nothing": (nothing.type, [(t, data) for _, t, _, data in messages])}
