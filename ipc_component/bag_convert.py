@@ -3,8 +3,8 @@ splitting, topics and time windows.
 
 Reads files only (no ROS session). The conversion is :func:`baglib.tools.convert.convert_bags`, its option files
 :mod:`baglib.tools.convert_options`; this module is the command line: ``-i URI [STORAGE_ID]`` (repeatable) or
-``--input-options`` (not both, as in rosbag2 #2325), ``-o`` the output options, the summary line on stdout, a
-refusal on stderr with exit code 1.
+``--input-options`` (not both, as in rosbag2 #2325), ``-o`` the output options, the summary line on stdout, the
+warnings and a refusal on stderr (a refusal with exit code 1).
 """
 from __future__ import annotations
 
@@ -57,5 +57,7 @@ def run_bag_convert(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         sys.stdout.flush()
         print(f"ipc-component bag convert: {error}", file=sys.stderr, flush=True)
         return 1
+    for warning in report.warnings:
+        print(f"ipc-component bag convert: warning: {warning}", file=sys.stderr, flush=True)
     print(report.text(), flush=True)
     return 0

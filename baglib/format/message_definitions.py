@@ -25,7 +25,13 @@ __all__ = [
     "service_definitions",
     "type_hash",
     "type_hash_of_definition",
+    "UNDESCRIBED",
 ]
+
+#: How rosbag2 describes a type whose definition it cannot find (``MessageDefinition::empty_message_definition_for``,
+#: used by ``SequentialWriter::create_topic``): ``(encoding, text)`` both empty. Readers take it as "no definition";
+#: the messages are still there, as bytes.
+UNDESCRIBED = ("", "")
 
 #: A ROS package name (also a Python module name, so safe to look up with importlib).
 #: The line rosbag2 puts between the root definition and each dependency.

@@ -310,7 +310,7 @@ def _file_topic(channel: Channel, schema: Schema | None, path: Path) -> FileTopi
         _log.warning("%s: channel %s: %s; its QoS profiles are left out", path, channel.topic, error)
         profiles = ()
     definition = None
-    if schema is not None and schema.encoding and schema.data:
+    if schema is not None and schema.encoding:  # an empty text with an encoding describes an empty message
         definition = (schema.encoding, bytes(schema.data).decode(errors="replace"))
     return FileTopic(channel.id, channel.topic, schema.name if schema is not None else "",
                      channel.message_encoding, profiles, channel.metadata.get("topic_type_hash", ""), definition)

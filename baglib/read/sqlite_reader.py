@@ -31,6 +31,7 @@ from pathlib import Path
 
 from baglib.format.bag_files import RECOVER_COMMAND
 from baglib.format.metadata import parse_qos_profiles
+from baglib.format.service_events import service_type
 from baglib.read.storage_reader import BagReadError, FileTopic, RawMessage
 
 __all__ = ["SqliteReader"]
@@ -42,6 +43,18 @@ _WAL_VERSIONS = b"\x02\x02"
 _WAL_VERSIONS_OFFSET = 18
 #: A write-ahead log's header; frames follow it.
 _WAL_HEADER_SIZE = 32
+
+
+def _definition(definitions: dict[str, tuple[str, str]], type_name: str) -> tuple[str, str] | None:
+    """The recorded definition of ``type_name``. rosbag2 stores a service event topic's (``pkg/srv/X_Event``)
+    under the service type ``pkg/srv/X`` (``SequentialWriter::create_topic`` looks the text up by that name);
+    this project's writer under the event type. Either is found."""
+    if type_name in definitions:
+        return definitions[type_name]
+    try:
+        return definitions.get(service_type(type_name))
+    except ValueError:  # not a service event type
+        return None
 
 
 class SqliteReader:
@@ -109,13 +122,13 @@ class SqliteReader:
         if "message_definitions" in tables:
             for type_name, encoding, text in self._db.execute(
                     "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions ORDER BY id"):
-                if encoding and text and encoding != "unknown":
+                if encoding and encoding != "unknown":  # an empty text describes an empty message
                     definitions.setdefault(type_name, (encoding, text))
         qos = "offered_qos_profiles" if "offered_qos_profiles" in columns else "''"
         type_hash = "type_description_hash" if "type_description_hash" in columns else "''"
         self.topics = [
             FileTopic(topic_id, name, type_name, serialization_format, self._profiles(name, profiles),
-                      type_hash_value or "", definitions.get(type_name))
+                      type_hash_value or "", _definition(definitions, type_name))
             for topic_id, name, type_name, serialization_format, profiles, type_hash_value in self._db.execute(
                 f"SELECT id, name, type, serialization_format, {qos}, {type_hash} FROM topics ORDER BY id")]
 

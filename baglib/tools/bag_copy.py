@@ -7,6 +7,9 @@ of their inputs and the description of each output topic.
   installed one), and every topic of that type carries the type description hash that goes with that
   definition: the hash recorded with it (empty for a bag of a rosbag2 older than Iron), or the installed type's
   when it is the installed definition. Readers that check the hash against the definition (rosbags) open it.
+  A type neither recorded nor installed is described as rosbag2 describes it then, with
+  :data:`~baglib.format.message_definitions.UNDESCRIBED`, and keeps the hash its topic recorded;
+  :func:`undescribed` names those types, for the tool to warn (``bag convert``, as rosbag2) or refuse.
 * A topic fed by several inputs offers the union of their QoS profiles, each once (as rosbag2's
   ``bag_rewrite`` gathers them).
 """
@@ -16,6 +19,7 @@ from collections.abc import Iterable
 
 from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
 from baglib.format.message_definitions import (
+    UNDESCRIBED,
     MessageDefinitionNotFoundError,
     message_definition,
     type_hash_of_definition,
@@ -24,7 +28,7 @@ from baglib.format.metadata import TopicInfo
 from baglib.read.reader import BagReader, Connection
 from baglib.read.timeline import TopicSources
 
-__all__ = ["BagCopyError", "TypeDescriptions", "refuse_unfinished", "topic_info", "type_descriptions"]
+__all__ = ["BagCopyError", "TypeDescriptions", "refuse_unfinished", "topic_info", "type_descriptions", "undescribed"]
 
 #: Per type: the definition the output describes it with (None: the installed one) and its type description hash.
 TypeDescriptions = dict[str, tuple[tuple[str, str] | None, str]]
@@ -44,11 +48,7 @@ def refuse_unfinished(bags: Iterable[BagReader]) -> None:
 
 
 def type_descriptions(topics: TopicSources) -> TypeDescriptions:
-    """Per type of ``topics``: the definition and hash the output describes it with (see module doc).
-
-    Raises:
-        BagCopyError: no input records a type's definition and it is not installed here.
-    """
+    """Per type of ``topics``: the definition and hash the output describes it with (see module doc)."""
     chosen: TypeDescriptions = {}
     for sources in topics.values():
         for _, connection in sources:
@@ -60,11 +60,21 @@ def type_descriptions(topics: TopicSources) -> TypeDescriptions:
         if msgtype not in chosen:
             try:
                 message_definition(msgtype)
+                chosen[msgtype] = (None, "")  # the writer describes it with the installed definition and hash
             except (MessageDefinitionNotFoundError, ValueError):
-                raise BagCopyError(f"no input records the definition of {msgtype} (topic "
-                                   f"{sources[0][1].topic}) and it is not installed here") from None
-            chosen[msgtype] = (None, "")  # the writer describes it with the installed definition and hash
+                chosen[msgtype] = (UNDESCRIBED, sources[0][1].type_description_hash)
     return chosen
+
+
+def undescribed(topics: TopicSources, descriptions: TypeDescriptions) -> list[str]:
+    """One sentence per type that :func:`type_descriptions` found neither recorded nor installed, naming its
+    topics (their output names)."""
+    names: dict[str, list[str]] = {}
+    for name, sources in topics.items():
+        if descriptions[sources[0][1].msgtype][0] == UNDESCRIBED:
+            names.setdefault(sources[0][1].msgtype, []).append(name)
+    return [f"no input records the definition of {msgtype} (topic {', '.join(topics_of)}) and it is not installed "
+            f"here" for msgtype, topics_of in names.items()]
 
 
 def topic_info(name: str, sources: list[tuple[int, Connection]], digest: str) -> TopicInfo:

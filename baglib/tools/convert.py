@@ -12,6 +12,10 @@ about a tenth of it. SQLite3 files are read by their time index the same way.
 Topic names are written fully qualified: rosbag2 stored a name as its node gave it (``chatter``), and the output
 gets ``/chatter``, the topic it was published on, as ``bag merge`` does (the writer takes only full names).
 
+Messages are copied as bytes, never decoded. A type whose definition no input records and that is not installed
+here is converted as rosbag2's ``bag_rewrite`` converts it: its messages unchanged, the type described with an
+empty definition (:mod:`baglib.tools.bag_copy`), and a warning naming the type and its topics in the report.
+
 Refused before anything is written, naming what is wrong: an input that is missing, unreadable or unfinished
 (with the ``bag recover`` command, :mod:`baglib.tools.bag_copy`), a topic of two types, a time window that holds
 no message of its bag (or of the inputs, for an output), an output that selects no topic, an output that exists
@@ -29,7 +33,7 @@ from pathlib import Path
 from baglib.format.topic_selection import TopicSelection, absolute_name
 from baglib.read.storage_reader import BagReadError
 from baglib.read.timeline import Timeline, TopicSources
-from baglib.tools.bag_copy import BagCopyError, refuse_unfinished, topic_info, type_descriptions
+from baglib.tools.bag_copy import BagCopyError, refuse_unfinished, topic_info, type_descriptions, undescribed
 from baglib.tools.convert_options import InputBag, OutputBag
 from baglib.write.writer import BagWriter
 
@@ -44,11 +48,12 @@ class ConvertError(BagCopyError):
 
 @dataclass
 class ConvertReport:
-    """What a conversion wrote: per output bag, its path, topics and messages."""
+    """What a conversion wrote: per output bag, its path, topics and messages; the warnings, one sentence each."""
 
     outputs: list[tuple[Path, int, int]]
     inputs: int
     seconds: float
+    warnings: list[str]
 
     def text(self) -> str:
         written = "; ".join(f"{path}: {messages} messages on {topics} topics"
@@ -79,10 +84,10 @@ def convert_bags(inputs: Sequence[InputBag], outputs: Sequence[OutputBag]) -> Co
         input_windows = [_input_window(index, bag, timeline) for index, bag in enumerate(inputs)]
         selected = [_selected(bag, topics) for bag in outputs]
         output_windows = [_output_window(bag, timeline, input_windows) for bag in outputs]
-        try:
-            descriptions = type_descriptions({name: topics[name] for chosen in selected for name in chosen})
-        except BagCopyError as error:
-            raise ConvertError(f"cannot convert: {error}") from None
+        taken = {name: topics[name] for chosen in selected for name in chosen}
+        descriptions = type_descriptions(taken)
+        warnings = [f"{sentence}: its messages are copied unchanged and the output records no definition for it, "
+                    f"as ros2 bag convert does" for sentence in undescribed(taken, descriptions)]
         reach = _hull(output_windows)
         read_windows = [(_max(low, reach[0]), _min(high, reach[1])) for low, high in input_windows]
         writers: list[BagWriter] = []
@@ -104,7 +109,7 @@ def convert_bags(inputs: Sequence[InputBag], outputs: Sequence[OutputBag]) -> Co
                 raise ConvertError(f"bag convert failed (no output kept): {error}") from error
             raise
     written = [(writer.path, len(chosen), count) for writer, chosen, count in zip(writers, selected, counts)]
-    return ConvertReport(written, len(inputs), time.monotonic() - started)
+    return ConvertReport(written, len(inputs), time.monotonic() - started, warnings)
 
 
 def _check_outputs(outputs: Sequence[OutputBag]) -> None:

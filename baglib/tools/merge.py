@@ -40,7 +40,7 @@ from baglib.format import fleet_keys
 from baglib.read.reader import BagReader, Connection
 from baglib.read.storage_reader import BagReadError
 from baglib.read.timeline import Timeline, TopicSources
-from baglib.tools.bag_copy import BagCopyError, refuse_unfinished, topic_info, type_descriptions
+from baglib.tools.bag_copy import BagCopyError, refuse_unfinished, topic_info, type_descriptions, undescribed
 from baglib.write.writer import BagExistsError, BagWriter
 
 __all__ = ["MergeError", "MergeReport", "NODE_TOPICS", "merge_bags"]
@@ -100,10 +100,10 @@ def merge_bags(output: str | os.PathLike[str], inputs: Sequence[str | os.PathLik
         except BagReadError as error:
             raise MergeError(f"cannot merge: {error}") from error
         _refuse_mixed_containers(timeline, topics, interleave)
-        try:
-            descriptions = type_descriptions(topics)
-        except BagCopyError as error:
-            raise MergeError(f"cannot merge: {error}") from None
+        descriptions = type_descriptions(topics)
+        missing = undescribed(topics, descriptions)
+        if missing:
+            raise MergeError(f"cannot merge: {missing[0]}")
         writer = _create(output, storage_id, _custom_data(timeline, align_clocks))
         try:
             for name, sources in topics.items():

@@ -15,7 +15,7 @@ import sqlite3
 from pathlib import Path
 
 from baglib.format.cdr_fast import CdrData
-from baglib.format.message_definitions import type_hash_of_definition
+from baglib.format.message_definitions import UNDESCRIBED, type_hash_of_definition
 from baglib.format.durable import fsync_directory
 from baglib.format.metadata import METADATA_VERSION, ROS_DISTRO, FileInfo, TopicInfo, serialize_qos_profiles
 
@@ -153,6 +153,9 @@ class SqliteStorage:
         The definition row carries the hash of its own text: the locally installed type's hash when the
         text is the installed type's (correct even when a publisher announced a different version of the
         type), else the topic's (a definition copied from another bag, with the hash recorded with it).
+        A type described with :data:`~baglib.format.message_definitions.UNDESCRIBED` gets no row: rosbag2
+        writes one with an empty encoding, which rosbags (0.11) cannot open a bag with; no row reads the same
+        ("no definition") in rosbag2 and in every reader.
         """
         self._require_open()
         if topic.name in self._topic_ids:
@@ -168,7 +171,7 @@ class SqliteStorage:
                     (topic.name, topic.type, topic.serialization_format,
                      serialize_qos_profiles(topic.offered_qos_profiles), topic.type_description_hash),
                 )
-                if topic.type not in self._defined_types:
+                if topic.type not in self._defined_types and definition != UNDESCRIBED:
                     self._db.execute(
                         "INSERT INTO message_definitions (topic_type, encoding,"
                         " encoded_message_definition, type_description_hash) VALUES (?, ?, ?, ?)",
