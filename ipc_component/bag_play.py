@@ -59,8 +59,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-d", "--delay", type=float, default=0.0, help="Sleep this many seconds before playing")
     parser.add_argument("--playback-duration", type=float, default=-1.0,
                         help="Seconds of the bag to play (default: all)")
-    parser.add_argument("--playback-until-sec", type=float, default=-1.0,
-                        help="Play until this bag timestamp (seconds since epoch)")
+    until = parser.add_mutually_exclusive_group()
+    until.add_argument("--playback-until-sec", type=float, default=-1.0,
+                       help="Play until this bag timestamp, in seconds since epoch (0 or negative: no limit); "
+                            "mutually exclusive with --playback-until-nsec")
+    until.add_argument("--playback-until-nsec", type=int, default=-1,
+                       help="Play until this bag timestamp, in nanoseconds since epoch, exactly (0 or negative: no "
+                            "limit); mutually exclusive with --playback-until-sec")
     parser.add_argument("--start-offset", type=float, default=0.0, help="Start this many seconds into the bag")
     parser.add_argument("-p", "--start-paused", action="store_true", help="Start paused")
     parser.add_argument("--wait-for-all-acked", type=int, default=-1, metavar="TIMEOUT_MS",
@@ -71,8 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--send-actions-as-client", action="store_true",
                         help="Send the recorded goals, cancel and result requests to the running action servers "
                              "instead of publishing the actions' topics")
-    parser.add_argument("--service-requests-source", default="SERVICE_INTROSPECTION",
-                        choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"),
+    parser.add_argument("--service-requests-source", default="service_introspection",
+                        choices=("service_introspection", "client_introspection"),
                         help="Which side's recorded requests are sent (services and actions)")
     parser.add_argument("--message-order", default="received", choices=("received", "sent"),
                         help="The timestamp messages are ordered and played by: when they were received "
@@ -88,7 +93,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _duration(name: str, seconds: float) -> dict[str, int]:
     """rosbag2's .sec/.nsec pair; negative seconds (disabled) stay negative."""
-    nanoseconds = round(seconds * _NS_PER_S)
+    return _nanoseconds(name, round(seconds * _NS_PER_S))
+
+
+def _nanoseconds(name: str, nanoseconds: int) -> dict[str, int]:
+    """rosbag2's .sec/.nsec pair for a whole number of nanoseconds (no float on the way: an epoch timestamp in
+    nanoseconds has more digits than a double holds)."""
     sign = -1 if nanoseconds < 0 else 1
     return {f"{name}.sec": sign * (abs(nanoseconds) // _NS_PER_S), f"{name}.nsec": sign * (abs(nanoseconds) % _NS_PER_S)}
 
@@ -131,7 +141,7 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.clock_publish_frequency": args.clock,
         "play.start_paused": args.start_paused,
         "play.publish_service_request": args.publish_service_requests,
-        "play.service_requests_source": args.service_requests_source,
+        "play.service_requests_source": args.service_requests_source.upper(),
         "play.message_order": f"{args.message_order.upper()}_TIMESTAMP",
         "play.actions_to_filter": args.actions or [""],
         "play.exclude_actions_to_filter": args.exclude_actions or [""],
@@ -144,9 +154,22 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         **_duration("play.wait_acked_timeout", args.wait_for_all_acked / 1000 if args.wait_for_all_acked >= 0
                     else -1.0),
     }
-    if args.playback_until_sec >= 0:
-        parameters.update(_duration("play.playback_until_timestamp", args.playback_until_sec))
+    until_ns = playback_until_ns(args.playback_until_sec, args.playback_until_nsec)
+    if until_ns >= 0:
+        parameters.update(_nanoseconds("play.playback_until_timestamp", until_ns))
     return parameters
+
+
+def playback_until_ns(seconds: float, nanoseconds: int) -> int:
+    """The "until" timestamp of ``--playback-until-sec`` / ``--playback-until-nsec``, -1 for none.
+
+    As ros2bag's ``get_playback_until_from_arg_group``: a positive value of either sets it, and 0 is no limit,
+    like a negative one (the player's own parameter, ``play.playback_until_timestamp``, reads 0 as "publish
+    nothing"; the command line never asks for that).
+    """
+    if seconds > 0:
+        return round(seconds * _NS_PER_S)
+    return nanoseconds if nanoseconds > 0 else -1
 
 
 def container_name(bag_path: str) -> str:

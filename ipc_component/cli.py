@@ -277,7 +277,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag_path", help="Bag directory (with metadata.yaml), or a single .mcap / .db3 file")
     p.add_argument("-t", "--topic-name", action="store_true", help="Only display topic names.")
     p.add_argument("-v", "--verbose", action="store_true",
-                   help="Display request/response information for services (reads every message once)")
+                   help="Display request/response information for services and actions and each topic's size "
+                        "contribution (reads every message once)")
     p.add_argument("--sort", default="name", choices=("name", "type", "count"),
                    help="Configuration for sorting of output. By default sorts by topic name - use this argument "
                         "to override.")
