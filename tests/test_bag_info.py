@@ -113,6 +113,22 @@ def event(service: Any, kind: int, client: int, sequence: int) -> bytes:
     return serialize_message(message)
 
 
+def write_plan(path: Path, types: dict[str, str], plan: list[tuple[str, bytes]], storage: str,
+               max_bagfile_size: int) -> dict[str, int]:
+    """Write ``plan``'s messages 1 µs apart with this project's writer; returns each topic's bytes."""
+    from baglib.format.metadata import TopicInfo
+    from baglib.write.writer import BagWriter
+
+    sizes: dict[str, int] = {}
+    with BagWriter(path, storage_id=storage, max_bagfile_size=max_bagfile_size) as writer:
+        for topic, type_name in types.items():
+            writer.add_topic(TopicInfo(topic, type_name))
+        for n, (topic, data) in enumerate(plan):
+            writer.write(topic, data, T0 + n * 1000, T0 + n * 1000)
+            sizes[topic] = sizes.get(topic, 0) + len(data)
+    return sizes
+
+
 def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -> dict[str, int]:
     """Three topics and two services whose orders by name, type and count all differ; /set_flag has 10 events
     for 3 calls (two of them by different clients with the same sequence number; the third unanswered) and
@@ -120,9 +136,6 @@ def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -
     from std_msgs.msg import Bool, Int32, String
     from std_srvs.srv import SetBool, Trigger
     from rclpy.serialization import serialize_message
-
-    from baglib.format.metadata import TopicInfo
-    from baglib.write.writer import BagWriter
 
     plan: list[tuple[str, bytes]] = [("/zeta", serialize_message(Bool(data=True)))] * 5
     plan += [("/alpha", serialize_message(String(data="a")))] + [("/mid", serialize_message(Int32(data=3)))] * 3
@@ -133,14 +146,7 @@ def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -
     types = {"/zeta": "std_msgs/msg/Bool", "/alpha": "std_msgs/msg/String", "/mid": "std_msgs/msg/Int32",
              "/set_flag/_service_event": "std_srvs/srv/SetBool_Event",
              "/trigger_me/_service_event": "std_srvs/srv/Trigger_Event"}
-    sizes: dict[str, int] = {}
-    with BagWriter(path, storage_id=storage, max_bagfile_size=max_bagfile_size) as writer:
-        for topic, type_name in types.items():
-            writer.add_topic(TopicInfo(topic, type_name))
-        for n, (topic, data) in enumerate(plan):
-            writer.write(topic, data, T0 + n * 1000, T0 + n * 1000)
-            sizes[topic] = sizes.get(topic, 0) + len(data)
-    return sizes
+    return write_plan(path, types, plan, storage, max_bagfile_size)
 
 
 def info_lines(capsys: pytest.CaptureFixture[str], *arguments: str) -> list[str]:
@@ -236,9 +242,6 @@ def action_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -> 
     from std_msgs.msg import String
     from test_msgs.action import Fibonacci
 
-    from baglib.format.metadata import TopicInfo
-    from baglib.write.writer import BagWriter
-
     impl = Fibonacci.Impl
     feedback = serialize_message(impl.FeedbackMessage())
     status = serialize_message(GoalStatusArray())
@@ -257,14 +260,7 @@ def action_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -> 
              "/fibonacci/_action/status": "action_msgs/msg/GoalStatusArray",
              "/zoo/_action/feedback": f"{FIB_TYPE}_FeedbackMessage",
              "/zoo/_action/status": "action_msgs/msg/GoalStatusArray"}
-    sizes: dict[str, int] = {}
-    with BagWriter(path, storage_id=storage, max_bagfile_size=max_bagfile_size) as writer:
-        for topic, type_name in types.items():
-            writer.add_topic(TopicInfo(topic, type_name))
-        for n, (topic, data) in enumerate(plan):
-            writer.write(topic, data, T0 + n * 1000, T0 + n * 1000)
-            sizes[topic] = sizes.get(topic, 0) + len(data)
-    return sizes
+    return write_plan(path, types, plan, storage, max_bagfile_size)
 
 
 NO_EVENTS = "    Note: no service events (no action introspection where it ran): its goals cannot be replayed"
