@@ -17,7 +17,7 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
 PLAYER_PLUGIN = "components::Player"
@@ -91,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="No progress line, even on a terminal")
 
 
-def _duration(name: str, seconds: float) -> dict[str, int]:
+def duration_parameters(name: str, seconds: float) -> dict[str, int]:
     """rosbag2's .sec/.nsec pair; negative seconds (disabled) stay negative."""
     return _nanoseconds(name, round(seconds * _NS_PER_S))
 
@@ -148,11 +148,11 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.send_actions_as_client": args.send_actions_as_client,
         "play.decode": args.decode is not None,
         "play.decode_topics": args.decode or [""],
-        **_duration("play.delay", args.delay),
-        **_duration("play.playback_duration", args.playback_duration),
-        **_duration("play.start_offset", args.start_offset),
-        **_duration("play.wait_acked_timeout", args.wait_for_all_acked / 1000 if args.wait_for_all_acked >= 0
-                    else -1.0),
+        **duration_parameters("play.delay", args.delay),
+        **duration_parameters("play.playback_duration", args.playback_duration),
+        **duration_parameters("play.start_offset", args.start_offset),
+        **duration_parameters("play.wait_acked_timeout",
+                              args.wait_for_all_acked / 1000 if args.wait_for_all_acked >= 0 else -1.0),
     }
     until_ns = playback_until_ns(args.playback_until_sec, args.playback_until_nsec)
     if until_ns >= 0:
@@ -201,6 +201,20 @@ def logs_clear_the_progress_line() -> None:
 
 def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO = sys.stdout) -> int:
     """Play a bag in this process; returns the exit status."""
+    try:
+        parameters = player_parameters(args)
+    except ValueError as exc:
+        print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
+        return 1
+    return run_player(parameters, [path for path, _ in input_bags(args)], args.remap, args.no_progress, ros_args,
+                      out)
+
+
+def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no_progress: bool,
+               ros_args: Sequence[str], out: TextIO = sys.stdout,
+               when_loaded: Callable[[Any], None] | None = None) -> int:
+    """Run a container with one player of ``parameters`` in this process until its playback ends (or Ctrl-C);
+    ``when_loaded`` gets the player once it is loaded (on a thread of its own, so Ctrl-C still stops it)."""
     import rclpy
     from rclpy.context import Context
 
@@ -209,13 +223,7 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     from component_container.process_tuning import apply_low_latency
     from component_container.startup_file import load_request
 
-    try:
-        parameters = player_parameters(args)
-    except ValueError as exc:
-        print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
-        return 1
-    bags = [path for path, _ in input_bags(args)]
-    show = out.isatty() and not args.no_progress
+    show = out.isatty() and not no_progress
     if show and sys.stderr.isatty():
         logs_clear_the_progress_line()
     stop = threading.Event()
@@ -229,12 +237,14 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
         manager = ComponentManager("single", node_name=container_name(bags[0]), context=context)
         request = load_request({"package": "components", "plugin": PLAYER_PLUGIN,
                                 "parameters": parameters,
-                                "remaps": args.remap}, 1, "bag play")
+                                "remaps": remap}, 1, "bag play")
         try:
             player = manager.load(request).node
         except Exception as exc:  # noqa: BLE001 - the player's own message names what is wrong
             print(f"Cannot play {', '.join(bags)}: {exc}", file=sys.stderr, flush=True)
             return 1
+        if when_loaded is not None:
+            threading.Thread(target=when_loaded, args=(player,), name="bag-play-when-loaded", daemon=True).start()
         while not stop.wait(PROGRESS_PERIOD):
             stats = player.stats()
             if show:

@@ -26,7 +26,8 @@ import sys
 import time
 from typing import Sequence
 
-from ipc_component import bag_convert, bag_export, bag_merge, bag_play, create, record_fleet, record_status, top
+from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_play, create, record_fleet,
+                           record_status, top)
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.verb_arguments import (LOG_LEVEL_HELP, add_verb, parameter_msgs, parse_log_level,
                                           parse_unique_id, remap_rules)
@@ -300,6 +301,11 @@ def build_parser() -> argparse.ArgumentParser:
                  "Several bags play as one timeline.")
     bag_play.add_arguments(p)
     p.set_defaults(handler=bag_play.run_bag_play)
+    p = add_verb(bag_verbs, "burst", "Publish a bag's messages as fast as possible (like ros2 bag burst)",
+                 "Starts a player paused and bursts the next --num-messages messages (0: the whole bag), "
+                 "their timing ignored; then it stays paused until Ctrl-C, as ros2 bag burst does.")
+    bag_burst.add_arguments(p)
+    p.set_defaults(handler=bag_burst.run_bag_burst)
     return parser
 
 
