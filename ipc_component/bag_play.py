@@ -54,8 +54,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--remap", "-m", nargs="+", default=[], help="Remappings, in the 'from:=to' form")
     parser.add_argument("--read-ahead-queue-size", type=int, default=1000,
                         help="Messages to read ahead of playback (default 1000)")
-    parser.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
-                        help="Publish /clock at this frequency (default 40 Hz when given without a value)")
+    clock = parser.add_mutually_exclusive_group()
+    clock.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
+                       help="Publish /clock at this frequency (default 40 Hz when given without a value); the "
+                            "bag's own /clock topic is then not played")
+    clock.add_argument("--clock-topics", nargs="+", default=[], metavar="TOPIC",
+                       help="Publish /clock right before each message of these topics")
+    clock.add_argument("--clock-topics-all", action="store_true",
+                       help="Publish /clock right before each message played")
     parser.add_argument("-d", "--delay", type=float, default=0.0, help="Sleep this many seconds before playing")
     parser.add_argument("--playback-duration", type=float, default=-1.0,
                         help="Seconds of the bag to play (default: all)")
@@ -134,11 +140,14 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.services_to_filter": args.services or [""],
         "play.regex_to_filter": args.regex,
         "play.exclude_regex_to_filter": args.exclude_regex,
-        "play.exclude_topics_to_filter": args.exclude_topics or [""],
+        # as ros2bag: a player publishing /clock does not also play the bag's /clock
+        "play.exclude_topics_to_filter": args.exclude_topics + (["/clock"] if args.clock > 0 else []) or [""],
         "play.exclude_services_to_filter": args.exclude_services or [""],
         "play.qos_profile_overrides_path": args.qos_profile_overrides_path,
         "play.read_ahead_queue_size": args.read_ahead_queue_size,
         "play.clock_publish_frequency": args.clock,
+        "play.clock_publish_on_topic_publish": args.clock_topics_all or bool(args.clock_topics),
+        "play.clock_trigger_topics": args.clock_topics or [""],
         "play.start_paused": args.start_paused,
         "play.publish_service_request": args.publish_service_requests,
         "play.service_requests_source": args.service_requests_source.upper(),

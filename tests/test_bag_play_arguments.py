@@ -74,3 +74,26 @@ def test_action_options_map_to_rosbag2s_parameters() -> None:
     assert given["play.actions_to_filter"] == ["/fibonacci"]
     assert given["play.exclude_actions_to_filter"] == ["/other"]
     assert given["play.send_actions_as_client"] is True
+
+
+def test_clock_options_map_to_rosbag2s_parameters_as_ros2bag_does() -> None:
+    """``--clock`` also leaves out the bag's own /clock; ``--clock-topics`` / ``--clock-topics-all`` publish it
+    at the named topics' messages or at every message."""
+    given = parameters("--clock", "--exclude-topics", "/tf")
+    assert given["play.clock_publish_frequency"] == 40.0
+    assert given["play.exclude_topics_to_filter"] == ["/tf", "/clock"]
+    assert given["play.clock_publish_on_topic_publish"] is False
+    given = parameters("--clock-topics", "/imu", "/scan")
+    assert (given["play.clock_publish_on_topic_publish"], given["play.clock_trigger_topics"]) == (True, ["/imu", "/scan"])
+    assert given["play.exclude_topics_to_filter"] == [""]
+    given = parameters("--clock-topics-all")
+    assert (given["play.clock_publish_on_topic_publish"], given["play.clock_trigger_topics"]) == (True, [""])
+
+
+@pytest.mark.parametrize("arguments", [["--clock", "10", "--clock-topics", "/imu"],
+                                       ["--clock", "--clock-topics-all"],
+                                       ["--clock-topics", "/imu", "--clock-topics-all"]])
+def test_clock_options_are_mutually_exclusive(arguments: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parameters(*arguments)
+    assert "not allowed with argument" in capsys.readouterr().err
