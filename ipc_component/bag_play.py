@@ -17,7 +17,7 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
 PLAYER_PLUGIN = "components::Player"
@@ -54,13 +54,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--remap", "-m", nargs="+", default=[], help="Remappings, in the 'from:=to' form")
     parser.add_argument("--read-ahead-queue-size", type=int, default=1000,
                         help="Messages to read ahead of playback (default 1000)")
-    parser.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
-                        help="Publish /clock at this frequency (default 40 Hz when given without a value)")
+    clock = parser.add_mutually_exclusive_group()
+    clock.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
+                       help="Publish /clock at this frequency (default 40 Hz when given without a value); the "
+                            "bag's own /clock topic is then not played")
+    clock.add_argument("--clock-topics", nargs="+", default=[], metavar="TOPIC",
+                       help="Publish /clock right before each message of these topics")
+    clock.add_argument("--clock-topics-all", action="store_true",
+                       help="Publish /clock right before each message played")
     parser.add_argument("-d", "--delay", type=float, default=0.0, help="Sleep this many seconds before playing")
     parser.add_argument("--playback-duration", type=float, default=-1.0,
                         help="Seconds of the bag to play (default: all)")
-    parser.add_argument("--playback-until-sec", type=float, default=-1.0,
-                        help="Play until this bag timestamp (seconds since epoch)")
+    until = parser.add_mutually_exclusive_group()
+    until.add_argument("--playback-until-sec", type=float, default=-1.0,
+                       help="Play until this bag timestamp, in seconds since epoch (0 or negative: no limit); "
+                            "mutually exclusive with --playback-until-nsec")
+    until.add_argument("--playback-until-nsec", type=int, default=-1,
+                       help="Play until this bag timestamp, in nanoseconds since epoch, exactly (0 or negative: no "
+                            "limit); mutually exclusive with --playback-until-sec")
     parser.add_argument("--start-offset", type=float, default=0.0, help="Start this many seconds into the bag")
     parser.add_argument("-p", "--start-paused", action="store_true", help="Start paused")
     parser.add_argument("--wait-for-all-acked", type=int, default=-1, metavar="TIMEOUT_MS",
@@ -71,8 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--send-actions-as-client", action="store_true",
                         help="Send the recorded goals, cancel and result requests to the running action servers "
                              "instead of publishing the actions' topics")
-    parser.add_argument("--service-requests-source", default="SERVICE_INTROSPECTION",
-                        choices=("SERVICE_INTROSPECTION", "CLIENT_INTROSPECTION"),
+    parser.add_argument("--service-requests-source", default="service_introspection",
+                        choices=("service_introspection", "client_introspection"),
                         help="Which side's recorded requests are sent (services and actions)")
     parser.add_argument("--message-order", default="received", choices=("received", "sent"),
                         help="The timestamp messages are ordered and played by: when they were received "
@@ -86,9 +97,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="No progress line, even on a terminal")
 
 
-def _duration(name: str, seconds: float) -> dict[str, int]:
+def duration_parameters(name: str, seconds: float) -> dict[str, int]:
     """rosbag2's .sec/.nsec pair; negative seconds (disabled) stay negative."""
-    nanoseconds = round(seconds * _NS_PER_S)
+    return _nanoseconds(name, round(seconds * _NS_PER_S))
+
+
+def _nanoseconds(name: str, nanoseconds: int) -> dict[str, int]:
+    """rosbag2's .sec/.nsec pair for a whole number of nanoseconds (no float on the way: an epoch timestamp in
+    nanoseconds has more digits than a double holds)."""
     sign = -1 if nanoseconds < 0 else 1
     return {f"{name}.sec": sign * (abs(nanoseconds) // _NS_PER_S), f"{name}.nsec": sign * (abs(nanoseconds) % _NS_PER_S)}
 
@@ -124,29 +140,45 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.services_to_filter": args.services or [""],
         "play.regex_to_filter": args.regex,
         "play.exclude_regex_to_filter": args.exclude_regex,
-        "play.exclude_topics_to_filter": args.exclude_topics or [""],
+        # as ros2bag: a player publishing /clock does not also play the bag's /clock
+        "play.exclude_topics_to_filter": args.exclude_topics + (["/clock"] if args.clock > 0 else []) or [""],
         "play.exclude_services_to_filter": args.exclude_services or [""],
         "play.qos_profile_overrides_path": args.qos_profile_overrides_path,
         "play.read_ahead_queue_size": args.read_ahead_queue_size,
         "play.clock_publish_frequency": args.clock,
+        "play.clock_publish_on_topic_publish": args.clock_topics_all or bool(args.clock_topics),
+        "play.clock_trigger_topics": args.clock_topics or [""],
         "play.start_paused": args.start_paused,
         "play.publish_service_request": args.publish_service_requests,
-        "play.service_requests_source": args.service_requests_source,
+        "play.service_requests_source": args.service_requests_source.upper(),
         "play.message_order": f"{args.message_order.upper()}_TIMESTAMP",
         "play.actions_to_filter": args.actions or [""],
         "play.exclude_actions_to_filter": args.exclude_actions or [""],
         "play.send_actions_as_client": args.send_actions_as_client,
         "play.decode": args.decode is not None,
         "play.decode_topics": args.decode or [""],
-        **_duration("play.delay", args.delay),
-        **_duration("play.playback_duration", args.playback_duration),
-        **_duration("play.start_offset", args.start_offset),
-        **_duration("play.wait_acked_timeout", args.wait_for_all_acked / 1000 if args.wait_for_all_acked >= 0
-                    else -1.0),
+        **duration_parameters("play.delay", args.delay),
+        **duration_parameters("play.playback_duration", args.playback_duration),
+        **duration_parameters("play.start_offset", args.start_offset),
+        **duration_parameters("play.wait_acked_timeout",
+                              args.wait_for_all_acked / 1000 if args.wait_for_all_acked >= 0 else -1.0),
     }
-    if args.playback_until_sec >= 0:
-        parameters.update(_duration("play.playback_until_timestamp", args.playback_until_sec))
+    until_ns = playback_until_ns(args.playback_until_sec, args.playback_until_nsec)
+    if until_ns >= 0:
+        parameters.update(_nanoseconds("play.playback_until_timestamp", until_ns))
     return parameters
+
+
+def playback_until_ns(seconds: float, nanoseconds: int) -> int:
+    """The "until" timestamp of ``--playback-until-sec`` / ``--playback-until-nsec``, -1 for none.
+
+    As ros2bag's ``get_playback_until_from_arg_group``: a positive value of either sets it, and 0 is no limit,
+    like a negative one (the player's own parameter, ``play.playback_until_timestamp``, reads 0 as "publish
+    nothing"; the command line never asks for that).
+    """
+    if seconds > 0:
+        return round(seconds * _NS_PER_S)
+    return nanoseconds if nanoseconds > 0 else -1
 
 
 def container_name(bag_path: str) -> str:
@@ -178,6 +210,20 @@ def logs_clear_the_progress_line() -> None:
 
 def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO = sys.stdout) -> int:
     """Play a bag in this process; returns the exit status."""
+    try:
+        parameters = player_parameters(args)
+    except ValueError as exc:
+        print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
+        return 1
+    return run_player(parameters, [path for path, _ in input_bags(args)], args.remap, args.no_progress, ros_args,
+                      out)
+
+
+def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no_progress: bool,
+               ros_args: Sequence[str], out: TextIO = sys.stdout,
+               when_loaded: Callable[[Any], None] | None = None) -> int:
+    """Run a container with one player of ``parameters`` in this process until its playback ends (or Ctrl-C);
+    ``when_loaded`` gets the player once it is loaded (on a thread of its own, so Ctrl-C still stops it)."""
     import rclpy
     from rclpy.context import Context
 
@@ -186,13 +232,7 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
     from component_container.process_tuning import apply_low_latency
     from component_container.startup_file import load_request
 
-    try:
-        parameters = player_parameters(args)
-    except ValueError as exc:
-        print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
-        return 1
-    bags = [path for path, _ in input_bags(args)]
-    show = out.isatty() and not args.no_progress
+    show = out.isatty() and not no_progress
     if show and sys.stderr.isatty():
         logs_clear_the_progress_line()
     stop = threading.Event()
@@ -206,12 +246,14 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
         manager = ComponentManager("single", node_name=container_name(bags[0]), context=context)
         request = load_request({"package": "components", "plugin": PLAYER_PLUGIN,
                                 "parameters": parameters,
-                                "remaps": args.remap}, 1, "bag play")
+                                "remaps": remap}, 1, "bag play")
         try:
             player = manager.load(request).node
         except Exception as exc:  # noqa: BLE001 - the player's own message names what is wrong
             print(f"Cannot play {', '.join(bags)}: {exc}", file=sys.stderr, flush=True)
             return 1
+        if when_loaded is not None:
+            threading.Thread(target=when_loaded, args=(player,), name="bag-play-when-loaded", daemon=True).start()
         while not stop.wait(PROGRESS_PERIOD):
             stats = player.stats()
             if show:

@@ -26,7 +26,8 @@ import sys
 import time
 from typing import Sequence
 
-from ipc_component import bag_convert, bag_export, bag_merge, bag_play, create, record_fleet, record_status, top
+from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_play, create, record_fleet,
+                           record_status, top)
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.verb_arguments import (LOG_LEVEL_HELP, add_verb, parameter_msgs, parse_log_level,
                                           parse_unique_id, remap_rules)
@@ -277,7 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag_path", help="Bag directory (with metadata.yaml), or a single .mcap / .db3 file")
     p.add_argument("-t", "--topic-name", action="store_true", help="Only display topic names.")
     p.add_argument("-v", "--verbose", action="store_true",
-                   help="Display request/response information for services (reads every message once)")
+                   help="Display request/response information for services and actions and each topic's size "
+                        "contribution (reads every message once)")
     p.add_argument("--sort", default="name", choices=("name", "type", "count"),
                    help="Configuration for sorting of output. By default sorts by topic name - use this argument "
                         "to override.")
@@ -299,6 +301,11 @@ def build_parser() -> argparse.ArgumentParser:
                  "Several bags play as one timeline.")
     bag_play.add_arguments(p)
     p.set_defaults(handler=bag_play.run_bag_play)
+    p = add_verb(bag_verbs, "burst", "Publish a bag's messages as fast as possible (like ros2 bag burst)",
+                 "Starts a player paused and bursts the next --num-messages messages (0: the whole bag), "
+                 "their timing ignored; then it stays paused until Ctrl-C, as ros2 bag burst does.")
+    bag_burst.add_arguments(p)
+    p.set_defaults(handler=bag_burst.run_bag_burst)
     return parser
 
 

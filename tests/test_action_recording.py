@@ -281,11 +281,12 @@ def test_an_action_is_recorded_with_its_service_events_and_listed_by_bag_info(
     info = format_bag_info(tmp_path / "bag")
     assert "Actions:           2" in info
     assert "Action information:" in info
-    assert (f"  Action: {FIB} | Type: test_msgs/action/Fibonacci | Topics: 2 | Services: 3 | "
+    assert (f"  Action: {FIB} | Type: test_msgs/action/Fibonacci | Topics: 2 | Service: 3 | "
             "Serialization Format: cdr") in info
     assert "    Service: send_goal | Event Count: 8" in info
     assert "    Topic: feedback | Count: 4" in info
-    assert "  Action: /plain | Type: test_msgs/action/Fibonacci | Topics: 2 | Services: 0" in info
+    assert "  Action: /plain | Type: test_msgs/action/Fibonacci | Topics: 2 | Service: 3" in info
+    assert "    Service: send_goal | Event Count: 0" in info
     assert "no service events (no action introspection where it ran)" in info
     assert "_action" not in info.split("Action information:")[0]  # not listed as topics or services
 

@@ -113,6 +113,22 @@ def event(service: Any, kind: int, client: int, sequence: int) -> bytes:
     return serialize_message(message)
 
 
+def write_plan(path: Path, types: dict[str, str], plan: list[tuple[str, bytes]], storage: str,
+               max_bagfile_size: int) -> dict[str, int]:
+    """Write ``plan``'s messages 1 µs apart with this project's writer; returns each topic's bytes."""
+    from baglib.format.metadata import TopicInfo
+    from baglib.write.writer import BagWriter
+
+    sizes: dict[str, int] = {}
+    with BagWriter(path, storage_id=storage, max_bagfile_size=max_bagfile_size) as writer:
+        for topic, type_name in types.items():
+            writer.add_topic(TopicInfo(topic, type_name))
+        for n, (topic, data) in enumerate(plan):
+            writer.write(topic, data, T0 + n * 1000, T0 + n * 1000)
+            sizes[topic] = sizes.get(topic, 0) + len(data)
+    return sizes
+
+
 def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -> dict[str, int]:
     """Three topics and two services whose orders by name, type and count all differ; /set_flag has 10 events
     for 3 calls (two of them by different clients with the same sequence number; the third unanswered) and
@@ -120,9 +136,6 @@ def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -
     from std_msgs.msg import Bool, Int32, String
     from std_srvs.srv import SetBool, Trigger
     from rclpy.serialization import serialize_message
-
-    from baglib.format.metadata import TopicInfo
-    from baglib.write.writer import BagWriter
 
     plan: list[tuple[str, bytes]] = [("/zeta", serialize_message(Bool(data=True)))] * 5
     plan += [("/alpha", serialize_message(String(data="a")))] + [("/mid", serialize_message(Int32(data=3)))] * 3
@@ -133,14 +146,7 @@ def sortable_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -
     types = {"/zeta": "std_msgs/msg/Bool", "/alpha": "std_msgs/msg/String", "/mid": "std_msgs/msg/Int32",
              "/set_flag/_service_event": "std_srvs/srv/SetBool_Event",
              "/trigger_me/_service_event": "std_srvs/srv/Trigger_Event"}
-    sizes: dict[str, int] = {}
-    with BagWriter(path, storage_id=storage, max_bagfile_size=max_bagfile_size) as writer:
-        for topic, type_name in types.items():
-            writer.add_topic(TopicInfo(topic, type_name))
-        for n, (topic, data) in enumerate(plan):
-            writer.write(topic, data, T0 + n * 1000, T0 + n * 1000)
-            sizes[topic] = sizes.get(topic, 0) + len(data)
-    return sizes
+    return write_plan(path, types, plan, storage, max_bagfile_size)
 
 
 def info_lines(capsys: pytest.CaptureFixture[str], *arguments: str) -> list[str]:
@@ -167,9 +173,11 @@ def test_sort_orders_topics_and_services(tmp_path: Path, sort: str | None,
         "Messages:          9",
         "Topic information: " + topics[topic_order[0]],
         *("                   " + topics[name] for name in topic_order[1:]),
-        "Service:           2",
+        "Services:          2",
         "Service information: " + services[service_order[0]],
         "                     " + services[service_order[1]],
+        "Actions:           0",
+        "Action information:",
     ]
 
 
@@ -193,12 +201,14 @@ def test_verbose_counts_requests_and_responses_and_sizes(tmp_path: Path, storage
         f"Size Contribution: {sizes['/mid']} B | Serialization Format: cdr",
         f"                   Topic: /zeta | Type: std_msgs/msg/Bool | Count: 5 | "
         f"Size Contribution: {sizes['/zeta']} B | Serialization Format: cdr",
-        "Service:           2",
+        "Services:          2",
         f"Service information: Service: /set_flag | Type: std_srvs/srv/SetBool | Request Count: 3 | "
         f"Response Count: 2 | Size Contribution: {sizes['/set_flag/_service_event']} B | Serialization Format: cdr",
         f"                     Service: /trigger_me | Type: std_srvs/srv/Trigger | Request Count: 3 | "
         f"Response Count: 3 | Size Contribution: {sizes['/trigger_me/_service_event']} B | "
         f"Serialization Format: cdr",
+        "Actions:           0",
+        "Action information:",
     ]
 
 
@@ -216,3 +226,120 @@ def test_an_unknown_sort_is_refused_by_name(capsys: pytest.CaptureFixture[str], 
     with pytest.raises(SystemExit):
         cli_main(["bag", "info", str(tmp_path / "bag"), "--sort", "size"])
     assert "invalid choice: 'size' (choose from 'name', 'type', 'count')" in capsys.readouterr().err
+
+
+# --- actions (rosbag2 Kilted: rosbag2_py's format_action_with_type and format_action_info) --------------------
+FIB_TYPE = "test_msgs/action/Fibonacci"
+
+
+def action_bag(path: Path, storage: str = "mcap", max_bagfile_size: int = 0) -> dict[str, int]:
+    """Two actions and a topic. /fibonacci: 6 send_goal events for 2 calls (the second unanswered), 4 get_result
+    events for 1 call, a cancel_goal topic without messages, 3 feedback and 2 status messages (15 messages, 10
+    with ``-v``'s requests and responses); /zoo: 12 feedback and 1 status, no service events (13 either way).
+    Returns each topic's bytes."""
+    from action_msgs.msg import GoalStatusArray
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+    from test_msgs.action import Fibonacci
+
+    impl = Fibonacci.Impl
+    feedback = serialize_message(impl.FeedbackMessage())
+    status = serialize_message(GoalStatusArray())
+    plan: list[tuple[str, bytes]] = [("/chatter", serialize_message(String(data="x")))]
+    plan += [("/fibonacci/_action/send_goal/_service_event", event(impl.SendGoalService, kind, 1, sequence))
+             for sequence, kinds in ((1, range(4)), (2, range(2))) for kind in kinds]
+    plan += [("/fibonacci/_action/get_result/_service_event", event(impl.GetResultService, kind, 1, 1))
+             for kind in range(4)]
+    plan += [("/fibonacci/_action/feedback", feedback)] * 3 + [("/fibonacci/_action/status", status)] * 2
+    plan += [("/zoo/_action/feedback", feedback)] * 12 + [("/zoo/_action/status", status)]
+    types = {"/chatter": "std_msgs/msg/String",
+             "/fibonacci/_action/send_goal/_service_event": f"{FIB_TYPE}_SendGoal_Event",
+             "/fibonacci/_action/cancel_goal/_service_event": "action_msgs/srv/CancelGoal_Event",
+             "/fibonacci/_action/get_result/_service_event": f"{FIB_TYPE}_GetResult_Event",
+             "/fibonacci/_action/feedback": f"{FIB_TYPE}_FeedbackMessage",
+             "/fibonacci/_action/status": "action_msgs/msg/GoalStatusArray",
+             "/zoo/_action/feedback": f"{FIB_TYPE}_FeedbackMessage",
+             "/zoo/_action/status": "action_msgs/msg/GoalStatusArray"}
+    return write_plan(path, types, plan, storage, max_bagfile_size)
+
+
+NO_EVENTS = "    Note: no service events (no action introspection where it ran): its goals cannot be replayed"
+
+
+def test_actions_are_listed_with_each_services_event_count(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Kilted's layout, every action with its two topics and three services (a missing one counts 0), sorted;
+    ``send_goal`` gets its own event count (Kilted prints get_result's there)."""
+    action_bag(tmp_path / "bag")
+    lines = info_lines(capsys, str(tmp_path / "bag"), "--sort", "count")
+    fibonacci = [f"  Action: /fibonacci | Type: {FIB_TYPE} | Topics: 2 | Service: 3 | Serialization Format: cdr",
+                 "    Topic: feedback | Count: 3",
+                 "    Topic: status | Count: 2",
+                 "    Service: send_goal | Event Count: 6",
+                 "    Service: cancel_goal | Event Count: 0",
+                 "    Service: get_result | Event Count: 4"]
+    zoo = [f"  Action: /zoo | Type: {FIB_TYPE} | Topics: 2 | Service: 3 | Serialization Format: cdr",
+           "    Topic: feedback | Count: 12",
+           "    Topic: status | Count: 1",
+           "    Service: send_goal | Event Count: 0",
+           "    Service: cancel_goal | Event Count: 0",
+           "    Service: get_result | Event Count: 0",
+           NO_EVENTS]
+    assert lines[7:] == [
+        "Messages:          1",  # action messages are not counted, as service events are not
+        "Topic information: Topic: /chatter | Type: std_msgs/msg/String | Count: 1 | Serialization Format: cdr",
+        "Services:          0",
+        "Service information:",
+        "Actions:           2",
+        "Action information:",
+        *zoo, *fibonacci,  # 13 messages before 15
+    ]
+
+
+@pytest.mark.parametrize("storage,split", [("mcap", 0), ("sqlite3", 0), ("mcap", 1)])
+def test_verbose_counts_each_actions_requests_and_responses(tmp_path: Path, storage: str, split: int,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """``-v``: per action its size contribution (all its topics) and, per service, the distinct (client, sequence
+    number) pairs among request and response events, as Kilted's ``ros2 bag info --verbose``; ``--sort count``
+    then orders by requests and responses plus feedback and status (/fibonacci's 10 before /zoo's 13); in a
+    split bag (a file per message), counted over the whole bag."""
+    sizes = action_bag(tmp_path / "bag", storage, split)
+    if split:
+        assert len(list((tmp_path / "bag").glob("*.mcap"))) > 10
+    lines = info_lines(capsys, str(tmp_path / "bag"), "--verbose", "--sort", "count")
+    fib_size = sum(size for topic, size in sizes.items() if topic.startswith("/fibonacci/"))
+    zoo_size = sum(size for topic, size in sizes.items() if topic.startswith("/zoo/"))
+    assert lines[lines.index("Actions:           2"):] == [
+        "Actions:           2",
+        "Action information:",
+        f"  Action: /fibonacci | Type: {FIB_TYPE} | Topics: 2 | Service: 3 | Size Contribution: {fib_size} B | "
+        "Serialization Format: cdr",
+        "    Topic: feedback | Count: 3",
+        "    Topic: status | Count: 2",
+        "    Service: send_goal | Request Count: 2 | Response Count: 1",
+        "    Service: cancel_goal | Request Count: 0 | Response Count: 0",
+        "    Service: get_result | Request Count: 1 | Response Count: 1",
+        f"  Action: /zoo | Type: {FIB_TYPE} | Topics: 2 | Service: 3 | Size Contribution: {zoo_size} B | "
+        "Serialization Format: cdr",
+        "    Topic: feedback | Count: 12",
+        "    Topic: status | Count: 1",
+        "    Service: send_goal | Request Count: 0 | Response Count: 0",
+        "    Service: cancel_goal | Request Count: 0 | Response Count: 0",
+        "    Service: get_result | Request Count: 0 | Response Count: 0",
+        NO_EVENTS,
+    ]
+    assert "Messages:          1" in lines
+
+
+def test_a_truncated_action_event_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An action's service event too short for its ServiceEventInfo: ``-v`` names the topic and the time."""
+    from baglib.format.metadata import TopicInfo
+    from baglib.write.writer import BagWriter
+
+    topic = "/fibonacci/_action/send_goal/_service_event"
+    with BagWriter(tmp_path / "bag") as writer:
+        writer.add_topic(TopicInfo(topic, f"{FIB_TYPE}_SendGoal_Event"))
+        writer.write(topic, b"\x00\x01\x00\x00\x01", T0, T0)
+    assert cli_main(["bag", "info", "-v", str(tmp_path / "bag")]) == 1
+    err = capsys.readouterr().err
+    assert f"{topic} at {T0}" in err and "too short for its ServiceEventInfo" in err, err

@@ -5,6 +5,7 @@ this process receives what it plays over Fast DDS.
 """
 from __future__ import annotations
 
+import json
 import os
 import pty
 import select
@@ -192,3 +193,53 @@ def test_message_order_sent_plays_by_publish_time(probe: Node, tmp_path: Path) -
     assert got == [f"message {n ^ 1}" for n in range(10)]
     got, _ = play_to_the_end(probe, str(tmp_path / "bag"), "--message-order", "received")
     assert got == [f"message {n}" for n in range(10)]
+
+
+# --- bag burst (ros2 bag burst) ---------------------------------------------------------------------------
+HOUR_MS = 3_600_000  # messages an hour apart: played with their timing, a test would never see the second
+
+
+@pytest.mark.parametrize("count, burst", [(3, 3), (0, 10)])
+def test_burst_publishes_at_once_then_stays_paused(probe: Node, tmp_path: Path, count: int, burst: int) -> None:
+    """``-n 3``: three of the bag's ten messages (an hour apart) out at once; ``-n 0`` (the default): all ten.
+    Then the player stays paused in its run, its services answering, until Ctrl-C, as ``ros2 bag burst`` does
+    (rosbag2's player does not end a run while paused, even at the end of the bag)."""
+    from rosbag2_interfaces.srv import IsPaused
+    from std_srvs.srv import Trigger
+
+    stats = probe.create_client(Trigger, "/rosbag2_player/get_stats")
+    is_paused = probe.create_client(IsPaused, "/rosbag2_player/is_paused")
+    bag = chatter_bag(tmp_path / "bag", 10, HOUR_MS)
+    process = subprocess.Popen([CLI, "bag", "burst", "-n", str(count), str(bag)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        def published() -> int:
+            return sum(json.loads(call(probe, stats, timeout=30.0, again=True).message)["published"].values())
+
+        assert wait_until(lambda: published() == burst, 60.0, probe), f"the burst did not publish {burst} messages"
+        assert call(probe, is_paused, timeout=30.0, again=True).paused
+        assert published() == burst and process.poll() is None
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+        assert process.returncode == 0, stderr
+        assert f"Burst {burst} messages." in stderr, stderr
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+        probe.destroy_client(stats)
+        probe.destroy_client(is_paused)
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["-n", "-1"], "argument -n/--num-messages: must not be negative, got -1"),
+    (["-n", "two"], "argument -n/--num-messages: invalid int value: 'two'"),
+    (["--start-offset", "-0.5"], "argument --start-offset: must not be negative, got -0.5"),
+])
+def test_burst_refuses_negative_counts_and_offsets(arguments: list[str], message: str,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    from ipc_component.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["bag", "burst", "bag", *arguments])
+    assert message in capsys.readouterr().err

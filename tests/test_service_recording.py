@@ -255,11 +255,13 @@ def test_bag_info_lists_services_apart_from_topics(tmp_path: Path) -> None:
         "Topic information: Topic: /chatter | Type: std_msgs/msg/String | Count: 1 | Serialization Format: cdr",
         "                   Topic: /x/_service_event | Type: std_msgs/msg/String | Count: 0 | "
         "Serialization Format: cdr",
-        "Service:           2",
+        "Services:          2",
         "Service information: Service: /set_flag | Type: std_srvs/srv/SetBool | Event Count: 4 | "
         "Serialization Format: cdr",
         "                     Service: /trigger_me | Type: std_srvs/srv/Trigger | Event Count: 0 | "
         "Serialization Format: cdr",
+        "Actions:           0",
+        "Action information:",
     ]
 
 
@@ -267,7 +269,8 @@ def test_bag_info_of_a_bag_without_services(tmp_path: Path) -> None:
     writer = BagWriter(tmp_path / "bag")
     writer.add_topic(TopicInfo("/chatter", "std_msgs/msg/String"))
     writer.close()
-    assert format_bag_info(tmp_path / "bag").splitlines()[-2:] == ["Service:           0", "Service information:"]
+    assert format_bag_info(tmp_path / "bag").splitlines()[-4:] == ["Services:          0", "Service information:",
+                                                                    "Actions:           0", "Action information:"]
 
 
 # --- recording from a live graph ---------------------------------------------------------------------------
@@ -402,11 +405,13 @@ def test_recorders_record_service_events_as_selected(tmp_path: Path, probe: Node
     assert info[7:] == [
         "Messages:          0",
         "Topic information:",
-        "Service:           2",
+        "Services:          2",
         f"Service information: Service: /set_flag | Type: std_srvs/srv/SetBool | Event Count: {CALLS * 4} | "
         "Serialization Format: cdr",
         f"                     Service: /trigger_me | Type: std_srvs/srv/Trigger | Event Count: {CALLS * 4} | "
         "Serialization Format: cdr",
+        "Actions:           0",
+        "Action information:",
     ]
 
 

@@ -3,20 +3,24 @@
 Like ``ros2 bag info`` it takes a bag directory or a single ``.mcap`` / ``.db3`` file. For a directory it reads
 ``metadata.yaml`` (versions 4 to 9, :mod:`baglib.read.metadata_read`) and the sizes of the files it lists; for a
 file it reads what the file itself holds (its topics, counts and times, through the bag reader). It formats them
-the way rosbag2_py's ``format_bag_meta_data`` does: service event topics are listed as services, not as
-topics, and their messages are not counted in ``Messages:``. An action's five topics (Kilted,
-:mod:`baglib.format.action_topics`) are listed as actions, each with its topics and services, as Kilted does; an
-action recorded without its service events (no action introspection where it ran) says so. A bag a crash left
+the way Kilted's rosbag2_py ``format_bag_meta_data`` does (Jazzy's is the same without actions, and says
+``Service:`` where Kilted says ``Services:``): service event topics are listed as services, not as topics, and
+their messages are not counted in ``Messages:``. An action's five topics (:mod:`baglib.format.action_topics`)
+are listed as actions, each with its two topics and three services; an action recorded without its service
+events (no action introspection where it ran) says so. A bag a crash left
 unfinished (no ``metadata.yaml``, a file it does not list, an MCAP file without footer) is named as such, with
 the command that repairs it.
 
 Lyrical's options (rosbag2 #1804 and the verbose output of ``Info::print_output_verbose``): ``sort`` orders
-topics and services by name (the default), type or count (a service's event count; with ``verbose`` its
-requests plus responses); ``verbose`` reads every message once to add each topic's and service's size
-contribution (serialized bytes) and to count each service's requests and responses: the distinct
-(client, sequence number) pairs among its request and response events, so a call seen by both client and
-server counts once. Unlike rosbag2, which lists a service once per file of a split bag with that file's counts,
-a service is listed once with the counts of the whole bag. ``topic_names_only`` prints just the topic names.
+topics, services and actions by name (the default), type or count (a service's event count, an action's
+messages; with ``verbose`` requests plus responses, and an action's feedback and status messages);
+``verbose`` reads every message once to add each topic's, service's and action's size contribution
+(serialized bytes) and to count the requests and responses of each service and of each action's three services:
+the distinct (client, sequence number) pairs among their request and response events, so a call seen by both
+client and server counts once. Unlike rosbag2, which lists a service and an action once per file of a split bag
+with that file's counts, each is listed once with the counts of the whole bag; and unlike Kilted, whose
+non-verbose action lines give ``send_goal`` the ``get_result`` event count, each service gets its own.
+``topic_names_only`` prints just the topic names.
 """
 from __future__ import annotations
 
@@ -118,12 +122,24 @@ def _block(label: str, lines: list[str], width: int = _LABEL_WIDTH) -> list[str]
 
 
 @dataclass
+class _Calls:
+    """What ``verbose`` counts of one service (or an action's service): the distinct (client, sequence number)
+    pairs among its request events and among its response events, as rosbag2_cpp's ``Info`` counts them."""
+
+    requests: set[tuple[bytes, int]] = field(default_factory=set)
+    responses: set[tuple[bytes, int]] = field(default_factory=set)
+
+    @property
+    def count(self) -> int:
+        return len(self.requests) + len(self.responses)
+
+
+@dataclass
 class _Service:
     """A recorded service: its event topic's entry, and what ``verbose`` counts."""
 
     topic: StoredTopic
-    requests: set[tuple[bytes, int]] = field(default_factory=set)
-    responses: set[tuple[bytes, int]] = field(default_factory=set)
+    calls: _Calls = field(default_factory=_Calls)
 
     @property
     def name(self) -> str:
@@ -134,7 +150,32 @@ class _Service:
         return service_type(self.topic.type)
 
 
-def _sorted(entries: Sequence[StoredTopic] | Sequence[_Service], sort: str,
+@dataclass
+class _Action:
+    """A recorded action: those of its five topics the bag holds (by interface), and what ``verbose`` counts of
+    its three services."""
+
+    name: str
+    parts: dict[str, StoredTopic] = field(default_factory=dict)
+    calls: dict[str, _Calls] = field(default_factory=lambda: {i: _Calls() for i in SERVICE_INTERFACES})
+
+    @property
+    def type(self) -> str:
+        return next((t for t in (action_type(topic.type) for topic in self.parts.values()) if t), "unknown")
+
+    def messages(self, interface: str) -> int:
+        part = self.parts.get(interface)
+        return part.message_count if part else 0
+
+    def count(self, verbose: bool) -> int:
+        """What ``--sort count`` orders actions by: their messages, or with ``verbose`` the feedback and status
+        messages plus the services' requests and responses (rosbag2_py's ``generate_sorted_idx``)."""
+        if verbose:
+            return self.messages("feedback") + self.messages("status") + sum(c.count for c in self.calls.values())
+        return sum(part.message_count for part in self.parts.values())
+
+
+def _sorted(entries: Sequence[StoredTopic] | Sequence[_Service] | Sequence[_Action], sort: str,
             count: Callable[..., int]) -> list:
     """``entries`` ordered as rosbag2's ``generate_sorted_idx`` orders them (ties in bag order)."""
     if sort not in SORT_METHODS:
@@ -143,25 +184,26 @@ def _sorted(entries: Sequence[StoredTopic] | Sequence[_Service], sort: str,
     return sorted(entries, key=key)
 
 
-def _read_services(bag: Path, services: dict[str, _Service]) -> dict[str, int]:
-    """Read every message once: the serialized bytes per topic, and each service's requests and responses."""
+def _read_calls(bag: Path, calls: dict[str, _Calls]) -> dict[str, int]:
+    """Read every message once: the serialized bytes per topic, and the requests and responses of the services
+    whose event topics ``calls`` names (services' and actions' alike)."""
     sizes: dict[str, int] = defaultdict(int)
     try:
         with BagReader(bag) as reader:
             for message in reader.messages():
                 topic = message.connection.topic
                 sizes[topic] += len(message.data)
-                service = services.get(topic)
-                if service is None:
+                counted = calls.get(topic)
+                if counted is None:
                     continue
                 try:
                     kind, client, sequence = event_info(message.data)
                 except ValueError as error:
                     raise BagInfoError(f"{topic} at {message.log_time_ns}: {error}") from None
                 if kind in REQUEST_EVENTS:
-                    service.requests.add((client, sequence))
+                    counted.requests.add((client, sequence))
                 elif kind in RESPONSE_EVENTS:
-                    service.responses.add((client, sequence))
+                    counted.responses.add((client, sequence))
     except BagReadError as error:
         raise BagInfoError(str(error)) from error
     return sizes
@@ -175,23 +217,23 @@ def _unfinished(bag_dir: Path, listed: list[str]) -> list[str]:
     return [f"Warning: {note}" for note in notes]
 
 
-def _actions(actions: dict[str, dict[str, StoredTopic]]) -> list[str]:
-    """The ``Actions:`` part, as rosbag2 Kilted prints it (nothing when the bag holds no action)."""
-    if not actions:
-        return []
+def _actions(actions: list[_Action], sizes: dict[str, int], verbose: bool) -> list[str]:
+    """The ``Actions:`` part, as rosbag2 Kilted prints it (rosbag2_py's ``format_action_with_type``, and with
+    ``verbose`` ``format_action_info``): every action with its two topics and three services, counted."""
     lines = [*_block("Actions:", [str(len(actions))]), "Action information:"]
-    for name, parts in actions.items():
-        types = [action_type(topic.type) for topic in parts.values()]
-        known = next((t for t in types if t), "unknown")
-        services = [interface for interface in SERVICE_INTERFACES if interface in parts]
-        formats = sorted({topic.serialization_format for topic in parts.values()})
-        lines.append(f"  Action: {name} | Type: {known} | Topics: {len(parts) - len(services)} | "
-                     f"Services: {len(services)} | Serialization Format: {', '.join(formats)}")
-        for interface in ("feedback", "status", *SERVICE_INTERFACES):
-            if interface in parts:
-                kind, count = ("Service", "Event Count") if interface in SERVICE_INTERFACES else ("Topic", "Count")
-                lines.append(f"    {kind}: {interface} | {count}: {parts[interface].message_count}")
-        if not services:
+    for action in actions:
+        size = (f"Size Contribution: {_file_size(sum(sizes.get(t.name, 0) for t in action.parts.values()))} | "
+                if verbose else "")
+        formats = ", ".join(sorted({topic.serialization_format for topic in action.parts.values()}))
+        lines.append(f"  Action: {action.name} | Type: {action.type} | Topics: 2 | Service: 3 | {size}"
+                     f"Serialization Format: {formats}")
+        lines += [f"    Topic: {topic} | Count: {action.messages(topic)}" for topic in ("feedback", "status")]
+        for interface in SERVICE_INTERFACES:
+            calls = action.calls[interface]
+            lines.append(f"    Service: {interface} | Request Count: {len(calls.requests)} | "
+                         f"Response Count: {len(calls.responses)}" if verbose else
+                         f"    Service: {interface} | Event Count: {action.messages(interface)}")
+        if not any(interface in action.parts for interface in SERVICE_INTERFACES):
             lines.append("    Note: no service events (no action introspection where it ran): its goals cannot "
                          "be replayed")
     return lines
@@ -204,16 +246,19 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
     ``--topic-name`` (``verbose`` wins over ``topic_names_only``, as in rosbag2)."""
     bag = Path(bag)
     summary = _summary(bag)
-    actions: dict[str, dict[str, StoredTopic]] = {}
+    actions: dict[str, _Action] = {}
     for topic in summary.topics:
         if is_action_topic(topic.name, topic.type):
-            actions.setdefault(action_name(topic.name), {})[action_interface(topic.name) or ""] = topic
+            name = action_name(topic.name)
+            actions.setdefault(name, _Action(name)).parts[action_interface(topic.name) or ""] = topic
     plain = [t for t in summary.topics if not is_action_topic(t.name, t.type)]
     topics = [t for t in plain if not is_service_event_topic(t.name, t.type)]
     services = {t.name: _Service(t) for t in plain if is_service_event_topic(t.name, t.type)}
-    sizes = _read_services(bag, services) if verbose else {}
-    by_count: Callable[..., int] = ((lambda s: len(s.requests) + len(s.responses)) if verbose
-                                    else (lambda s: s.topic.message_count))
+    calls = {name: service.calls for name, service in services.items()}
+    for action in actions.values():
+        calls.update({action.parts[i].name: action.calls[i] for i in SERVICE_INTERFACES if i in action.parts})
+    sizes = _read_calls(bag, calls) if verbose else {}
+    by_count: Callable[..., int] = ((lambda s: s.calls.count) if verbose else (lambda s: s.topic.message_count))
     topics = _sorted(topics, sort, lambda t: t.message_count)
     listed = _sorted(list(services.values()), sort, by_count)
     if topic_names_only and not verbose:
@@ -222,15 +267,15 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
     topic_lines = [f"Topic: {t.name} | Type: {t.type} | Count: {t.message_count} | {size(t.name)}"
                    f"Serialization Format: {t.serialization_format}" for t in topics]
     if verbose:
-        service_lines = [f"Service: {s.name} | Type: {s.type} | Request Count: {len(s.requests)} | "
-                         f"Response Count: {len(s.responses)} | {size(s.topic.name)}"
+        service_lines = [f"Service: {s.name} | Type: {s.type} | Request Count: {len(s.calls.requests)} | "
+                         f"Response Count: {len(s.calls.responses)} | {size(s.topic.name)}"
                          f"Serialization Format: {s.topic.serialization_format}" for s in listed]
     else:
         service_lines = [f"Service: {s.name} | Type: {s.type} | Event Count: {s.topic.message_count} | "
                          f"Serialization Format: {s.topic.serialization_format}" for s in listed]
     start, duration = summary.starting_time_ns, summary.duration_ns
     service_messages = sum(service.topic.message_count for service in services.values()) + sum(
-        topic.message_count for parts in actions.values() for topic in parts.values())
+        topic.message_count for action in actions.values() for topic in action.parts.values())
     lines = [
         *_block("Files:", summary.files),
         *_block("Bag size:", [_file_size(summary.size)]),
@@ -241,9 +286,9 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
         *_block("End:", [_time(start + duration)]),
         *_block("Messages:", [str(summary.message_count - service_messages)]),
         *_block("Topic information:", topic_lines),
-        *_block("Service:", [str(len(service_lines))]),
+        *_block("Services:", [str(len(service_lines))]),
         *_block("Service information:", service_lines, _SERVICE_LABEL_WIDTH),
-        *_actions(actions),
+        *_actions(_sorted(list(actions.values()), sort, lambda a: a.count(verbose)), sizes, verbose),
         *(_unfinished(bag, summary.files) if bag.is_dir() else []),
     ]
     return "\n".join(line.rstrip() for line in lines)

@@ -361,8 +361,13 @@ class Player(ComponentNode):
         response.success = self._playback.play_next()
         return response
 
+    def burst(self, count: int) -> int:
+        """rosbag2's ``Player::burst``: publish the next ``count`` messages at once while paused (0: the rest of
+        the bag); how many went out (0 when not paused, with a warning)."""
+        return self._playback.burst(count)
+
     def _on_burst(self, request: Burst.Request, response: Burst.Response) -> Burst.Response:
-        response.actually_burst = self._playback.burst(request.num_messages)
+        response.actually_burst = self.burst(request.num_messages)
         return response
 
     def _on_seek(self, request: Seek.Request, response: Seek.Response) -> Seek.Response:
