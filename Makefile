@@ -10,7 +10,12 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup demo test sweep bench clean ffmpeg
+.PHONY: setup demo test sweep bench clean ffmpeg bytecode
+
+# pip compiles what it installs, but an editable install leaves the tree's modules (and the interfaces built into
+# build/) as source: where PYTHONDONTWRITEBYTECODE is set, every container and CLI process the tests start would
+# compile them again. compileall writes the bytecode once; it skips what is up to date.
+SOURCES := component_container components baglib ipc_component ipc_testing build/interfaces tests examples
 
 $(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -24,7 +29,10 @@ $(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
 
 setup: $(STAMP)
 
-demo: $(STAMP)
+bytecode: $(STAMP)
+	$(BIN)/python -m compileall -q -j 0 $(SOURCES) >/dev/null
+
+demo: $(STAMP) bytecode
 	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python examples/record_demo.py
 
 # Workers of pytest-xdist: more than the 2 cores, since most tests wait on ROS discovery and other processes.
@@ -35,10 +43,10 @@ ffmpeg:
 	@command -v ffmpeg >/dev/null || { [ "$$(id -u)" = 0 ] && apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; } \
 	  || { echo "make test needs the ffmpeg program: sudo apt-get install ffmpeg" >&2; exit 1; }
 
-test: $(STAMP) ffmpeg
+test: $(STAMP) ffmpeg bytecode
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 tests
 
-sweep: $(STAMP) ffmpeg
+sweep: $(STAMP) ffmpeg bytecode
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
 
 bench: $(STAMP)
