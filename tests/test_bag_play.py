@@ -19,13 +19,14 @@ from typing import Any
 import pytest
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosbag2_interfaces.srv import PlayNext, Resume
+from rosbag2_interfaces.srv import PlayNext
 from std_msgs.msg import String
 
 from baglib.format.cdr_fast import serialize
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.write.writer import BagWriter
 from container_process import call, wait_until
+from ipc_testing import playback
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -43,28 +44,9 @@ def chatter_bag(path: Path, count: int, period_ms: int) -> Path:
 
 
 def play_to_the_end(probe: Node, *arguments: str) -> tuple[list[str], str]:
-    """Run ``bag play ARGUMENTS --start-paused`` and resume it once this process's /chatter subscription has matched
-    the player's publisher (instead of a delay long enough for discovery); the strings received, and stdout."""
-    got: list[String] = []
-    subscription = probe.create_subscription(String, "/chatter", got.append, RELIABLE)
-    resume = probe.create_client(Resume, "/rosbag2_player/resume")
-    try:
-        process = subprocess.Popen([CLI, "bag", "play", *arguments, "--start-paused"],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            assert wait_until(lambda: subscription.get_publisher_count() > 0, 30.0, probe), "never matched"
-            call(probe, resume, Resume.Request(), 30.0, again=True)
-            # Spin while it plays: Fast DDS drops the samples of a writer that is gone before they were taken.
-            wait_until(lambda: process.poll() is not None, 60.0, probe)
-        finally:
-            if process.poll() is None:
-                process.kill()
-        stdout, stderr = process.communicate(timeout=10)
-        assert process.returncode == 0, stderr
-        return [m.data for m in got], stdout
-    finally:
-        probe.destroy_client(resume)
-        probe.destroy_subscription(subscription)
+    """``bag play ARGUMENTS`` resumed once this process's /chatter subscription has matched the player's publisher
+    (instead of a delay long enough for discovery); the strings received, and stdout."""
+    return playback.play_to_the_end(probe, [CLI, "bag", "play", *arguments])
 
 
 def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:

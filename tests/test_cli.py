@@ -348,12 +348,12 @@ def test_load_extra_argument_must_be_a_boolean(clients: dict[str, ContainerClien
 def test_load_warns_about_parameters_the_component_does_not_declare(clients: dict[str, ContainerClient]) -> None:
     result = cli("load", MAIN, "components", "components::ImuDriver", "-p", "no_such_param:=1", "-p", "rat:=50.0")
     (unique_id,) = clients[MAIN].list().unique_ids
-    assert (result.returncode, result.stdout, result.stderr) == (0, lines(
+    assert (result.returncode, result.stdout, ours(result.stderr)) == (0, lines(
         f"Loaded component {unique_id} into '{MAIN}' container node as '/imu'"), lines(
         "Warning: /imu does not declare the parameters 'no_such_param', 'rat' (did you mean 'rate'?): ignored")), \
         result
     declared = cli("load", MAIN, "components", TALKER, "-p", "rate:=5.0")  # nothing to say
-    assert declared.returncode == 0 and declared.stderr == "", declared
+    assert declared.returncode == 0 and ours(declared.stderr) == "", declared
 
 
 def test_load_constructor_failure(clients: dict[str, ContainerClient]) -> None:
@@ -522,7 +522,7 @@ def test_a_closed_pipe_ends_the_command_quietly(tmp_path: pathlib.Path, verb: li
                                 stderr=subprocess.PIPE, text=True, timeout=60)
     finally:
         os.close(writer)
-    assert (result.returncode, result.stderr) == (141, ""), result  # 128 + SIGPIPE, as the shell reports cat's
+    assert (result.returncode, ours(result.stderr)) == (141, ""), result  # 128 + SIGPIPE, as the shell reports cat's
 
 
 def verb_paths(parser: Any, path: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], Any]]:

@@ -14,19 +14,16 @@ from pathlib import Path
 
 import pytest
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
-from std_msgs.msg import String
 
-from container_process import wait_until
 from installed import REPO, InstalledEnv
 from ipc_testing.client import ContainerClient
+from ipc_testing.playback import play_to_the_end
 
 #: Folders of the tree that are not shipped: tests, benchmarks, examples (their own packages), the interface
 #: sources (shipped as the generated packages) and docs.
 NOT_SHIPPED = {"tests", "benchmarks", "examples", "srv", "docs", "build", "dist"}
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 #: What a plugin needs to load here: a bag to write, a bag to (fail to) read, a free port, a topic and codec.
 PLUGIN_PARAMETERS = {"Recorder": {"storage.uri": "bag"}, "Player": {"storage.uri": "missing_bag"},
                      "FoxgloveBridge": {"port": 0},
@@ -140,16 +137,7 @@ def test_installed_bag_play_plays_a_bag_written_by_rosbags(installed_env: Instal
             data = typestore.serialize_cdr(typestore.types["std_msgs/msg/String"](data=f"m{n}"),
                                            "std_msgs/msg/String")
             writer.write(connection, 1_700_000_000_000_000_000 + n * 10_000_000, data)
-    got: list[str] = []
-    subscription = probe.create_subscription(String, "/installed_chatter", lambda m: got.append(m.data), RELIABLE)
-    try:
-        process = subprocess.Popen([str(installed_env.script("ipc-component")), "bag", "play", str(bag),
-                                    "--delay", "2"], cwd=installed_env.root, env=installed_env.env(),
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        wait_until(lambda: process.poll() is not None, 60.0, probe)
-        stdout, stderr = process.communicate(timeout=10)
-        assert process.returncode == 0, stderr
-        wait_until(lambda: len(got) == 10, 5.0, probe)
-        assert got == [f"m{n}" for n in range(10)]
-    finally:
-        probe.destroy_subscription(subscription)
+    # --delay is applied before the paused start: exercised on the way
+    got, _ = play_to_the_end(probe, [installed_env.script("ipc-component"), "bag", "play", bag, "--delay", "0.2"],
+                             "/installed_chatter", env=installed_env.env(), cwd=installed_env.root)
+    assert got == [f"m{n}" for n in range(10)]

@@ -1,0 +1,49 @@
+"""``bag play`` run as a process, started paused and resumed once a subscriber of this process has matched.
+
+A player that publishes before an external subscriber has matched loses the first messages (rosbag2 users pass
+``--delay`` and hope discovery is done by then). Tests cannot hope: they start the player paused, wait for their
+subscription to match its publisher, then call ``~/resume``.
+"""
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosbag2_interfaces.srv import Resume
+from std_msgs.msg import String
+
+from ipc_testing.calls import call, wait_until
+
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/chatter",
+                    env: dict[str, str] | None = None, cwd: Path | None = None) -> tuple[list[str], str]:
+    """Run ``command`` (a ``bag play`` command line) with ``--start-paused``, resume it once ``probe``'s
+    ``std_msgs/String`` subscription of ``topic`` has matched the player's publisher, and wait for its end.
+
+    Returns the strings received and the command's stdout; AssertionError if it never matched or failed.
+    """
+    got: list[String] = []
+    subscription = probe.create_subscription(String, topic, got.append, RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    try:
+        process = subprocess.Popen([str(part) for part in command] + ["--start-paused"], stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
+        try:
+            assert wait_until(lambda: subscription.get_publisher_count() > 0, 30.0, probe), "never matched"
+            call(probe, resume, Resume.Request(), 30.0, again=True)
+            # Spin while it plays: Fast DDS drops the samples of a writer that is gone before they were taken.
+            wait_until(lambda: process.poll() is not None, 60.0, probe)
+        finally:
+            if process.poll() is None:
+                process.kill()
+        stdout, stderr = process.communicate(timeout=10)
+        assert process.returncode == 0, stderr
+        return [m.data for m in got], stdout
+    finally:
+        probe.destroy_client(resume)
+        probe.destroy_subscription(subscription)
