@@ -116,15 +116,27 @@ def _run_generator(package: str, work: pathlib.Path, prefix: pathlib.Path, loade
                  **extra)
 
 
-def _compile_object(source: pathlib.Path, includes: list[pathlib.Path]) -> pathlib.Path:
-    """Compile one C or C++ file (by suffix) to a position-independent object next to it.
+def _translation_units(library: _Library) -> list[list[pathlib.Path]]:
+    """The library's sources grouped into translation units: every ``*__description.c`` alone (each defines the
+    same file-level statics, ``implicit_encoding`` and others), all the others together (the generated files name
+    everything after their own type), so that the runtime headers they all include are parsed once."""
+    alone = [source for source in library.sources if source.name.endswith("__description.c")]
+    together = [source for source in library.sources if source not in alone]
+    return [*([together] if together else []), *([source] for source in alone)]
+
+
+def _compile_object(sources: list[pathlib.Path], includes: list[pathlib.Path], output: pathlib.Path) -> pathlib.Path:
+    """Compile ``sources`` (C or C++, by suffix) as one translation unit to a position-independent ``output``.
 
     Without optimisation: these are the typesupports of a few services and rarely published events, whose speed
     does not matter, and -O0 builds them in about two thirds of the time of -O2 (every install and every wheel the
     tests build pays it)."""
-    cxx = source.suffix == ".cpp"
+    cxx = sources[0].suffix == ".cpp"
     compiler = os.environ.get("CXX", "g++") if cxx else os.environ.get("CC", "gcc")
-    output = source.with_suffix(source.suffix + ".o")
+    source = sources[0]
+    if len(sources) > 1:
+        source = output.with_suffix(sources[0].suffix)
+        source.write_text("".join(f'#include "{s}"\n' for s in sources))
     _run([compiler, "-c", "-fPIC", "-O0", "-w", *(["-std=c++17"] if cxx else []), "-o", str(output), str(source),
           *(f"-I{i}" for i in includes)], output.name)
     return output
@@ -229,9 +241,9 @@ def _finish_package(package: str, build_dir: pathlib.Path, libraries: list[_Libr
 def build_packages(packages: list[str], build_dir: pathlib.Path) -> list[BuiltPackage]:
     """Generate and compile ``packages`` into ``build_dir``, on every core.
 
-    The code generators run in worker processes (one per package and generator: they are pure Python), then
-    every source file compiles to an object at once, and the libraries link in dependency order. Compared with one
-    package after the other and one compiler run per library, this halves an install on two cores.
+    The code generators run in worker processes (one per package and generator: they are pure Python), then the
+    translation units of every library (:func:`_translation_units`) compile at once, and the libraries link in
+    dependency order.
     """
     prefix = _ros_prefix()
     os.environ.setdefault("AMENT_PREFIX_PATH", str(prefix))  # the generators locate their templates this way
@@ -246,9 +258,12 @@ def build_packages(packages: list[str], build_dir: pathlib.Path) -> list[BuiltPa
                     for package in packages for generator in GENERATORS]:
             job.result()
     libraries = {package: _libraries(package, build_dir, prefix) for package in packages}
+    objects_dir = build_dir / "work" / "objects"
+    objects_dir.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        objects = {id(library): [pool.submit(_compile_object, source, library.includes)
-                                 for source in library.sources]
+        objects = {id(library): [pool.submit(_compile_object, unit, library.includes,
+                                             objects_dir / f"{library.output.name}.{n}.o")
+                                 for n, unit in enumerate(_translation_units(library))]
                    for package_libraries in libraries.values() for library in package_libraries}
         for package_libraries in libraries.values():
             for library in package_libraries:
