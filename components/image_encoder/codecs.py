@@ -18,15 +18,17 @@ from __future__ import annotations
 
 import fractions
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import av
 import numpy as np
 import simplejpeg
-from av.video.frame import PictureType
 
 from components.bounds import Bounds
+from components.image_encoder._pyav import av
 from components.image_encoder.scheduling import ordinary_scheduling, without_sys_nice
+
+if TYPE_CHECKING:
+    from av import VideoFrame
 
 #: The short names of the video formats CompressedVideo carries, and the FFmpeg encoder each one means.
 VIDEO_ENCODERS = {"h264": "libx264", "h265": "libx265", "av1": "libsvtav1"}
@@ -79,7 +81,7 @@ def choose(codec: str, preset: str, quality: int, bitrate: int, keyframe_interva
     else:
         encoder = VIDEO_ENCODERS.get(codec, codec)
         try:
-            found = av.Codec(encoder, "w")
+            found = av().Codec(encoder, "w")
         except Exception:  # PyAV raises UnknownCodecError (and others for odd names)
             raise ValueError(f"parameter '{prefix}codec': {codec!r} is neither jpeg, png, {', '.join(VIDEO_ENCODERS)} "
                              "nor an FFmpeg video encoder this installation has") from None
@@ -144,9 +146,9 @@ def scaled_size(width: int, height: int, out_width: int, even: bool, at_most: bo
     return out_width, out_height + (out_height % 2 if even else 0)
 
 
-def _frame(pixels: np.ndarray, encoding: str, size: tuple[int, int], pix_fmt: str) -> av.VideoFrame:
+def _frame(pixels: np.ndarray, encoding: str, size: tuple[int, int], pix_fmt: str) -> VideoFrame:
     """An FFmpeg frame of ``pixels`` converted (swscale) to ``size`` and ``pix_fmt``."""
-    frame = av.VideoFrame.from_ndarray(pixels, format=PIXELS[encoding][2])
+    frame = av().VideoFrame.from_ndarray(pixels, format=PIXELS[encoding][2])
     if (frame.width, frame.height) == size and frame.format.name == pix_fmt:
         return frame
     return frame.reformat(width=size[0], height=size[1], format=pix_fmt)
@@ -180,7 +182,7 @@ class StillCodec:
         key = (*size, pix_fmt)
         context = self._png.get(key)
         if context is None:
-            context = self._png[key] = av.CodecContext.create("png", "w")
+            context = self._png[key] = av().CodecContext.create("png", "w")
             context.width, context.height, context.pix_fmt = size[0], size[1], pix_fmt
             context.options = {"compression_level": str(self._choice.quality)}
         return b"".join(bytes(p) for p in context.encode(_frame(pixels, image.encoding, size, pix_fmt)))
@@ -194,7 +196,7 @@ class VideoCodec:
 
     def __init__(self, choice: CodecChoice, width: int, height: int) -> None:
         self.size = (width, height)
-        context = av.CodecContext.create(choice.encoder, "w")
+        context = av().CodecContext.create(choice.encoder, "w")
         context.width, context.height, context.pix_fmt = width, height, "yuv420p"
         context.time_base, context.framerate = TIME_BASE, 1 / TIME_BASE
         context.gop_size = choice.keyframe_interval
@@ -218,7 +220,7 @@ class VideoCodec:
         frame = _frame(pixels, encoding, self.size, "yuv420p")
         frame.pts, self._pts = self._pts, self._pts + 1
         if keyframe:
-            frame.pict_type = PictureType.I
+            frame.pict_type = av().video.frame.PictureType.I
         with without_sys_nice():  # SVT-AV1 starts threads while encoding too: never real-time ones
             packets = self._context.encode(frame)
         return [(p.pts, p.is_keyframe, bytes(p)) for p in packets]

@@ -19,11 +19,11 @@ from array import array
 from dataclasses import dataclass
 from typing import Any
 
-import av
 import numpy as np
 import simplejpeg
 from sensor_msgs.msg import Image
 
+from components.image_encoder._pyav import av
 from components.image_encoder.codecs import PIXELS
 
 #: CompressedVideo ``format`` -> FFmpeg decoder.
@@ -89,7 +89,7 @@ class StillDecoder:
             if kind == "jpeg":
                 return self._jpeg(message, data, encoding)
             return self._png_image(message, data, encoding)
-        except (ValueError, av.FFmpegError) as exc:
+        except (ValueError, av().FFmpegError) as exc:
             raise DecodeError(f"{kind.upper()} data cannot be decoded: {exc}") from None
 
     @staticmethod
@@ -102,8 +102,8 @@ class StillDecoder:
 
     def _png_image(self, message: Any, data: Any, encoding: str) -> Image:
         if self._png is None:
-            self._png = av.CodecContext.create("png", "r")
-        frames = self._png.decode(av.Packet(bytes(data)))
+            self._png = av().CodecContext.create("png", "r")
+        frames = self._png.decode(av().Packet(bytes(data)))
         if not frames:
             raise DecodeError("PNG data gave no picture")
         frame = frames[-1]
@@ -122,7 +122,7 @@ class VideoDecoder:
         if decoder is None:
             raise DecodeError(f"video format {video_format!r} is not one of {', '.join(VIDEO_DECODERS)}")
         self.video_format = video_format
-        self._context = av.CodecContext.create(decoder, "r")
+        self._context = av().CodecContext.create(decoder, "r")
         # One frame out per frame in: FFmpeg's frame threads (and dav1d's) would hold frames back.
         self._context.thread_type = "SLICE"
         if decoder == "libdav1d":
@@ -136,8 +136,8 @@ class VideoDecoder:
         if message.format != self.video_format:
             raise DecodeError(f"format {message.format!r} in a {self.video_format} stream")
         try:
-            frames = self._context.decode(av.Packet(bytes(message.data)))
-        except av.FFmpegError as exc:
+            frames = self._context.decode(av().Packet(bytes(message.data)))
+        except av().FFmpegError as exc:
             if not self._started:
                 return None
             self._started = False

@@ -26,7 +26,7 @@ from builtin_interfaces.msg import Time
 from foxglove_msgs.msg import CompressedVideo
 from sensor_msgs.msg import CompressedImage
 
-from components.image_encoder.codecs import CodecChoice, EncodeError, StillCodec, VideoCodec, pixels_of, scaled_size
+from components.image_encoder.codecs import CodecChoice, StillCodec, VideoCodec, pixels_of, scaled_size
 
 #: Frames a stream holds while its encoder is busy: one being waited for, one more to absorb jitter.
 QUEUE_FRAMES = 2
