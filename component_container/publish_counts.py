@@ -19,8 +19,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from rclpy.serialization import serialize_message
-
 #: Key prefix of one published topic in a component's status: ``published /front_camera/image_raw``.
 PUBLISHED_PREFIX = "published "
 #: Key of the container's uptime in its own status (seconds on its steady clock, to the microsecond): the
@@ -69,6 +67,9 @@ class PublishCounter:
 
 def _overhead(message: Any) -> int:
     """Serialized bytes of ``message`` outside its ``data`` buffer (0 if it cannot be serialized)."""
+    # Imported here, once per publisher: the CLI reads this module's reports without loading rclpy.
+    from rclpy.serialization import serialize_message
+
     try:
         return max(0, len(serialize_message(message)) - data_size(message))
     except Exception:  # noqa: BLE001 - an estimate only: a message rclpy refuses goes out (or fails) elsewhere

@@ -21,12 +21,14 @@ import glob
 import json
 import re
 import time
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from baglib.format import fleet_keys
-from ipc_component.fleet_link import ContainerLink, Fleet
 from ipc_component.ros_session import BUDGET, CALL_TIMEOUT, CliError, RosSession
 from ipc_component.verb_arguments import add_verb, parameter_msgs
+
+if TYPE_CHECKING:
+    from ipc_component.fleet_link import ContainerLink, Fleet
 
 RECORDER_PLUGIN = ("components", "components::Recorder")
 NODE_PREFIX = "record_"
@@ -155,7 +157,7 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
                 if any(name == recorder_full_name(c, session) for _id, name in found[c] or [])]
         if busy:
             raise CliError(f"Session '{session}' is already recording in {', '.join(busy)}")
-        fleet = Fleet(ros.node, ros.executor, [*containers, *missing])
+        fleet = ros.fleet([*containers, *missing])
         for link in fleet.links[len(containers):]:
             link.error = "not found on the ROS graph"
         fleet.connect(time.monotonic() + BUDGET)
@@ -233,7 +235,7 @@ def _session_recorders(ros: RosSession, args: argparse.Namespace) -> tuple[Fleet
     if not recorders:
         raise CliError("No recorder of " + (f"session '{args.session}'" if args.session else "a fleet session")
                        + " found")
-    fleet = Fleet(ros.node, ros.executor, sorted(recorders))
+    fleet = ros.fleet(sorted(recorders))
     fleet.connect(time.monotonic() + BUDGET)
     fleet.measure_offsets(time.monotonic() + BUDGET)
     return fleet, recorders

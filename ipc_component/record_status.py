@@ -11,14 +11,16 @@ import argparse
 import json
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from baglib.format import fleet_keys
-from ipc_component.fleet_link import ContainerLink, Fleet
 from ipc_component.record_fleet import recorder_full_name
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.text_table import format_table
 from ipc_component.verb_arguments import add_verb
+
+if TYPE_CHECKING:
+    from ipc_component.fleet_link import ContainerLink
 
 RECORDER_SERVICES = {"get_stats": "std_srvs/srv/Trigger", "split_bagfile": "rosbag2_interfaces/srv/SplitBagfile"}
 HEADER = ("HOST", "CONTAINER", "SESSION", "BAG", "ELAPSED", "MB/S", "MESSAGES", "DROPS", "FREE", "TO FULL")
@@ -83,7 +85,7 @@ def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
             placed = [(c, n) for c, n in placed if n == recorder_full_name(c, args.session)]
         if not placed:
             raise CliError("No recorder found" + (f" of session '{args.session}'" if args.session else ""))
-        fleet = Fleet(ros.node, ros.executor, sorted({container for container, _ in placed}))
+        fleet = ros.fleet(sorted({container for container, _ in placed}))
         fleet.connect(time.monotonic() + BUDGET)
         links = {link.name: link for link in fleet.links}
         clients = {(c, n): fleet.component_client(links[c], Trigger, f"{n}/get_stats") for c, n in placed}

@@ -92,6 +92,13 @@ class RosSession:
         return (f"Searched {', '.join(searched)}: a container started with other values is not seen, check "
                 "them in both shells.")
 
+    def fleet(self, containers: Sequence[str]) -> Any:
+        """An :class:`ipc_component.fleet_link.Fleet` of ``containers`` on this session's node (imported here, as
+        rclpy is: the verbs that only read bags load no ROS at all)."""
+        from ipc_component.fleet_link import Fleet
+
+        return Fleet(self.node, self.executor, containers)
+
     def container_client(self, srv_type: Any, container: str, service: str, deadline: float) -> Any:
         """A client of ``<container>/_container/<service>``, found, ready and able to get replies.
 

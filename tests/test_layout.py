@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import ast
 import pathlib
+import subprocess
+import sys
 
 import pytest
 
@@ -170,3 +172,19 @@ def test_the_cycle_rule_catches_a_circle() -> None:
                "ipc_component.text_table": set(),
                "components.a": {"ipc_component.cli"}}
     assert import_cycles(modules) == [["ipc_component.cli", "ipc_component.top"]]
+
+
+@pytest.mark.parametrize(("imported", "not_loaded"), [
+    # the bag verbs (info, merge, convert, export, recover) need no ROS: rclpy and the interfaces cost ~0.1 CPU-s
+    ("ipc_component.cli", ("rclpy", "composition_interfaces", "av")),
+    # the components import the codec modules for their parameters; PyAV loads at the first frame (~50 ms)
+    ("components.recorder.recorder", ("av",)),
+    ("components.player.player", ("av",)),
+    ("components.foxglove_bridge.bridge", ("av",)),
+])
+def test_heavy_modules_load_where_they_are_used(imported: str, not_loaded: tuple[str, ...]) -> None:
+    """Importing ``imported`` in a fresh interpreter leaves ``not_loaded`` unimported (they load on first use)."""
+    probe = f"import sys, {imported}; print(' '.join(m for m in {not_loaded!r} if m in sys.modules))"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [], f"importing {imported} loads {done.stdout.split()}"
