@@ -43,11 +43,13 @@ ffmpeg:
 	@command -v ffmpeg >/dev/null || { [ "$$(id -u)" = 0 ] && apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; } \
 	  || { echo "make test needs the ffmpeg program: sudo apt-get install ffmpeg" >&2; exit 1; }
 
+# One OpenBLAS thread in the processes the tests start: every ROS Python process imports numpy, whose OpenBLAS
+# starts a thread per core that spins for a while; the suite starts hundreds of processes and does no linear algebra.
 test: $(STAMP) ffmpeg bytecode
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 tests
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 tests
 
 sweep: $(STAMP) ffmpeg bytecode
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
 
 bench: $(STAMP)
 	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python benchmarks/record_bench.py $(BENCH_ARGS)
