@@ -356,15 +356,20 @@ def test_the_player_sends_recorded_goals_to_the_running_action_server(tmp_path: 
         writer.write(topic, serialize_message(message), T0 + i * 10_000_000, T0 + i * 10_000_000)
     writer.close()
 
+    services = [f"{FIB}/_action/{service}" for service in ("send_goal", "cancel_goal", "get_result")]
+    clients_before = {service: fibonacci.server_node.count_clients(service) for service in services}
     with in_process_manager("action_replay_test") as manager:
         player = manager.load(load_request({
             "package": "components", "plugin": "components::Player", "name": "action_player",
             "parameters": {"storage.uri": str(tmp_path / "bag"), "play.send_actions_as_client": True,
                            "play.start_paused": True}}, 1)).node
         assert FEEDBACK not in player.stats()["published"]
-        # the player's action client must know the server before the first goal (else rosbag2 skips it too)
+        # the player's action client must know the server before the first goal (else rosbag2 skips it too),
+        # and the server the client: a request from a writer the server has not discovered yet is dropped
         replay_client = player._senders[SEND_GOAL]._replay.client
         assert wait_until(replay_client.server_is_ready, 20.0)
+        assert wait_until(lambda: all(fibonacci.server_node.count_clients(service) > clients_before[service]
+                                      for service in services), 20.0)
         player.resume()
         assert wait_until(lambda: len(fibonacci.executed) == 2 and fibonacci.cancel_requests, 20.0), \
             (fibonacci.executed, fibonacci.cancel_requests, player.stats())
