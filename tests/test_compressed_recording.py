@@ -103,6 +103,8 @@ def record(manager: ComponentManager, tmp_path: Path, codec: str, **parameters: 
     manager.unload(camera.unique_id)
     encoder = next(c.node for c in manager.components() if isinstance(c.node, ImageEncoder))
     assert wait_until(lambda: encoder.stats()["topics"][CAMERA]["waiting"] == 0, 20.0)
+    # the probe subscription's callback for the camera's last frame may still be queued when the encoder is done
+    wait_until(lambda: len(probe.messages) == encoder.stats()["topics"][CAMERA]["received"], 20.0)
     counts = encoder.stats()["topics"][CAMERA]
     assert counts["received"] == len(probe.messages) and counts["rejected"] == 0, counts
     print(f"{codec}: the encoder skipped {counts['skipped']} of {len(probe.messages)} frames")

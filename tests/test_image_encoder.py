@@ -228,6 +228,8 @@ def test_camera_frames_are_encoded_by_reference_and_accounted_for(manager: Compo
     assert wait_until(lambda: len(video.messages) >= 20, 30.0)
     manager.unload(next(c.unique_id for c in manager.components() if c.node is camera))
     assert wait_until(lambda: encoder.stats()["topics"][topic]["waiting"] == 0, 20.0)
+    # the raw subscription's callback for the camera's last frame may still be queued when the encoder is done
+    wait_until(lambda: len(raw.messages) == encoder.stats()["topics"][topic]["received"], 20.0)
     counts = encoder.stats()["topics"][topic]
     assert counts["received"] == len(raw.messages)
     assert counts["published"] + counts["skipped"] == counts["received"] and counts["rejected"] == 0
