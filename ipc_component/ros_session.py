@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
+
+if TYPE_CHECKING:
+    from ipc_component.fleet_link import Fleet
 
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
 CALL_TIMEOUT = 60.0      # s: waiting for a LoadNode / UnloadNode reply (component constructors may be slow)
@@ -92,8 +95,8 @@ class RosSession:
         return (f"Searched {', '.join(searched)}: a container started with other values is not seen, check "
                 "them in both shells.")
 
-    def fleet(self, containers: Sequence[str]) -> Any:
-        """An :class:`ipc_component.fleet_link.Fleet` of ``containers`` on this session's node (imported here, as
+    def fleet(self, containers: Sequence[str]) -> Fleet:
+        """A :class:`~ipc_component.fleet_link.Fleet` of ``containers`` on this session's node (imported here, as
         rclpy is: the verbs that only read bags load no ROS at all)."""
         from ipc_component.fleet_link import Fleet
 
