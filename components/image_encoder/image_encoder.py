@@ -16,14 +16,16 @@ default), ``bitrate`` (bits/s, video, instead of quality), ``keyframe_interval``
 
 Services: ``~/request_keyframe`` (std_srvs/Trigger: every video stream's next frame is a keyframe with its
 parameter sets) and ``~/get_stats`` (std_srvs/Trigger, JSON counts per topic). ``/diagnostics`` shows the same
-counts; skipped and rejected frames are its drops.
+counts; skipped, rejected and stopped frames are its drops. Unloading logs each stream's final counts.
+
+In-process readers (a recorder) find each output's stream through :mod:`components.image_encoder.outputs`.
 """
 from __future__ import annotations
 
 import functools
 import json
 import re
-from typing import Any, Callable
+from typing import Any
 
 from foxglove_msgs.msg import CompressedVideo
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -33,6 +35,7 @@ from std_srvs.srv import Trigger
 from component_container.component_node import ComponentNode
 from component_container.health import DROPPED, OK, WARN, Health
 from components.bounds import Bounds
+from components.image_encoder import outputs
 from components.image_encoder.codecs import check_codec, choose
 from components.image_encoder.stream import EncodeStream
 from components.node_parameters import clean, declare_defaults
@@ -58,7 +61,7 @@ class ImageEncoder(ComponentNode):
     def __init__(self, node_name: str = "image_encoder", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         self._streams: dict[str, EncodeStream] = {}
-        self._keyframe_listeners: list[Callable[[str, Any], None]] = []
+        self._outputs: dict[str, Any] = {}  # per output topic, its publisher
         values = declare_defaults(self, DEFAULTS)
         self._topics = [absolute_topic(t) for t in clean(values["topics"])]
         try:
@@ -105,34 +108,27 @@ class ImageEncoder(ComponentNode):
     def _discover(self) -> None:
         """Encode every new Image topic the regex matches (never the encoder's own outputs)."""
         assert self._regex is not None
-        outputs = {self.output_topic(t) for t in self._streams}
+        produced = {self.output_topic(t) for t in self._streams}
         for topic, types in self.get_topic_names_and_types():
-            if (IMAGE_TYPE in types and topic not in self._streams and topic not in outputs
+            if (IMAGE_TYPE in types and topic not in self._streams and topic not in produced
                     and self._regex.search(topic)):
                 self._add_stream(topic)
 
     def _add_stream(self, topic: str) -> None:
         msg_type = CompressedVideo if self._choice.is_video else CompressedImage
-        publisher = self.create_publisher(msg_type, self.output_topic(topic), OUTPUT_QOS)
-        stream = EncodeStream(topic, self._choice, self._width,
-                              functools.partial(self._publish, self.output_topic(topic), publisher),
-                              self.get_logger().error, subscribers=lambda: _subscriber_count(publisher))
+        output = self.output_topic(topic)
+        stream = EncodeStream(topic, self._choice, self._width, functools.partial(self._publish, output),
+                              self.get_logger().error,
+                              subscribers=lambda: _subscriber_count(self._outputs[output]))
         self._streams[topic] = stream
+        outputs.register(self._ipm, output, stream)  # known before the publisher puts the topic on the graph
+        self._outputs[output] = self.create_publisher(msg_type, output, OUTPUT_QOS)
         # Inline: the driver's publish() only appends a reference to the stream's mailbox (never blocks).
         self.create_subscription(Image, topic, stream.offer, qos_profile_sensor_data, intra_process_inline=True)
         self.get_logger().info(f"Encoding {topic} as {self._choice.codec} on {self.output_topic(topic)}")
 
-    def _publish(self, topic: str, publisher: Any, message: Any, keyframe: bool) -> None:
-        if keyframe and self._choice.is_video:
-            for listener in self._keyframe_listeners:
-                listener(topic, message)
-        publisher.publish(message)
-
-    def add_keyframe_listener(self, listener: Callable[[str, Any], None]) -> None:
-        """Call ``listener(output_topic, message)`` on the worker thread just before each video keyframe is
-        published: CompressedVideo carries no keyframe flag, and an in-process recorder that begins each file at
-        a keyframe must not parse the bitstream to find one."""
-        self._keyframe_listeners.append(listener)
+    def _publish(self, output: str, message: Any, keyframe: bool) -> None:
+        self._outputs[output].publish(message)
 
     def encodes(self, topic: str) -> bool:
         """Whether ``topic`` is one of the image topics this encoder compresses (named, or matched by regex)."""
@@ -157,8 +153,13 @@ class ImageEncoder(ComponentNode):
                             else f"{self._choice.codec} pictures are all self-contained")
         return response
 
+    def stream(self, topic: str) -> EncodeStream | None:
+        """The stream that encodes the image topic ``topic``, if it is encoded."""
+        return self._streams.get(topic)
+
     def stats(self) -> dict[str, Any]:
-        """Counts per input topic: received, published, skipped, rejected, keyframes, bytes, waiting."""
+        """Counts per input topic: received, published, skipped (behind), rejected, stopped, rate_limited,
+        keyframes, bytes, waiting."""
         return {"codec": self._choice.codec, "encoder": self._choice.encoder,
                 "topics": {topic: stream.stats() for topic, stream in list(self._streams.items())}}
 
@@ -169,20 +170,35 @@ class ImageEncoder(ComponentNode):
     def health(self) -> Health:
         """For /diagnostics: per topic its counts; WARN once frames were skipped or rejected."""
         topics = self.stats()["topics"]
-        lost = sum(t["skipped"] + t["rejected"] for t in topics.values())
+        lost = sum(_lost(t) for t in topics.values())
         values = {DROPPED: str(lost)}
         for topic, t in sorted(topics.items()):
-            values[topic] = (f"received {t['received']}, published {t['published']}, skipped {t['skipped']}, "
-                             f"rejected {t['rejected']}, keyframes {t['keyframes']}, bytes {t['bytes']}")
+            values[topic] = _describe(t)
         if lost:
             return Health(WARN, f"{lost} frame(s) not encoded (skipped or rejected)", values)
         return Health(OK, f"encoding {len(topics)} topic(s) as {self._choice.codec}", values)
 
     def destroy_node(self) -> None:
-        """Stop the workers (each finishes at most the frame it is encoding), then the node."""
-        for stream in list(getattr(self, "_streams", {}).values()):
+        """Stop the workers (each finishes at most the frame it is encoding) and log their final counts, then
+        the node."""
+        for topic, stream in list(getattr(self, "_streams", {}).items()):
             stream.stop(self.shutdown_timeout)
+            outputs.unregister(self._ipm, self.output_topic(topic), stream)
+            counts = stream.stats()
+            log = self.get_logger().warning if _lost(counts) else self.get_logger().info
+            log(f"Encoded {topic} as {self._choice.codec}: {_describe(counts)}")
         super().destroy_node()
+
+
+def _lost(counts: dict[str, int]) -> int:
+    """Frames a stream received and did not publish, but those left out by design (rate_limited)."""
+    return counts["skipped"] + counts["rejected"] + counts["stopped"]
+
+
+def _describe(counts: dict[str, int]) -> str:
+    return (f"received {counts['received']}, published {counts['published']}, skipped {counts['skipped']} "
+            f"(encoder behind), rejected {counts['rejected']}, stopped {counts['stopped']}, rate limited "
+            f"{counts['rate_limited']}, keyframes {counts['keyframes']}, bytes {counts['bytes']}")
 
 
 def _subscriber_count(publisher: Any) -> int:

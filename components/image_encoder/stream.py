@@ -3,7 +3,16 @@
 The subscription hands each ``sensor_msgs/Image`` to :meth:`EncodeStream.offer`, which only appends a reference
 under a lock and wakes the worker: it never blocks and never waits for the codec, so a driver that delivers
 in-process (inline, in its own ``publish()``) is never slowed by the encoder. When the mailbox is full the oldest
-frame waiting is skipped and counted: a slow encoder loses frames, it never queues them without bound.
+frame waiting is skipped and counted: a slow encoder loses frames, it never queues them without bound. An input
+filter (:meth:`EncodeStream.set_input_filter`: a recorder's ``record.max_rates``) may leave frames out before
+they are queued; they are counted as ``rate_limited``.
+
+**A keyframe request is met by the next access unit published.** The frame the worker is encoding when a
+keyframe is asked for (a recording starts, splits or resumes; a new reader subscribes) would come out as a delta
+frame after the request: the worker then encodes that same picture again as a keyframe and publishes only that
+one. Publishing and requesting hold one lock, so every access unit published after :meth:`request_keyframe`
+returned, and the first one any reader that subscribed in-process gets, is a keyframe: a file or a reader that
+starts there loses no frame and decodes from its first message.
 
 Ownership (docs/intra-process.md): a published message belongs to its subscribers and is never mutated, so the
 worker keeps the message itself and reads its pixels through a numpy view of its own buffer, no copy. A driver
@@ -30,16 +39,21 @@ from components.image_encoder.codecs import CodecChoice, StillCodec, VideoCodec,
 
 #: Frames a stream holds while its encoder is busy: one being waited for, one more to absorb jitter.
 QUEUE_FRAMES = 2
+#: Keyframe stamps remembered (published_keyframe): far more than the keyframes in flight to a reader.
+KEYFRAME_STAMPS_KEPT = 64
 
 
 @dataclass
 class StreamCounts:
-    """What one stream did with the frames it was offered (each frame ends in exactly one of the last four)."""
+    """What one stream did with the frames it was offered: each frame received ends in exactly one of published,
+    skipped, rejected, stopped and rate_limited, or is still ``waiting``."""
 
     received: int = 0
     published: int = 0
     skipped: int = 0    # the encoder was behind (dropped from the full mailbox), or held for a keyframe
     rejected: int = 0   # the frame could not be encoded (its encoding, its size), or the encoder failed
+    stopped: int = 0    # still waiting when the stream stopped (the encoder was unloaded)
+    rate_limited: int = 0  # left out by the input filter before the mailbox, by design
     keyframes: int = 0
     bytes: int = 0
 
@@ -72,6 +86,12 @@ class EncodeStream:
         self._wake = threading.Condition()
         self._keyframe_requested = False
         self._skip_until_keyframe = False
+        # Held while an access unit is published or a keyframe is requested (module docstring); never while
+        # encoding, and never by offer(), so a driver's publish() does not wait for it.
+        self._publish_lock = threading.RLock()  # a reader that asks for a keyframe inline, in publish()
+        self._input_filter: Callable[[], bool] | None = None
+        # Stamps of the last keyframes published: CompressedVideo has no keyframe flag (published_keyframe)
+        self._keyframe_stamps: collections.deque[tuple[int, int]] = collections.deque(maxlen=KEYFRAME_STAMPS_KEPT)
         self._in_hand = 0  # 1 while the worker encodes a frame it took from the mailbox
         self._stopping = False
         self._reported: set[str] = set()
@@ -82,8 +102,12 @@ class EncodeStream:
     # --- the subscriber's side (any thread; never blocks) ----------------------------------------------------
     def offer(self, image: Any) -> None:
         """Queue ``image`` for encoding; skip (and count) the oldest waiting frame if the mailbox is full."""
+        admit = self._input_filter
         with self._wake:
             self.counts.received += 1
+            if admit is not None and not admit():
+                self.counts.rate_limited += 1
+                return
             if len(self._queue) >= QUEUE_FRAMES:
                 self._queue.popleft()
                 self.counts.skipped += 1
@@ -91,11 +115,27 @@ class EncodeStream:
             self._wake.notify()
 
     def request_keyframe(self, skip_until_keyframe: bool = False) -> None:
-        """Make the next encoded frame a keyframe with parameter sets (a recording, split or viewer starts);
-        with ``skip_until_keyframe``, nothing else is published before it (module docstring)."""
-        with self._wake:
+        """Make the next access unit published a keyframe with parameter sets (a recording, split or viewer
+        starts; module docstring); with ``skip_until_keyframe``, nothing else is published before it (a viewer
+        whose subscription began before this call)."""
+        with self._publish_lock, self._wake:
             self._keyframe_requested = True
             self._skip_until_keyframe = self._skip_until_keyframe or skip_until_keyframe
+
+    def set_input_filter(self, admit: Callable[[], bool] | None) -> None:
+        """``admit()`` decides, for each frame offered, whether it is encoded (False: counted as rate_limited);
+        called in the publisher's thread, so it must be quick and thread-safe."""
+        self._input_filter = admit
+
+    @property
+    def is_video(self) -> bool:
+        return self._choice.is_video
+
+    def published_keyframe(self, stamp: Any) -> bool:
+        """Whether the video access unit stamped ``stamp`` (a ``builtin_interfaces/Time``) that this stream
+        published is a keyframe: an in-process reader's question, since CompressedVideo has no flag for it."""
+        with self._wake:  # a deque may not change while it is searched
+            return (stamp.sec, stamp.nanosec) in self._keyframe_stamps
 
     def stats(self) -> dict[str, int]:
         with self._wake:
@@ -108,7 +148,7 @@ class EncodeStream:
             self._wake.notify()
         self._thread.join(timeout)
         with self._wake:
-            self.counts.skipped += len(self._queue)
+            self.counts.stopped += len(self._queue)
             self._queue.clear()
 
     # --- the worker ------------------------------------------------------------------------------------------
@@ -120,10 +160,9 @@ class EncodeStream:
                 if self._stopping:
                     return
                 image = self._queue.popleft()
-                keyframe, self._keyframe_requested = self._keyframe_requested, False
                 self._in_hand = 1
             try:
-                self._encode(image, keyframe)
+                self._encode(image)
             except Exception as exc:  # a frame it cannot take, or the codec failed: counted, the stream goes on
                 with self._wake:
                     self.counts.rejected += 1
@@ -139,32 +178,59 @@ class EncodeStream:
             self._reported.add(text)
             self._log_error(f"Cannot encode an image of {self.topic}: {text} (such frames are counted as rejected)")
 
-    def _encode(self, image: Any, keyframe: bool) -> None:
+    def _encode(self, image: Any) -> None:
         if self._still is not None:
             data = self._still.encode(image)
             message = CompressedImage(check_fields=True)
             message.header = image.header
             message.format = self._still.format_of(image.encoding)
-            self._send(message, data, True)
+            with self._publish_lock:
+                self._take_keyframe_request()  # every still is one
+                self._send(message, data, True)
             return
         pixels = pixels_of(image)
         size = scaled_size(image.width, image.height, self._out_width, even=True, at_most=self._width_at_most)
         if self._video is None or self._video.size != size:
             self._video = VideoCodec(self._choice, *size)  # a new encoder starts with a keyframe
             self._stamps.clear()
+        keyframe = self._take_keyframe_request()
+        while True:
+            self._stamps[self._video.next_pts] = (image.header.stamp, image.header.frame_id)
+            units = self._video.encode(pixels, image.encoding, keyframe)
+            with self._publish_lock:
+                if units and self._keyframe_due(units):
+                    keyframe = True  # asked for while encoding: this picture again, as a keyframe
+                    continue
+                for pts, is_keyframe, data in units:
+                    if not data:
+                        continue
+                    stamp, frame_id = self._stamps.pop(pts, (image.header.stamp, image.header.frame_id))
+                    message = CompressedVideo(check_fields=True)
+                    message.timestamp, message.frame_id, message.format = stamp, frame_id, self._choice.video_format
+                    if is_keyframe:
+                        with self._wake:
+                            self._keyframe_stamps.append((stamp.sec, stamp.nanosec))
+                    self._send(message, data, is_keyframe)
+                return
+
+    def _take_keyframe_request(self) -> bool:
+        """Whether a keyframe was asked for since the last one was published; the request is taken."""
+        with self._wake:
+            requested, self._keyframe_requested = self._keyframe_requested, False
+        return requested
+
+    def _keyframe_due(self, units: list[tuple[int, bool, bytes]]) -> bool:
+        """With the publish lock held, about to publish ``units``: must they be a keyframe instead? Yes if a
+        keyframe was asked for meanwhile, or a reader subscribed since the last publish (it must begin at a
+        keyframe). A keyframe among them meets either."""
+        newcomer = False
         if self._subscribers is not None:
             subscribers = self._subscribers()
-            if subscribers > self._known_subscribers:
-                keyframe = True  # a new subscriber (a viewer, a recorder) starts decodable
-            self._known_subscribers = subscribers
-        self._stamps[self._video.next_pts] = (image.header.stamp, image.header.frame_id)
-        for pts, is_keyframe, data in self._video.encode(pixels, image.encoding, keyframe):
-            if not data:
-                continue
-            stamp, frame_id = self._stamps.pop(pts, (image.header.stamp, image.header.frame_id))
-            message = CompressedVideo(check_fields=True)
-            message.timestamp, message.frame_id, message.format = stamp, frame_id, self._choice.video_format
-            self._send(message, data, is_keyframe)
+            newcomer, self._known_subscribers = subscribers > self._known_subscribers, subscribers
+        if any(is_keyframe and data for _, is_keyframe, data in units):
+            self._take_keyframe_request()
+            return False
+        return self._take_keyframe_request() | newcomer
 
     def _send(self, message: Any, data: bytes, keyframe: bool) -> None:
         with self._wake:

@@ -10,7 +10,8 @@ every ``sensor_msgs/msg/Image`` topic). The recorder then records each one's out
 ``record.compress_<name>`` is the encoder's ``<name>`` parameter (preset, quality, bitrate, keyframe_interval,
 width); an encoder that refuses its parameters is a load error of the recorder naming the recorder's parameter.
 
-Video files stay decodable on their own: see components/recorder/keyframe_gate.py.
+Video files stay decodable on their own, as those of any encoder in the container: see
+components/recorder/keyframe_gate.py.
 """
 from __future__ import annotations
 
@@ -22,7 +23,6 @@ from component_container.component_node import ComponentNode
 from component_container.component_options import LoadRequestError
 from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import IMAGE_TYPE, ImageEncoder
-from components.recorder.keyframe_gate import KeyframeLog
 from components.recorder.recorder_options import ENCODER_SETTINGS, RecordOptions
 
 PACKAGE = "components"
@@ -57,10 +57,6 @@ class Compression:
                              f"{text}") from None
         assert isinstance(encoder, ImageEncoder)
         self.encoder = encoder
-        self.keyframes: KeyframeLog | None = None
-        if encoder.is_video:
-            self.keyframes = KeyframeLog(encoder.request_keyframe)
-            encoder.add_keyframe_listener(self.keyframes.published)
 
     def replaces(self, topic: str, type_name: str) -> bool:
         """A raw image topic that is recorded compressed instead (never itself)."""
@@ -71,7 +67,3 @@ class Compression:
         parent = topic.rpartition("/")[0]
         return bool(parent) and topic == self.encoder.output_topic(parent) and self.encoder.encodes(parent)
 
-    def subscribed(self, topic: str) -> None:
-        """The recorder records the output ``topic``: a video one gets its files begun at keyframes."""
-        if self.keyframes is not None:
-            self.keyframes.add_topic(topic)

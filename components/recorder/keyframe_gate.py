@@ -1,121 +1,168 @@
-"""Compressed video in a bag: every bag file's first message of a video topic is a keyframe.
+"""Compressed video in a bag: every bag file's first message of a video topic is a keyframe, and no frame is lost.
 
 A ``foxglove_msgs/CompressedVideo`` delta frame cannot be decoded without the frames before it, so a recording,
 and each split file of it, must begin each video topic at a keyframe, or a player, ``ipc-component bag export``
-or Foxglove opening that file shows nothing (or garbage) until the next keyframe, up to a keyframe interval
-later. Two rules keep every file decodable on its own:
+or Foxglove opening that file shows nothing (or garbage) until the next keyframe.
 
-* **A split waits for a keyframe.** When a file is full (``storage.max_bagfile_size`` / ``_duration``) or a split
-  is asked for (``~/split_bagfile``, ``record.split_at``), the encoder is asked for a keyframe at that moment and
-  the file is closed just before the first keyframe of a video topic that it holds arrives; everything until
-  then still goes to the old file. Holding the split instead of dropping frames loses nothing: with one camera,
-  every frame is in exactly one file and each file starts with a keyframe. The split is held at most
-  :data:`SPLIT_HOLD` seconds (an encoder that stopped must not keep a file open for ever).
-* **A video topic begins at a keyframe.** In a new file (the recording's first, a file after a split, the
-  recording resumed after a pause) a video topic's delta frames are dropped until its first keyframe, and
-  counted as ``awaiting_keyframe`` in ``drop_reasons``. The encoder is asked for a keyframe whenever this can
-  happen (start, split, resume), so this is at most the few frames it already had in hand; with several cameras,
-  the ones whose keyframe came after the one that closed the file lose those frames.
+**Which topics, which keyframes.** A video topic is gated when an ImageEncoder of this container publishes it
+(the recorder's own, ``record.compress``, or any other): :class:`VideoTopics` learns it when the recorder
+subscribes, before the first message can arrive, from :mod:`components.image_encoder.outputs`; the encoder's
+stream says which of its messages (by stamp) were keyframes. No bitstream is parsed here. A CompressedVideo topic
+from another process is recorded as it comes (the recorder warns): its keyframes are not known here.
 
-Which messages are keyframes: CompressedVideo has no flag for it and no bitstream is parsed here; the encoder the
-recorder loaded reports the stamp of each keyframe it publishes (:class:`KeyframeLog`), before the message
-reaches the recorder.
+**The encoder's promise.** After a keyframe request returns, the next access unit the encoder publishes is a
+keyframe (components/image_encoder/stream.py). The gate asks for one whenever a file or a topic begins.
+
+Rules:
+
+* **A video topic begins at a keyframe.** At the start of a recording, and after a pause (:meth:`KeyframeGate.paused`:
+  every message received from then on begins each video topic anew), the gate asks for keyframes; a delta frame
+  that would still begin a topic in a file (one published between the resume and the request) is dropped and
+  counted as ``awaiting_keyframe``.
+* **Each video topic splits at its own keyframe.** When a file is full (``storage.max_bagfile_size`` /
+  ``_duration``) or a split is asked for (``~/split_bagfile``, ``record.split_at``), the encoders are asked for
+  keyframes. Until a video topic's keyframe comes, its delta frames still go to the old file; its keyframe and
+  what follows are held (in memory, bounded by the time below) for the new file. Once every video topic of the
+  old file has its keyframe, the old file is closed and the held messages begin the new one. Other topics go to
+  the old file until then. So no delta frame is dropped, with any number of cameras, and every file begins
+  each of its video topics at a keyframe; split files of video topics overlap in time by up to a frame
+  interval.
+* The split waits at most :data:`SPLIT_HOLD` seconds (an encoder that stopped must not keep a file open for
+  ever); a video topic whose keyframe did not come by then begins in the new file at its next keyframe, its
+  delta frames until then counted as ``awaiting_keyframe``.
 """
 from __future__ import annotations
 
-import collections
-import threading
+import enum
 import time
-from typing import Any, Callable
+from typing import Any
 
+from components.image_encoder import outputs
+
+#: The message type of compressed video topics.
+VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo"
 #: The drop reason of a delta frame that would begin a video topic in a file (see the module docstring).
 AWAITING_KEYFRAME = "awaiting_keyframe"
-#: s: the longest a due split waits for a video keyframe.
+#: s: the longest a due split waits for the video topics' keyframes.
 SPLIT_HOLD = 2.0
-#: Keyframe stamps remembered per topic (a keyframe the recorder never writes, e.g. dropped, is forgotten).
-STAMPS_KEPT = 64
 
 
-def _stamp(message: Any) -> tuple[int, int]:
-    return message.timestamp.sec, message.timestamp.nanosec
+class VideoTopics:
+    """The recorded topics an ImageEncoder of this container publishes as video (thread-safe reads)."""
 
+    def __init__(self, container: Any) -> None:
+        """``container``: the recorder's intra-process manager (None: not in-process, no topic is gated)."""
+        self._container = container
+        self._topics: frozenset[str] = frozenset()
 
-class KeyframeLog:
-    """The recorded video topics, and the stamps of the keyframes the encoder published on them (thread-safe)."""
+    def add(self, topic: str) -> bool:
+        """The recorder subscribes to ``topic``: True if its files are begun at keyframes (an encoder of this
+        container publishes it as video); a keyframe is asked for, for the first message it gets."""
+        stream = outputs.stream_for(self._container, topic)
+        if stream is None or not stream.is_video:
+            return False
+        self._topics = self._topics | {topic}
+        stream.request_keyframe()
+        return True
 
-    def __init__(self, request_keyframe: Callable[[], Any]) -> None:
-        self.request_keyframe = request_keyframe
-        self._lock = threading.Lock()
-        self._stamps: dict[str, collections.deque[tuple[int, int]]] = {}
-
-    def add_topic(self, topic: str) -> None:
-        """``topic`` carries video: the gates keep its files decodable."""
-        with self._lock:
-            self._stamps.setdefault(topic, collections.deque(maxlen=STAMPS_KEPT))
-
-    def is_video(self, topic: str) -> bool:
-        return topic in self._stamps
-
-    def published(self, topic: str, message: Any) -> None:
-        """The encoder's keyframe listener: ``message`` on ``topic`` is a keyframe."""
-        with self._lock:
-            stamps = self._stamps.get(topic)
-            if stamps is not None:
-                stamps.append(_stamp(message))
+    def __contains__(self, topic: str) -> bool:
+        return topic in self._topics
 
     def is_keyframe(self, topic: str, message: Any) -> bool:
-        """Whether ``message`` (a CompressedVideo object) is a keyframe the encoder reported."""
-        stamp = _stamp(message)
-        with self._lock:
-            stamps = self._stamps[topic]
-            if stamp in stamps:
-                stamps.remove(stamp)
-                return True
-        return False
+        """Whether ``message`` (a CompressedVideo object of the video topic ``topic``) is a keyframe its
+        encoder published."""
+        stream = outputs.stream_for(self._container, topic)
+        return stream is not None and stream.published_keyframe(message.timestamp)
+
+    def request_keyframes(self) -> None:
+        """Ask the encoder of every video topic for a keyframe: the next access unit each publishes is one."""
+        for topic in self._topics:
+            stream = outputs.stream_for(self._container, topic)
+            if stream is not None:  # an encoder unloaded meanwhile
+                stream.request_keyframe()
+
+
+class Verdict(enum.Enum):
+    """What the writer does with a message (see :meth:`KeyframeGate.admit`)."""
+
+    WRITE = "write"  # into the current file
+    HOLD = "hold"    # keep it for the file that the pending split opens
+    DROP = "drop"    # a delta frame that cannot begin its topic: counted as awaiting_keyframe
 
 
 class KeyframeGate:
-    """One bag's rules (module docstring). Used by its writer thread only, except :meth:`restart` / :meth:`split`.
-    """
+    """One bag's rules (module docstring). Used by its writer thread only, except :meth:`paused`, :meth:`begin`
+    and :meth:`split`."""
 
-    def __init__(self, log: KeyframeLog) -> None:
-        self.log = log
+    def __init__(self, video: VideoTopics) -> None:
+        self.video = video
         self._started: set[str] = set()  # video topics that began (at a keyframe) in the current file
-        self._split_since: float | None = None  # monotonic time the pending split became due
         self._split_asked = False
+        self._split_since: float | None = None  # monotonic time the pending split began
+        self._waiting: set[str] = set()  # during a split: video topics of the old file without their keyframe yet
+        self._moved: set[str] = set()  # during a split: video topics whose keyframe is held for the new file
         self._restart_ns: int | None = None
-        log.request_keyframe()
 
-    def restart(self) -> None:
-        """The recording resumes (after a pause): messages received from now begin each video topic anew."""
+    def begin(self) -> None:
+        """The recording (or this bag) starts taking messages: every video topic's next access unit is a
+        keyframe."""
+        self.video.request_keyframes()
+
+    def paused(self) -> None:
+        """The recording pauses: messages received from now on (after the resume) begin each video topic anew.
+        Call :meth:`begin` once it resumes."""
         self._restart_ns = time.time_ns()
-        self.log.request_keyframe()
 
     def split(self) -> None:
-        """A split is asked for (any thread): it happens at the writer's next chance (see :meth:`splits_before`)."""
+        """A split is asked for (any thread): it begins at the writer's next message."""
         self._split_asked = True
 
-    def splits_before(self, topic: str, message: Any, log_time_ns: int, full: bool) -> tuple[bool, bool]:
-        """For the message about to be written: (close the file before it?, write it?). ``full``: the writer
-        says the file is full. A message not written is counted as ``awaiting_keyframe`` by the caller."""
+    @property
+    def splitting(self) -> bool:
+        return self._split_since is not None
+
+    def admit(self, topic: str, message: Any, log_time_ns: int, full: bool) -> tuple[Verdict, bool]:
+        """For the message about to be written: (what to do with it, does the pending split happen now, before
+        it?). ``full``: the writer says the current file is full. On a split, the messages held so far begin the
+        new file, before this one if it is written."""
         restart = self._restart_ns
         if restart is not None and log_time_ns >= restart:
             self._restart_ns = None
             self._started.clear()
-        video = self.log.is_video(topic)
-        keyframe = video and self.log.is_keyframe(topic, message)
-        split = False
-        if full or self._split_asked:
-            if self._split_since is None:
-                self._split_since = time.monotonic()
-                self.log.request_keyframe()
-            split = (not self._started or (keyframe and topic in self._started)
-                     or time.monotonic() - self._split_since > SPLIT_HOLD)
-            if split:
-                self._started.clear()
-                self._split_since, self._split_asked = None, False
-        if not video or topic in self._started:
-            return split, True
+        if self._split_since is None and (full or self._split_asked):
+            self._split_asked = False
+            self._split_since = time.monotonic()
+            self._waiting, self._moved = set(self._started), set()
+            self.video.request_keyframes()
+        split = self._split_since is not None and (
+            not self._waiting or time.monotonic() - self._split_since > SPLIT_HOLD)
+        if split:
+            self._end_split()
+        video = topic in self.video
+        keyframe = video and self.video.is_keyframe(topic, message)
+        if self._split_since is not None and video:
+            if topic in self._waiting and not keyframe:
+                return Verdict.WRITE, False  # the old file keeps this topic until its keyframe
+            if topic in self._waiting or topic in self._moved or keyframe:
+                self._waiting.discard(topic)
+                self._moved.add(topic)
+                if self._waiting:
+                    return Verdict.HOLD, False
+                self._end_split()  # the last keyframe the split waited for: it begins the new file, held
+                return Verdict.HOLD, True
+            return Verdict.DROP, False
+        if self._split_since is not None or not video or topic in self._started:
+            return Verdict.WRITE, split
         if keyframe:
             self._started.add(topic)
-        return split, keyframe
+            return Verdict.WRITE, split
+        return Verdict.DROP, split
+
+    def _end_split(self) -> None:
+        """The old file closes: the topics whose keyframe is held have begun in the new one; those still waiting
+        begin there at their next keyframe (asked for again)."""
+        late = bool(self._waiting)
+        self._started, self._moved, self._waiting = self._moved, set(), set()
+        self._split_since = None
+        if late:
+            self.video.request_keyframes()

@@ -54,6 +54,7 @@ from components.qos_profiles import absolute_topic
 from components.recorder.bag_names import BagNames
 from components.recorder.compression import Compression
 from components.recorder.finished_bags import FinishedBags
+from components.recorder.keyframe_gate import VIDEO_TYPE, VideoTopics
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import custom_data_pairs, declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
@@ -97,6 +98,8 @@ class Recorder(ComponentNode):
                                  "load the recorder with use_intra_process_comms:=true")
             options = self._options
             self._compression = Compression(self, options) if options.compress else None
+            # The video topics of this container's encoders: their files begin at keyframes (keyframe_gate).
+            self._video = VideoTopics(self._ipm) if self.uses_intra_process else None
             self._schedule = Schedule(options.start_ns or time.time_ns(), options.stop_ns, options.max_duration_ns,
                                       options.split_ns)
             self._finalizer: threading.Thread | None = None
@@ -160,12 +163,13 @@ class Recorder(ComponentNode):
         session = RecordingSession(self._options, str(uri or self._names.next()), self.get_logger(),
                                    self._publish_split,
                                    queue_drops=functools.partial(self._queue_drops, baseline),
-                                   writer_class=self.writer_class,
-                                   keyframes=self._compression.keyframes if self._compression else None)
+                                   writer_class=self.writer_class, video=self._video)
         for info in self._topics.values():
             session.add_topic(info, self._repeat_depths.get(info.name, 0))
         self._window_bag = None
         self._session = session
+        if session.gate is not None:
+            session.gate.begin()  # after the session takes messages: the keyframes asked for now reach it
         self._discovery_running = True
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
                                + (" paused" if self._paused else ""))
@@ -268,8 +272,11 @@ class Recorder(ComponentNode):
         type_hash = next((str(p.topic_type_hash) for p in publishers if str(p.topic_type_hash).startswith("RIHS01_")),
                          "")
         info = TopicInfo(topic, type_name, "cdr", [qos_profile_dict(q) for q in offered], type_hash)
-        if self._compression is not None and self._compression.output(topic):
-            self._compression.subscribed(topic)
+        if type_name == VIDEO_TYPE and not (self._video is not None and self._video.add(topic)):
+            self.get_logger().warning(
+                f"{topic} carries video from outside this container: recorded as it comes, so a file may begin "
+                "with a delta frame that decodes only from the next keyframe (load its encoder into the "
+                "recorder's container, or use record.compress, to have every file begin at a keyframe)")
         try:
             with self._lock:  # declared in the bag before the first message can reach the writer
                 if self._session is not None:
@@ -386,9 +393,12 @@ class Recorder(ComponentNode):
     def _set_paused(self, paused: bool) -> None:
         if paused != self._paused:
             session = self._session
-            if not paused and session is not None and session.gate is not None:
-                session.gate.restart()  # frames were left out: each video topic begins anew at a keyframe
+            gate = session.gate if session is not None else None
+            if paused and gate is not None:
+                gate.paused()  # frames are left out: after the resume, each video topic begins anew
             self._paused = paused
+            if not paused and gate is not None:
+                gate.begin()  # ... at the keyframe asked for now
             self.get_logger().info("Recording paused" if paused else "Recording resumed")
 
     def _on_pause(self, request: Pause.Request, response: Pause.Response) -> Pause.Response:

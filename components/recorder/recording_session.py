@@ -44,7 +44,7 @@ from baglib.write.direct_file import GATHER
 from baglib.write.writer import BagWriteError, BagWriter
 from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
-from components.recorder.keyframe_gate import AWAITING_KEYFRAME, KeyframeGate, KeyframeLog
+from components.recorder.keyframe_gate import AWAITING_KEYFRAME, KeyframeGate, Verdict, VideoTopics
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.rate_limits import RATE_LIMITED, RateLimiter, parse_max_rates
 from baglib.format.metadata import TopicInfo
@@ -95,10 +95,13 @@ class RecordingSession:
     def __init__(self, options: RecordOptions, uri: str, logger: Any,
                  on_split: Callable[[str, str], None] | None = None,
                  serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None,
-                 writer_class: type[BagWriter] = BagWriter, keyframes: KeyframeLog | None = None) -> None:
+                 writer_class: type[BagWriter] = BagWriter, video: VideoTopics | None = None) -> None:
         self._logger = logger
-        # record.compress with a video codec: each file begins each video topic at a keyframe (keyframe_gate)
-        self.gate = KeyframeGate(keyframes) if keyframes is not None else None
+        # Video topics of this container's encoders: each file begins each of them at a keyframe (keyframe_gate);
+        # the messages held for the file a pending split opens (the writer thread's).
+        self.gate = KeyframeGate(video) if video is not None else None
+        self._held: list[CachedMessage] = []
+        self._split_next = False
         self._serialize = serialize
         self._queue_drops = queue_drops
         self._last_log_time = 0
@@ -283,6 +286,7 @@ class RecordingSession:
                 if self._snapshot is batch:
                     self._snapshot = None  # written: the next snapshot may be taken
                 if closed and not batch:
+                    self._write_held()
                     break
         except Exception as exc:  # noqa: BLE001 - whatever it is, it ends the session as a storage failure
             self._fail(exc)
@@ -354,18 +358,35 @@ class RecordingSession:
         return self._snapshot if self._snapshot is not None else []  # pending until written
 
     def _write(self, message: CachedMessage) -> None:
-        """Serialize and write one message; raises what the storage raised (the caller ends the session)."""
-        payload = message.payload
-        split = None
+        """Write one message, where the keyframe gate says (keyframe_gate); raises what the storage raised (the
+        caller ends the session)."""
+        if self.gate is None:
+            self._put(message)
+            return
+        verdict, split = self.gate.admit(message.topic, message.payload, message.log_time_ns,
+                                         self.writer.split_due(message.log_time_ns))
+        self._split_next = self._split_next or split
+        if verdict is Verdict.HOLD:
+            self._held.append(message)
+        if split:  # the held messages begin the new file
+            held, self._held = self._held, []
+            for kept in held:
+                self._put(kept)
+        if verdict is Verdict.WRITE:
+            self._put(message)
+        elif verdict is Verdict.DROP:
+            self._discard([message], AWAITING_KEYFRAME)
+
+    def _put(self, message: CachedMessage) -> None:
+        """Serialize and write one message; with the gate, in the current file or (a split due) the next."""
+        split: bool | None = None
         if self.gate is not None:
-            split, keep = self.gate.splits_before(message.topic, payload, message.log_time_ns,
-                                                  self.writer.split_due(message.log_time_ns))
-            if not keep:
-                self._discard([message], AWAITING_KEYFRAME)
-                return
+            split, self._split_next = self._split_next, False
+        payload = message.payload
         try:
             data = payload if isinstance(payload, (bytes, bytearray, memoryview)) else self._serialize(payload)
         except Exception as exc:  # noqa: BLE001 - a malformed message object: dropped, the recording goes on
+            self._split_next = bool(split)  # a split due still happens before the next message written
             self._drop_unserializable(message, exc)
             return
         message.payload = None  # let the message object go as soon as it is serialized
@@ -388,6 +409,16 @@ class RecordingSession:
         self._latencies.append(time.time_ns() - message.log_time_ns)
         self._written_unreleased += message.size
         if self._written_unreleased >= RELEASE_STEP:
+            self._release_written()
+
+    def _write_held(self) -> None:
+        """The bag closes during a split: what was held for the next file ends the current one (each held
+        topic continues there from its keyframe)."""
+        held, self._held, self._split_next = self._held, [], False
+        for message in held:
+            self._put(message)
+        if held:
+            self.writer.write_gathered()
             self._release_written()
 
     def _release_written(self) -> None:
