@@ -34,6 +34,7 @@ from baglib.read.metadata_read import StoredTopic, load_metadata
 from baglib.read.reader import BagReader
 from baglib.format.action_topics import SERVICE_INTERFACES, action_interface, action_name, \
     action_type, is_action_topic
+from baglib.format import frame_accounts
 from baglib.format.bag_files import RECOVER_COMMAND, unfinished_files
 from baglib.format.service_events import (
     REQUEST_EVENTS,
@@ -67,6 +68,7 @@ class _Summary:
     duration_ns: int
     message_count: int
     topics: list[StoredTopic]
+    custom_data: dict[str, str] = field(default_factory=dict)
 
 
 def _directory_summary(bag_dir: Path) -> _Summary:
@@ -77,7 +79,7 @@ def _directory_summary(bag_dir: Path) -> _Summary:
     files = [info.path for info in meta.files] or meta.relative_file_paths
     size = sum((bag_dir / f).stat().st_size for f in files if (bag_dir / f).exists())
     return _Summary(files, size, meta.storage_identifier, meta.ros_distro, meta.starting_time_ns, meta.duration_ns,
-                    meta.message_count, meta.topics)
+                    meta.message_count, meta.topics, meta.custom_data)
 
 
 def _file_summary(path: Path) -> _Summary:
@@ -239,6 +241,17 @@ def _actions(actions: list[_Action], sizes: dict[str, int], verbose: bool) -> li
     return lines
 
 
+def _frame_accounts(custom_data: dict[str, str]) -> list[str]:
+    """Not in rosbag2: the raw frames of each topic recorded compressed, and how those not written were lost
+    (baglib/format/frame_accounts.py)."""
+    lines = []
+    for topic, counts in sorted(frame_accounts.accounts(custom_data).items()):
+        rest = {name: n for name, n in counts.items() if name not in ("received", "written")}
+        lines.append(f"Frames: {topic} | Received: {counts.get('received', 0)} | Written: {counts.get('written', 0)}"
+                     + "".join(f" | {name}: {n}" for name, n in rest.items()))
+    return _block("Frame accounts:", lines) if lines else []
+
+
 def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
                     topic_names_only: bool = False) -> str:
     """The ``ros2 bag info`` text for ``bag``: a bag directory (``metadata.yaml`` of any version from 4 to 9) or
@@ -289,6 +302,7 @@ def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
         *_block("Services:", [str(len(service_lines))]),
         *_block("Service information:", service_lines, _SERVICE_LABEL_WIDTH),
         *_actions(_sorted(list(actions.values()), sort, lambda a: a.count(verbose)), sizes, verbose),
+        *_frame_accounts(summary.custom_data),
         *(_unfinished(bag, summary.files) if bag.is_dir() else []),
     ]
     return "\n".join(line.rstrip() for line in lines)

@@ -185,8 +185,11 @@ class ImageEncoder(ComponentNode):
             stream.stop(self.shutdown_timeout)
             outputs.unregister(self._ipm, self.output_topic(topic), stream)
             counts = stream.stats()
-            log = self.get_logger().warning if _lost(counts) else self.get_logger().info
-            log(f"Encoded {topic} as {self._choice.codec}: {_describe(counts)}")
+            text = f"Encoded {topic} as {self._choice.codec}: {_describe(counts)}"
+            if _lost(counts):  # rclpy's logger keeps one severity per call site: one call each
+                self.get_logger().warning(text)
+            else:
+                self.get_logger().info(text)
         super().destroy_node()
 
 

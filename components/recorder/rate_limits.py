@@ -81,6 +81,10 @@ class RateLimiter:
                 else log_time_ns + period
             return True
 
+    def limits(self, topic: str) -> bool:
+        """Whether an entry applies to ``topic``."""
+        return self._period_of(topic) is not None
+
     def left_out(self) -> Counter[str]:
         """Per topic: messages left out so far (a copy)."""
         with self._lock:

@@ -50,6 +50,7 @@ from baglib.format.action_topics import INTERFACES, SERVICE_INTERFACES, actions_
 from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
+from components.image_encoder import outputs
 from components.qos_profiles import absolute_topic
 from components.recorder.bag_names import BagNames
 from components.recorder.compression import Compression
@@ -166,10 +167,17 @@ class Recorder(ComponentNode):
                                    writer_class=self.writer_class, video=self._video)
         for info in self._topics.values():
             session.add_topic(info, self._repeat_depths.get(info.name, 0))
+            self._account_encoder(session, info.name)
         self._window_bag = None
         self._session = session
-        if session.gate is not None:
-            session.gate.begin()  # after the session takes messages: the keyframes asked for now reach it
+        if session.gate is not None:  # after the session takes messages, so that the keyframes asked for reach it
+            opens_in = (self._schedule.start_ns - time.time_ns()) / 1e9
+            if opens_in > 0:  # record.start_at: the encoders' keyframes are due when the window opens
+                timer = threading.Timer(opens_in, self._begin_video, (session,))
+                timer.daemon = True
+                timer.start()
+            else:
+                session.gate.begin()
         self._discovery_running = True
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
                                + (" paused" if self._paused else ""))
@@ -281,6 +289,7 @@ class Recorder(ComponentNode):
             with self._lock:  # declared in the bag before the first message can reach the writer
                 if self._session is not None:
                     self._session.add_topic(info, depth)
+                    self._account_encoder(self._session, topic)
                 self._topics[topic] = info
                 self._repeat_depths[topic] = depth
             self._topic_subscriptions[topic] = self.create_subscription(
@@ -296,6 +305,30 @@ class Recorder(ComponentNode):
             return
         self.get_logger().info(f"Subscribed to {topic} ({type_name})"
                                + (f", repeating its last {depth} at every split and snapshot" if depth else ""))
+
+    def _begin_video(self, session: RecordingSession) -> None:
+        """The recording window opens (a timer's thread): every video topic begins at the keyframe asked now."""
+        if session is self._session and session.gate is not None and not self._paused:
+            session.gate.begin()
+
+    def _account_encoder(self, session: RecordingSession, topic: str) -> None:
+        """An encoder of this container publishes ``topic``: the bag accounts for its raw frames, and a rate
+        limit on the recorder's own encoder thins its input (RecordingSession.account_encoder)."""
+        stream = outputs.stream_for(self._ipm, topic)
+        if stream is None:
+            return
+        owned = self._compression is not None and self._compression.output(topic)
+        warning = session.account_encoder(topic, stream, owned)
+        if warning:
+            self.get_logger().warning(warning)
+        if owned:
+            stream.set_input_filter(functools.partial(self._admits_raw, topic))
+
+    def _admits_raw(self, topic: str) -> bool:
+        """The input filter of the recorder's own encoder of ``topic`` (in the camera's thread): record.max_rates
+        of the current bag; everything while paused or not recording (the frames are not recorded anyway)."""
+        session = self._session
+        return session is None or self._paused or session.admits_raw(topic)
 
     def _repeat_depth(self, topic: str, qos: QoSProfile) -> int:
         """How many of the topic's last messages start every split file and snapshot: its entry in

@@ -24,6 +24,14 @@ them (with ``record.compress`` to video, files begin each video topic at a keyfr
 Messages that ``record.max_rates`` leaves out are not drops: they are counted apart, as ``rate_limited`` per topic
 and in ``dropped_by_design`` (a bag holds what was asked for; ``dropped`` and ``drop_reasons`` are losses).
 
+A topic an ImageEncoder of the container publishes (recorded compressed) also accounts for the raw frames the
+encoder received while the bag was open (:meth:`RecordingSession.account_encoder`): those it lost are drops of the
+topic (``encoder_behind``, ``encoder_rejected``, ``encoder_stopped``), its ``received`` counts raw frames, and
+``written`` + ``dropped`` + ``rate_limited`` = ``received`` still holds. ``record.max_rates`` on a topic of the
+recorder's own encoder thins the encoder's input, so every recorded access unit decodes; on a video topic of
+another encoder it is not applied (it would break decoding; the recorder warns). The bag keeps each such
+account in ``metadata.yaml`` (baglib/format/frame_accounts.py).
+
 Latched topics (``record.repeat_transient_local``): the writer starts every split file with their last messages
 (BagWriter.repeat_topic), and every snapshot starts with those the ring no longer holds, stamped with the receive
 and publish times of the snapshot's first message, as rosbag2 Rolling does. Those copies are counted per topic as
@@ -38,7 +46,7 @@ from collections import Counter, defaultdict, deque
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from baglib.format import cdr_fast
+from baglib.format import cdr_fast, frame_accounts
 from baglib.format.cdr_fast import CdrData
 from baglib.write.direct_file import GATHER
 from baglib.write.writer import BagWriteError, BagWriter
@@ -73,6 +81,9 @@ STORAGE_FAILED = "storage_failed"        # taken in (or arriving) after the stor
 RECORDING_STOPPED = "recording_stopped"  # received inside the window, but reached the intake after its bag closed
 #: The key of ``custom_data`` in a bag's metadata that lists its ``record.max_rates``.
 MAX_RATES_KEY = "record.max_rates"
+#: An encoder's counts of frames it lost -> the drop reason of its output topic.
+ENCODER_LOSSES = {"skipped": "encoder_behind", "rejected": "encoder_rejected", "stopped": "encoder_stopped"}
+_ENCODER_COUNTS = ("received", "published", *ENCODER_LOSSES)
 
 
 def _percentiles(samples_ns: list[int]) -> dict[str, float] | None:
@@ -135,6 +146,11 @@ class RecordingSession:
         self._stats_lock = threading.Lock()  # the writer thread's drop counts and errors, read by others
         self._writer_drops: defaultdict[str, Counter[str]] = defaultdict(Counter)
         self._missed: Counter[str] = Counter()  # see missed()
+        # Per topic an in-container encoder publishes: its stream and counts when the bag began taking the topic;
+        # the deltas are frozen when the bag is finished (account_encoder)
+        self._encoders: dict[str, tuple[Any, dict[str, int]]] = {}
+        self._encoder_final: dict[str, dict[str, int]] | None = None
+        self._not_limited: set[str] = set()  # topics record.max_rates matches that offer() does not limit
         self.serialize_errors: dict[str, str] = {}  # per topic, the first reason a message could not be serialized
         self.error: str | None = None
         # receive-to-write latencies (ns) of the most recent messages, for the stats and the benchmark
@@ -196,11 +212,34 @@ class RecordingSession:
             self._latched[info.name] = deque(self._latched.get(info.name, ()), maxlen=repeat_depth)
         self._topics.add(info.name)
 
+    def account_encoder(self, topic: str, stream: Any, owned: bool) -> str | None:
+        """``topic`` is published by an encoder stream of this container: the bag accounts for the raw frames it
+        receives from now on (module docstring). ``owned``: the recorder's own encoder, whose input a rate limit
+        on ``topic`` thins (:meth:`admits_raw`). A warning to log, if any."""
+        with self._stats_lock:
+            self._encoders[topic] = (stream, stream.stats())
+        if self._rate_limiter is None or not self._rate_limiter.limits(topic):
+            return None
+        if owned:
+            self._not_limited.add(topic)  # limited before the encoder instead (admits_raw)
+            return None
+        if stream.is_video:
+            self._not_limited.add(topic)
+            return (f"record.max_rates: not applied to {topic}, the video of an encoder the recorder did not load: "
+                    "leaving out access units would break decoding until the next keyframe (record it with "
+                    "record.compress to thin the encoder's input instead)")
+        return None
+
+    def admits_raw(self, topic: str) -> bool:
+        """For the recorder's own encoder of ``topic``: whether the raw frame it is offered now is encoded
+        (``record.max_rates``; left out, it is counted as rate_limited here)."""
+        return self._rate_limiter is None or self._rate_limiter.admits(topic, time.time_ns())
+
     def offer(self, topic: str, payload: Any, log_time_ns: int, publish_time_ns: int) -> bool | None:
         """Intake: hand one message to the writer thread. Never blocks on I/O, never raises. True: taken;
         False: dropped or rate limited, and counted; None: offered after the bag's cut point (see
         MessageCache.push)."""
-        if self._rate_limiter is not None and not self.cache.closed and \
+        if self._rate_limiter is not None and not self.cache.closed and topic not in self._not_limited and \
                 not self._rate_limiter.admits(topic, log_time_ns):
             return False
         size = payload_size(payload)
@@ -488,12 +527,38 @@ class RecordingSession:
         with self._abandon_lock:
             self._abandoned = not self._writer_done and self._thread.is_alive()
             self._on_late_close = on_late_close
+        self._encoder_final = self._encoder_deltas()
         if self._abandoned:
             self._fail(f"the writer did not finish within {timeout:.1f} s (a hung disk?): the bag was not "
                        "finalized; it can be repaired (ipc-component bag recover)")
         else:
+            self._write_frame_accounts()
             self._close_writer()
         self._logger.info(self.summary())
+
+    def _encoder_deltas(self) -> dict[str, dict[str, int]]:
+        """Per encoder-published topic: what its encoder did with the raw frames since the bag took the topic."""
+        if self._encoder_final is not None:
+            return self._encoder_final
+        with self._stats_lock:
+            encoders = dict(self._encoders)
+        deltas = {}
+        for topic, (stream, base) in encoders.items():
+            now = stream.stats()
+            deltas[topic] = {name: now[name] - base[name] for name in _ENCODER_COUNTS}
+        return deltas
+
+    def _write_frame_accounts(self) -> None:
+        """Each encoder-published topic's account of its raw frames, into metadata.yaml's custom_data."""
+        stats = self.stats()
+        pairs = {}
+        for topic in self._encoder_final or {}:
+            counts = stats["topics"][topic]
+            pairs[frame_accounts.key(topic)] = frame_accounts.encode({
+                "received": counts["received"], "written": counts["written"], **stats["drop_reasons"].get(topic, {}),
+                RATE_LIMITED: counts[RATE_LIMITED]})
+        if pairs:
+            self.writer.update_custom_data(pairs)
 
     def _counts(self) -> _Counts:
         """Per topic: written, received, queue drops and the reasons of every drop; never waits on the storage."""
@@ -517,6 +582,11 @@ class RecordingSession:
                                for t, n in received.items()}
         rate_limited = self._rate_limiter.left_out() if self._rate_limiter is not None else Counter()
         received += missed + rate_limited
+        for topic, delta in self._encoder_deltas().items():  # the frames its encoder lost (module docstring)
+            for count, reason in ENCODER_LOSSES.items():
+                if delta[count] > 0:
+                    reasons[topic][reason] += delta[count]
+                    received[topic] += delta[count]
         for reason, counts in ((CACHE_FULL, cache_full), (STORAGE_FAILED, refused), (QUEUE_FULL, queue),
                                (STORAGE_FAILED, lost_in_storage), (RECORDING_STOPPED, missed)):
             for topic, count in counts.items():
