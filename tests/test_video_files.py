@@ -123,6 +123,17 @@ def test_a_window_that_opens_later_begins_each_camera_at_the_keyframe_asked_then
     assert_every_file_decodes_whole(bag, "/later/image/video")
 
 
+def test_a_compress_regex_that_matches_nothing_warns_about_each_raw_image_topic(
+        manager: ComponentManager, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    load(manager, "CameraDriver", "raw_cam", width=64, height=48, fps=10.0, topic="/rawcam/image")
+    recorder = load(manager, "Recorder", "rec_raw", **{
+        "storage.uri": str(tmp_path / "raw"), "record.compress": "jpeg", "record.compress_regex": "/nothing.*",
+        "record.topics": ["/rawcam/image"]})
+    assert wait_until(lambda: "/rawcam/image" in recorder.node._topics, 20.0)
+    recorder.node.stop_recording()
+    assert "does not encode /rawcam/image" in capfd.readouterr().err
+
+
 class Frames(ComponentNode):
     """Publishes the test's pictures as rgb8 Images on several topics in-process, as fast as asked."""
 

@@ -51,6 +51,7 @@ from baglib.format.message_definitions import message_definition
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.format.message_definitions import message_class
 from components.image_encoder import outputs
+from components.image_encoder.image_encoder import IMAGE_TYPE
 from components.qos_profiles import absolute_topic
 from components.recorder.bag_names import BagNames
 from components.recorder.compression import Compression
@@ -280,6 +281,10 @@ class Recorder(ComponentNode):
         type_hash = next((str(p.topic_type_hash) for p in publishers if str(p.topic_type_hash).startswith("RIHS01_")),
                          "")
         info = TopicInfo(topic, type_name, "cdr", [qos_profile_dict(q) for q in offered], type_hash)
+        if self._compression is not None and type_name == IMAGE_TYPE:
+            self.get_logger().warning(
+                f"record.compress:={self._options.compress} does not encode {topic} (record.compress_topics / "
+                "record.compress_regex do not name it): recording it raw")
         if type_name == VIDEO_TYPE and not (self._video is not None and self._video.add(topic)):
             self.get_logger().warning(
                 f"{topic} carries video from outside this container: recorded as it comes, so a file may begin "
