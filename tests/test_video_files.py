@@ -19,6 +19,7 @@ import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.qos import QoSProfile
+from rosbag2_interfaces.msg import MessagesLostEvent
 from sensor_msgs.msg import Image
 
 from component_container.component_manager import ComponentManager
@@ -141,15 +142,15 @@ class Frames(ComponentNode):
         super().__init__("video_files_frames", intra_process_manager=manager.intra_process_manager,
                          context=manager.context)
         self.outputs = {topic: self.create_publisher(Image, topic, QoSProfile(depth=10)) for topic in topics}
+        self.pictures = [picture(index).tobytes() for index in range(20)]
         self.sent = 0
 
     def send(self) -> None:
         """One picture on every topic, each stamped with the send count (unique per topic)."""
-        pixels = picture(self.sent % 40)
         for publisher in self.outputs.values():
             msg = Image(height=HEIGHT, width=WIDTH, encoding="rgb8", step=WIDTH * 3)
             msg.header.stamp = stamp_from_ns(1_000_000_000 + self.sent)
-            msg.data = pixels.tobytes()
+            msg.data = self.pictures[self.sent % len(self.pictures)]
             publisher.publish(msg)
         self.sent += 1
 
@@ -218,10 +219,11 @@ def test_an_overloaded_encoder_is_in_the_bags_accounting(manager: ComponentManag
     bag = tmp_path / "over"
     recorder = load(manager, "Recorder", "rec_over", **{
         "storage.uri": str(bag), "record.compress": "h264", "record.compress_topics": cameras,
-        "record.compress_preset": "medium", "record.topics": cameras,
+        "record.compress_preset": "slow", "record.topics": cameras,
         "record.max_rates": ["/over/cam1/video:10"]})
     outputs = [f"{camera}/video" for camera in cameras]
     assert wait_until(lambda: all(o in recorder.node._topics for o in outputs), 20.0)
+    losses = Probe(manager, MessagesLostEvent, "/events/messages_lost")
     frames = Frames(manager, cameras)
     for _ in range(60):  # a burst: the encoder's mailbox of two overflows
         frames.send()
@@ -245,6 +247,9 @@ def test_an_overloaded_encoder_is_in_the_bags_accounting(manager: ComponentManag
                            **final["drop_reasons"].get(output, {}), "rate_limited": counts["rate_limited"]}
         assert_every_file_decodes_whole(bag, output)
     assert final["drop_reasons"]["/over/cam0/video"]["encoder_behind"] > 0, final["drop_reasons"]
+    reported = sum(stat.messages_lost_in_transport for event in losses.messages for stat in event.messages_lost_statistics
+                   if stat.topic_name == "/over/cam0/video")
+    assert reported == final["drop_reasons"]["/over/cam0/video"]["encoder_behind"]  # events/messages_lost
     assert final["topics"]["/over/cam1/video"]["rate_limited"] > 0
     assert final["topics"]["/over/cam0/video"]["rate_limited"] == 0
     info = subprocess.run([sys.executable, "-m", "ipc_component.cli", "bag", "info", str(bag)], capture_output=True,

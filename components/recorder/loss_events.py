@@ -4,7 +4,8 @@ Drops are counted per topic and reason anyway (``~/get_stats``); this publishes 
 node learns about losses while they happen instead of at the end. As in rosbag2, an event is published only
 when something was lost since the previous one, at most ``rate`` times a second, and topics without losses are
 left out. "In transport" are messages that never reached the recorder's intake: lost by DDS (the
-subscription's message-lost event) or by an in-process queue; "in recorder" are the recorder's own drops
+subscription's message-lost event), by an in-process queue, or by the container's image encoder before it
+published them (a compressed topic's raw frames: RecordingSession.account_encoder); "in recorder" are the recorder's own drops
 (cache full, unserializable, storage failure, received in the window but taken after its bag closed).
 
 Each bag is reported on its own, from zero: its last changes (drops in the second before a stop, the messages a
@@ -20,8 +21,10 @@ from rclpy.node import Node
 from rosbag2_interfaces.msg import MessagesLostEvent, MessagesLostEventTopicStat
 
 MESSAGES_LOST_TOPIC = "events/messages_lost"
+#: An encoder's counts of raw frames it lost -> the drop reason of its output topic (RecordingSession).
+ENCODER_LOSSES = {"skipped": "encoder_behind", "rejected": "encoder_rejected", "stopped": "encoder_stopped"}
 #: Drop reasons (see RecordingSession) that happened before the recorder's intake.
-TRANSPORT_REASONS = frozenset({"queue_full"})
+TRANSPORT_REASONS = frozenset({"queue_full", *ENCODER_LOSSES.values()})
 
 
 class Bag(Protocol):

@@ -53,6 +53,7 @@ from baglib.write.writer import BagWriteError, BagWriter
 from component_container.process_tuning import release_free_memory, resident_bytes
 from components.recorder.disk_guard import DiskGuard
 from components.recorder.keyframe_gate import AWAITING_KEYFRAME, KeyframeGate, Verdict, VideoTopics
+from components.recorder.loss_events import ENCODER_LOSSES
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.rate_limits import RATE_LIMITED, RateLimiter, parse_max_rates
 from baglib.format.metadata import TopicInfo
@@ -81,8 +82,6 @@ STORAGE_FAILED = "storage_failed"        # taken in (or arriving) after the stor
 RECORDING_STOPPED = "recording_stopped"  # received inside the window, but reached the intake after its bag closed
 #: The key of ``custom_data`` in a bag's metadata that lists its ``record.max_rates``.
 MAX_RATES_KEY = "record.max_rates"
-#: An encoder's counts of frames it lost -> the drop reason of its output topic.
-ENCODER_LOSSES = {"skipped": "encoder_behind", "rejected": "encoder_rejected", "stopped": "encoder_stopped"}
 _ENCODER_COUNTS = ("received", "published", *ENCODER_LOSSES)
 
 
