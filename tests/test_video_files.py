@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
@@ -55,19 +56,20 @@ def video_files(bag: Path, topic: str) -> list[list[Any]]:
     return files
 
 
-def decoded_frames(messages: list[Any]) -> tuple[int, str]:
+def decoded_frames(messages: list[Any], size: tuple[int, int] = (WIDTH, HEIGHT)) -> tuple[int, str]:
     """How many pictures ffmpeg decodes from these access units, from the first on, and what it complained of."""
     stream = b"".join(bytes(m.data) for m in messages)
     result = subprocess.run([ffmpeg(), "-v", "error", "-f", "h264", "-i", "pipe:0", "-fps_mode", "passthrough",
                              "-f", "rawvideo", "-pix_fmt", "gray", "pipe:1"], input=stream, capture_output=True,
                             timeout=60)
-    return len(result.stdout) // (WIDTH * HEIGHT), result.stderr.decode(errors="replace")
+    return len(result.stdout) // (size[0] * size[1]), result.stderr.decode(errors="replace")
 
 
-def assert_every_file_decodes_whole(bag: Path, topic: str) -> list[list[Any]]:
+def assert_every_file_decodes_whole(bag: Path, topic: str, size: tuple[int, int] = (WIDTH, HEIGHT)
+                                    ) -> list[list[Any]]:
     files = video_files(bag, topic)
     with ThreadPoolExecutor(4) as pool:  # one ffmpeg process per file
-        results = list(pool.map(decoded_frames, [messages for messages in files if messages]))
+        results = list(pool.map(lambda messages: decoded_frames(messages, size), [m for m in files if m]))
     for index, (messages, result) in enumerate(zip([m for m in files if m], results)):
         assert result == (len(messages), ""), f"file {index} of {bag} on {topic}"
     return files
@@ -138,21 +140,61 @@ def test_a_compress_regex_that_matches_nothing_warns_about_each_raw_image_topic(
 class Frames(ComponentNode):
     """Publishes the test's pictures as rgb8 Images on several topics in-process, as fast as asked."""
 
-    def __init__(self, manager: ComponentManager, topics: list[str]) -> None:
+    def __init__(self, manager: ComponentManager, topics: list[str],
+                 sizes: dict[str, tuple[int, int]] | None = None) -> None:
+        """``sizes``: per topic (width, height), the test's size if not named."""
         super().__init__("video_files_frames", intra_process_manager=manager.intra_process_manager,
                          context=manager.context)
         self.outputs = {topic: self.create_publisher(Image, topic, QoSProfile(depth=10)) for topic in topics}
-        self.pictures = [picture(index).tobytes() for index in range(20)]
+        self.sizes = {topic: (sizes or {}).get(topic, (WIDTH, HEIGHT)) for topic in topics}
+        self.pictures = {size: [np.resize(picture(index), (size[1], size[0], 3)).tobytes() for index in range(20)]
+                         for size in set(self.sizes.values())}
         self.sent = 0
 
-    def send(self) -> None:
-        """One picture on every topic, each stamped with the send count (unique per topic)."""
-        for publisher in self.outputs.values():
-            msg = Image(height=HEIGHT, width=WIDTH, encoding="rgb8", step=WIDTH * 3)
+    def send(self, topics: list[str] | None = None) -> None:
+        """One picture on every topic (or those named), each stamped with the send count (unique per topic)."""
+        for topic in topics or list(self.outputs):
+            width, height = self.sizes[topic]
+            msg = Image(height=height, width=width, encoding="rgb8", step=width * 3)
             msg.header.stamp = stamp_from_ns(1_000_000_000 + self.sent)
-            msg.data = self.pictures[self.sent % len(self.pictures)]
-            publisher.publish(msg)
+            msg.data = self.pictures[(width, height)][self.sent % 20]
+            self.outputs[topic].publish(msg)
         self.sent += 1
+
+
+def test_a_split_keeps_the_frame_another_camera_had_in_hand(manager: ComponentManager, tmp_path: Path) -> None:
+    """A split is asked for while a 720p camera's frame is being encoded, and a small camera's keyframe comes
+    first: the big camera's frame (a delta frame) still goes to the old file, and each file decodes whole.
+    Before, the small camera's keyframe closed the file and the big camera's frame was dropped as
+    awaiting_keyframe."""
+    small, big = "/hand/small", "/hand/big"
+    sizes = {small: (64, 48), big: (1280, 720)}
+    bag = tmp_path / "hand"
+    recorder = load(manager, "Recorder", "rec_hand", **{
+        "storage.uri": str(bag), "record.compress": "h264", "record.compress_topics": [small, big],
+        "record.compress_preset": "slow", "record.topics": [small, big]})
+    assert wait_until(lambda: all(f"{t}/video" in recorder.node._topics for t in (small, big)), 20.0)
+    frames = Frames(manager, [small, big], sizes)
+    encoder = next(c.node for c in manager.components() if isinstance(c.node, ImageEncoder))
+
+    def settle() -> None:
+        assert wait_until(lambda: all(s["waiting"] == 0 for s in encoder.stats()["topics"].values()), 20.0)
+
+    for _ in range(4):
+        for _ in range(3):
+            frames.send()
+            settle()
+        frames.send([big])  # in the encoder's hands ...
+        assert recorder.node._session.split()  # ... when the split is asked for
+        frames.send([small])
+        settle()
+    final = recorder.node.stop_recording()
+    assert final["drop_reasons"] == {}, final["drop_reasons"]
+    for topic in (small, big):
+        files = assert_every_file_decodes_whole(bag, f"{topic}/video", sizes[topic])
+        assert len([f for f in files if f]) == 5, (topic, [[stamp_ns(m.timestamp) for m in f] for f in files])
+        stamps = [stamp_ns(m.timestamp) for messages in files for m in messages]
+        assert len(stamps) == len(set(stamps)) == final["topics"][f"{topic}/video"]["written"]
 
 
 class Arrivals(ComponentNode):

@@ -114,8 +114,10 @@ class KeyframeGate:
         self._restart_ns = time.time_ns()
 
     def split(self) -> None:
-        """A split is asked for (any thread): it begins at the writer's next message."""
+        """A split is asked for (any thread): the keyframes are asked for now, and the split begins at the writer's
+        next message."""
         self._split_asked = True
+        self.video.request_keyframes()
 
     @property
     def splitting(self) -> bool:
@@ -130,10 +132,11 @@ class KeyframeGate:
             self._restart_ns = None
             self._started.clear()
         if self._split_since is None and (full or self._split_asked):
+            if not self._split_asked:  # the file is full: the keyframes are asked for now
+                self.video.request_keyframes()
             self._split_asked = False
             self._split_since = time.monotonic()
             self._waiting, self._moved = set(self._started), set()
-            self.video.request_keyframes()
         split = self._split_since is not None and (
             not self._waiting or time.monotonic() - self._split_since > SPLIT_HOLD)
         if split:
