@@ -205,6 +205,18 @@ def test_a_bad_choice_is_a_load_error_naming_it_and_the_container_keeps_running(
     assert load_player(manager, clashing.path, **{"play.decode_topics": [STILLS]}) is not None
 
 
+def test_bag_play_decode_before_the_bag_plays_it_and_its_errors_name_the_options(tmp_path: Path) -> None:
+    """``bag play --decode BAG`` (the bag after the option) takes BAG; the player's refusal (a decoded topic would
+    clash with a played one) names the options the user typed, not the player's parameters."""
+    clashing = CompressedBag(tmp_path / "bag", raw_topic="/cam/image")
+    result = subprocess.run([CLI, "bag", "play", "--no-progress", "--decode", str(clashing.path)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert f"Cannot play {clashing.path}: --decode: '{VIDEO}' would be decoded to '/cam/image', which '/cam/image' " \
+           "is played on too; exclude one of them (--exclude-topics) or choose the topics to decode with --decode\n" \
+           in result.stderr, result.stderr
+
+
 def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBag) -> None:
     got: list[Image] = []
     subscription = probe.create_subscription(Image, "/cam/image", got.append, RELIABLE)
