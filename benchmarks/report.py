@@ -30,7 +30,7 @@ if __package__ in (None, ""):  # run as a script: benchmarks.* from this checkou
     sys.path.insert(1, str(REPO))
 
 from benchmarks.record.report import fmt  # noqa: E402
-from benchmarks.result_folder import RESULTS  # noqa: E402
+from benchmarks.locations import RESULTS  # noqa: E402
 
 BLOCK = re.compile(r"^<!-- BEGIN GENERATED: (?P<name>[\w.-]+) -->\n(?P<body>.*?)^<!-- END GENERATED: (?P=name) -->$",
                    re.MULTILINE | re.DOTALL)

@@ -14,8 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
+from benchmarks.locations import REPO, RESULTS
 
 
 def git_state() -> dict[str, Any]:

@@ -217,7 +217,7 @@ class ComponentManager(Node):
         except COMPONENT_ERRORS as exc:  # a component's constructor may raise anything; report it, stay up
             self._unload_owned(unique_id)
             _destroy_partially_constructed(node)
-            raise ComponentConstructionError(f"Component constructor threw an exception: {exc}") from exc
+            raise ComponentConstructionError(f"Component constructor threw an exception: {exc}", str(exc)) from exc
         try:
             loaded = LoadedComponent(unique_id, node, request.package_name, request.plugin_name,
                                      node.get_fully_qualified_name(), options.log_level is not None, owner=owner)
@@ -240,8 +240,13 @@ class ComponentManager(Node):
         return loaded
 
     def _load_owned(self, owner: int, request: LoadNode.Request) -> Node:
-        """A component's own load of another (from its constructor): listed like any, unloaded with it."""
-        return self.load(request, owner).node
+        """A component's own load of another (from its constructor): listed like any, unloaded with it. A failure
+        is the failed component's own reason: the owner's constructor reports it in its words, and the owner's
+        load error then says "Component constructor threw an exception:" once, not once per level."""
+        try:
+            return self.load(request, owner).node
+        except ComponentConstructionError as exc:
+            raise ComponentConstructionError(exc.reason) from exc
 
     def _unload_owned(self, owner: int, timeout: float | None = None) -> None:
         """Tear down what component ``owner`` loaded, newest first (its own load failed or it is unloading),
@@ -372,7 +377,12 @@ class ComponentManager(Node):
 
 
 class ComponentConstructionError(Exception):
-    """The component's constructor raised."""
+    """The component's constructor raised (or the component could not be started); ``reason`` is the message
+    without the container's own words (the constructor's exception text, when it raised)."""
+
+    def __init__(self, message: str, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = message if reason is None else reason
 
 
 def _destroy_partially_constructed(node: Node) -> None:

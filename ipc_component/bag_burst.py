@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from ipc_component.bag_play import duration_parameters, run_player
+from ipc_component.bag_play import duration_parameters, options_of, run_player
 
 
 def _not_negative(kind: type) -> Any:
@@ -66,4 +66,5 @@ def burst_parameters(args: argparse.Namespace) -> dict[str, Any]:
 def run_bag_burst(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO = sys.stdout) -> int:
     """Burst a bag in this process; returns the exit status."""
     return run_player(burst_parameters(args), [args.bag_path], args.remap, args.no_progress, ros_args, out,
-                      when_loaded=lambda player: player.burst(args.num_messages))
+                      when_loaded=lambda player: player.burst(args.num_messages),
+                      options=options_of("bag_path", "--storage"))

@@ -20,6 +20,8 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
+from ipc_component.verb_arguments import in_options
+
 PLAYER_PLUGIN = "components::Player"
 PROGRESS_PERIOD = 0.25
 #: Back to the start of the terminal line, then erase it (ANSI).
@@ -93,7 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--decode", nargs="*", default=None, metavar="TOPIC",
                         help="Also play compressed image topics (sensor_msgs/CompressedImage, "
                              "foxglove_msgs/CompressedVideo) decoded as sensor_msgs/Image on <base> for "
-                             "<base>/compressed or <base>/video: all of them, or the topics named")
+                             "<base>/compressed or <base>/video: all of them, or the topics named (with no bag "
+                             "named elsewhere, the last word after it is the bag)")
     parser.add_argument("--no-progress", action="store_true", help="No progress line, even on a terminal")
 
 
@@ -109,19 +112,52 @@ def _nanoseconds(name: str, nanoseconds: int) -> dict[str, int]:
     return {f"{name}.sec": sign * (abs(nanoseconds) // _NS_PER_S), f"{name}.nsec": sign * (abs(nanoseconds) % _NS_PER_S)}
 
 
+def bags_and_decoded(args: argparse.Namespace) -> tuple[list[str], list[str] | None]:
+    """The positional bags, and the topics of ``--decode`` (None: not given).
+
+    ``--decode`` takes topics after it, so argparse hands it every word that follows, the bag too. ``ros2 bag
+    play`` takes its bag anywhere, so when no bag is named otherwise, the last of those words is the bag:
+    ``bag play --decode BAG`` decodes every topic of BAG, ``bag play --decode TOPIC BAG`` one.
+    """
+    if args.decode and not args.bag_paths and not args.inputs:
+        return args.decode[-1:], args.decode[:-1]
+    return args.bag_paths, args.decode
+
+
 def input_bags(args: argparse.Namespace) -> list[tuple[str, str]]:
     """(path, storage id) of every bag to play; ValueError for a command line that names none, or mixes
     positional bags and ``-i`` (as rosbag2 refuses to)."""
-    if args.bag_paths and args.inputs:
+    bag_paths = bags_and_decoded(args)[0]
+    if bag_paths and args.inputs:
         raise ValueError("do not mix positional bags and the -i,--input option; for several input bags, name them "
                          "all one way")
-    if not args.bag_paths and not args.inputs:
+    if not bag_paths and not args.inputs:
         raise ValueError("name the bag to play (bag_path, or -i URI)")
     for given in args.inputs:
         if len(given) > 2 or given[1:] not in ([], ["mcap"], ["sqlite3"], [""]):
             raise ValueError(f"-i takes a bag and optionally its storage id (mcap or sqlite3), got {' '.join(given)}")
-    return [(path, args.storage) for path in args.bag_paths] + [(given[0], given[1] if given[1:] else "")
-                                                               for given in args.inputs]
+    return [(path, args.storage) for path in bag_paths] + [(given[0], given[1] if given[1:] else "")
+                                                          for given in args.inputs]
+
+
+#: The player's parameters that the options set, by the option's name: what a load error of the player is told in
+#: (the player names its parameters; the user typed options). The bags: their positional name, or -i.
+OPTIONS = {"play.rate": "--rate", "play.topics_to_filter": "--topics", "play.services_to_filter": "--services",
+           "play.actions_to_filter": "--actions", "play.regex_to_filter": "--regex",
+           "play.exclude_regex_to_filter": "--exclude-regex", "play.exclude_topics_to_filter": "--exclude-topics",
+           "play.exclude_services_to_filter": "--exclude-services",
+           "play.exclude_actions_to_filter": "--exclude-actions",
+           "play.qos_profile_overrides_path": "--qos-profile-overrides-path",
+           "play.read_ahead_queue_size": "--read-ahead-queue-size", "play.clock_publish_frequency": "--clock",
+           "play.clock_trigger_topics": "--clock-topics", "play.service_requests_source": "--service-requests-source",
+           "play.message_order": "--message-order", "play.decode": "--decode", "play.decode_topics": "--decode"}
+
+
+def options_of(bags: str, storage: str) -> dict[str, str]:
+    """:data:`OPTIONS` with the bag parameters: ``bags`` names the bags as given (``bag_path``, ``-i``),
+    ``storage`` their storage ids (``--storage``, ``-i``)."""
+    return {**OPTIONS, "storage.uri": bags, "storage.uris": bags, "storage.storage_id": storage,
+            "storage.storage_ids": storage}
 
 
 def _storage_parameters(bags: list[tuple[str, str]]) -> dict[str, Any]:
@@ -132,6 +168,7 @@ def _storage_parameters(bags: list[tuple[str, str]]) -> dict[str, Any]:
 
 def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
     """The player's parameters for the command's options (ValueError: see :func:`input_bags`)."""
+    decode = bags_and_decoded(args)[1]
     parameters: dict[str, Any] = {
         **_storage_parameters(input_bags(args)),
         "play.rate": args.rate,
@@ -155,8 +192,8 @@ def player_parameters(args: argparse.Namespace) -> dict[str, Any]:
         "play.actions_to_filter": args.actions or [""],
         "play.exclude_actions_to_filter": args.exclude_actions or [""],
         "play.send_actions_as_client": args.send_actions_as_client,
-        "play.decode": args.decode is not None,
-        "play.decode_topics": args.decode or [""],
+        "play.decode": decode is not None,
+        "play.decode_topics": decode or [""],
         **duration_parameters("play.delay", args.delay),
         **duration_parameters("play.playback_duration", args.playback_duration),
         **duration_parameters("play.start_offset", args.start_offset),
@@ -216,18 +253,19 @@ def run_bag_play(args: argparse.Namespace, ros_args: Sequence[str], out: TextIO 
         print(f"ipc-component bag play: {exc}", file=sys.stderr, flush=True)
         return 1
     return run_player(parameters, [path for path, _ in input_bags(args)], args.remap, args.no_progress, ros_args,
-                      out)
+                      out, options=options_of("-i", "-i") if args.inputs else options_of("bag_path", "--storage"))
 
 
 def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no_progress: bool,
                ros_args: Sequence[str], out: TextIO = sys.stdout,
-               when_loaded: Callable[[Any], None] | None = None) -> int:
+               when_loaded: Callable[[Any], None] | None = None, options: dict[str, str] | None = None) -> int:
     """Run a container with one player of ``parameters`` in this process until its playback ends (or Ctrl-C);
-    ``when_loaded`` gets the player once it is loaded (on a thread of its own, so Ctrl-C still stops it)."""
+    ``when_loaded`` gets the player once it is loaded (on a thread of its own, so Ctrl-C still stops it). A load
+    error names each parameter in ``options`` (parameter -> option) as the option that set it."""
     import rclpy
     from rclpy.context import Context
 
-    from component_container.component_manager import ComponentManager
+    from component_container.component_manager import ComponentConstructionError, ComponentManager
     from component_container.discovery_profile import use_fastdds_profile
     from component_container.process_tuning import apply_low_latency
     from component_container.startup_file import load_request
@@ -250,7 +288,8 @@ def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no
         try:
             player = manager.load(request).node
         except Exception as exc:  # noqa: BLE001 - the player's own message names what is wrong
-            print(f"Cannot play {', '.join(bags)}: {exc}", file=sys.stderr, flush=True)
+            reason = exc.reason if isinstance(exc, ComponentConstructionError) else str(exc)  # no container words
+            print(f"Cannot play {', '.join(bags)}: {in_options(reason, options or {})}", file=sys.stderr, flush=True)
             return 1
         if when_loaded is not None:
             threading.Thread(target=when_loaded, args=(player,), name="bag-play-when-loaded", daemon=True).start()

@@ -20,18 +20,20 @@ import fnmatch
 import glob
 import json
 import re
+import sys
 import time
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from baglib.format import fleet_keys
+from ipc_component.recorder_lookup import PlacedRecorder, find_recorders, recorder_full_name, recorder_node
 from ipc_component.ros_session import BUDGET, CALL_TIMEOUT, CliError, RosSession
-from ipc_component.verb_arguments import add_verb, parameter_msgs
+from ipc_component.verb_arguments import add_verb, in_options, parameter_msgs
 
 if TYPE_CHECKING:
     from ipc_component.fleet_link import ContainerLink, Fleet
 
 RECORDER_PLUGIN = ("components", "components::Recorder")
-NODE_PREFIX = "record_"
 SESSION_NAME = re.compile(r"^[A-Za-z0-9_]+$")
 #: s: how long discovery watches the graph for containers (other computers answer later than local ones)
 DISCOVERY = 1.5
@@ -45,16 +47,6 @@ FINALIZE_TIMEOUT = 30.0
 #: Parameters that select topics: when one is given, the recorder is not told to record all topics.
 SELECTION = ("record.all_topics", "record.topics", "record.topic_types", "record.regex", "record.services",
              "record.all_services", "record.actions", "record.all_actions", "topics", "topic_names", "record_all")
-
-
-def recorder_node(session: str) -> str:
-    return f"{NODE_PREFIX}{session}"
-
-
-def recorder_full_name(container: str, session: str) -> str:
-    """The recorder's node lives in its container's name as namespace: service names stay unique in the domain
-    (containers must have distinct names anyway, or their own services would clash)."""
-    return f"{container.rstrip('/')}/{recorder_node(session)}"
 
 
 def bag_directory(session: str, link: ContainerLink) -> str:
@@ -82,6 +74,12 @@ FLAG_PARAMETERS: list[tuple[str, str, Callable[[Any], Any]]] = [
     ("all_actions", "record.all_actions", bool),
     ("exclude_actions", "record.exclude_actions", list),
 ]
+
+
+def _options_given(args: argparse.Namespace) -> dict[str, str]:
+    """The recorder parameters this ``record start`` set from its options, by option (for the recorders' errors)."""
+    return {parameter: f"--{option.replace('_', '-')}" for option, parameter, _ in FLAG_PARAMETERS
+            if getattr(args, option)}
 
 
 def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse.Namespace) -> list[Any]:
@@ -178,28 +176,32 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
             if reply is None:
                 link.error = "no reply to the load request"
             elif not reply.success:
-                link.error = f"recorder not loaded: {reply.error_message}"
+                link.error = f"recorder not loaded: {in_options(reply.error_message, _options_given(args))}"
         recording = fleet.answering
         if args.all_or_nothing and len(recording) != len(fleet.links):
-            _unload(fleet, {link.name: replies[link.name].unique_id for link in recording})
+            _unload(fleet, [(link, replies[link.name].unique_id) for link in recording])
             _report_failures(fleet.links)
             raise CliError("Aborted: --all-or-nothing and a recorder was not loaded everywhere (unloaded again)")
+    if not recording:  # nothing to announce: only why
+        _report_failures(fleet.links)
+        raise CliError(f"Session {session} not started: no container records")
     _report_start(session, start_ns, fleet.links)
-    return 0 if recording and len(recording) == len(fleet.links) else 2 if recording else 1
+    return 0 if len(recording) == len(fleet.links) else 2
 
 
-def _unload(fleet: Fleet, unique_ids: dict[str, int]) -> dict[str, Any]:
+def _unload(fleet: Fleet, components: Sequence[tuple[ContainerLink, int]]) -> None:
+    """Unload each (container, unique id) at once, waiting for the replies (at most CALL_TIMEOUT)."""
     from composition_interfaces.srv import UnloadNode
 
-    links = {link.name: link for link in fleet.links}
-    return fleet.call_all({name: (links[name].unload, UnloadNode.Request(unique_id=uid))
-                           for name, uid in unique_ids.items()}, time.monotonic() + CALL_TIMEOUT)
+    fleet.call_all({f"{link.name}#{uid}": (link.unload, UnloadNode.Request(unique_id=uid)) for link, uid in components},
+                   time.monotonic() + CALL_TIMEOUT)
 
 
 def _report_failures(links: Sequence[ContainerLink]) -> None:
+    """Each container that does not take part, and why, on stderr."""
     for link in links:
         if link.error:
-            print(f"Not recording in {link.name}: {link.error}")
+            print(f"Not recording in {link.name}: {link.error}", file=sys.stderr)
 
 
 def _report_start(session: str, start_ns: int, links: Sequence[ContainerLink]) -> None:
@@ -222,106 +224,132 @@ def _bag_path(link: ContainerLink, relative: str) -> str:
 
 
 # --- stop and split -------------------------------------------------------------------------------------
-def _session_recorders(ros: RosSession, args: argparse.Namespace) -> tuple[Fleet, dict[str, tuple[int, str]]]:
-    """The containers holding recorders of ``--session`` (any fleet session without it), connected, with
-    their clock offsets; and per container its recorder (unique id, node name)."""
-    found = _discover(ros, args.spin_time)
-    recorders: dict[str, tuple[int, str]] = {}
-    for container, components in found.items():
-        wanted = recorder_full_name(container, args.session or "*")
-        for unique_id, name in components or []:
-            if fnmatch.fnmatchcase(name, wanted):
-                recorders[container] = (unique_id, name)
-    if not recorders:
+@dataclass
+class _Recorders:
+    """The recorders a ``stop`` or ``split`` addresses, their containers (connected, with their clock offsets), and
+    why a recorder did not do what was asked (by node name)."""
+
+    fleet: Fleet
+    placed: list[PlacedRecorder]
+    errors: dict[str, str] = field(default_factory=dict)
+
+    def link(self, recorder: PlacedRecorder) -> ContainerLink:
+        return next(link for link in self.fleet.links if link.name == recorder.container)
+
+    @property
+    def live(self) -> list[PlacedRecorder]:
+        """The recorders whose container answers and that have not failed."""
+        return [r for r in self.placed if self.link(r).ok and r.node not in self.errors]
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors and all(link.ok for link in self.fleet.links)
+
+    def report_failures(self) -> None:
+        _report_failures(self.fleet.links)
+        for node, error in self.errors.items():
+            print(f"{node}: {error}", file=sys.stderr)
+
+
+def _session_recorders(ros: RosSession, args: argparse.Namespace) -> _Recorders:
+    """The recorders of ``--session`` (of every fleet session without it), in as many sessions and containers as
+    there are, with their containers connected and their clock offsets measured."""
+    placed = find_recorders(ros, args.spin_time, args.session, fleet_only=True)
+    if not placed:
         raise CliError("No recorder of " + (f"session '{args.session}'" if args.session else "a fleet session")
                        + " found")
-    fleet = ros.fleet(sorted(recorders))
+    fleet = ros.fleet(sorted({recorder.container for recorder in placed}))
     fleet.connect(time.monotonic() + BUDGET)
     fleet.measure_offsets(time.monotonic() + BUDGET)
-    return fleet, recorders
+    return _Recorders(fleet, placed)
 
 
-def _set_on_all(fleet: Fleet, recorders: dict[str, tuple[int, str]], instant_parameter: str, instant: int,
+def _set_on_all(recorders: _Recorders, instant_parameter: str, instant: int,
                 custom_data: dict[str, str] | None = None) -> None:
-    """Set ``instant_parameter`` on every recorder to ``instant`` on that container's clock (this computer's clock
+    """Set ``instant_parameter`` on every recorder to ``instant`` on its container's clock (this computer's clock
     plus the offset just measured); with ``custom_data``, add those pairs and the offset used to the bag."""
     from rcl_interfaces.srv import SetParameters
     from rclpy.parameter import Parameter
 
+    fleet = recorders.fleet
     calls = {}
-    for link in fleet.answering:
+    for recorder in recorders.live:
+        link = recorders.link(recorder)
         offset = link.offset.offset_ns if link.offset else 0
         parameters = [Parameter(instant_parameter, value=(instant + offset) / 1e9)]
         if custom_data is not None:
             pairs = {**custom_data, fleet_keys.STOP_CLOCK_OFFSET_NS: str(offset)}
             parameters.append(Parameter("storage.custom_data", value=[f"{k}={v}" for k, v in pairs.items()]))
-        calls[link.name] = (fleet.parameter_client(link, recorders[link.name][1]),
-                            SetParameters.Request(parameters=[p.to_parameter_msg() for p in parameters]))
+        calls[recorder.node] = (fleet.parameter_client(link, recorder.node),
+                                SetParameters.Request(parameters=[p.to_parameter_msg() for p in parameters]))
     replies = fleet.repeat_all(calls, time.monotonic() + BUDGET)
     if time.time_ns() > instant:
         print(f"Warning: the instant passed {(time.time_ns() - instant) / 1e6:.0f} ms before every recorder had it: "
               "a recorder writes what it received until then (schedule it ahead with --in)")
-    for link in fleet.answering:
-        reply = replies.get(link.name)
+    for node in calls:
+        reply = replies.get(node)
         if reply is None:
-            link.error = "the recorder did not answer"
+            recorders.errors[node] = "the recorder did not answer"
         elif not all(result.successful for result in reply.results):
-            link.error = "; ".join(result.reason for result in reply.results if not result.successful)
+            recorders.errors[node] = "; ".join(result.reason for result in reply.results if not result.successful)
 
 
 def run_stop(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     with RosSession(ros_args) as ros:
-        fleet, recorders = _session_recorders(ros, args)
+        recorders = _session_recorders(ros, args)
         stop_ns = instant_ns(args, default_in=STOP_AHEAD)
-        _set_on_all(fleet, recorders, "record.stop_at", stop_ns, {fleet_keys.STOP_NS: str(stop_ns)})
-        finals = _wait_finalized(fleet, recorders, stop_ns)
-        _unload(fleet, {link.name: recorders[link.name][0] for link in fleet.answering if link.name in finals})
+        _set_on_all(recorders, "record.stop_at", stop_ns, {fleet_keys.STOP_NS: str(stop_ns)})
+        finals = _wait_finalized(recorders, stop_ns)
+        _unload(recorders.fleet, [(recorders.link(r), r.unique_id) for r in recorders.placed if r.node in finals])
     rows = []
-    for link in fleet.links:
-        final = finals.get(link.name)
+    for recorder in recorders.placed:
+        final = finals.get(recorder.node)
         if final is None:
             continue
         topics = final["topics"].values()
-        rows.append((link.host, link.name, str(sum(t["written"] for t in topics)),
+        rows.append((recorders.link(recorder).host, recorder.container, str(sum(t["written"] for t in topics)),
                      f"{final['bytes_written'] / 1e6:.1f} MB", str(sum(t["dropped"] for t in topics)),
                      final["bag"] + (f" (error: {final['error']})" if final["error"] else "")))
-    _print_rows(("HOST", "CONTAINER", "MESSAGES", "BYTES", "DROPS", "BAG"), rows)
-    _report_failures(fleet.links)
-    return 0 if all(link.ok for link in fleet.links) else 1
+    if rows:
+        _print_rows(("HOST", "CONTAINER", "MESSAGES", "BYTES", "DROPS", "BAG"), rows)
+    recorders.report_failures()
+    return 0 if recorders.ok else 1
 
 
-def _wait_finalized(fleet: Fleet, recorders: dict[str, tuple[int, str]], stop_ns: int) -> dict[str, dict]:
-    """Poll every recorder's ~/get_stats until its bag is finalized; the final counts per container."""
+def _wait_finalized(recorders: _Recorders, stop_ns: int) -> dict[str, dict]:
+    """Poll every recorder's ~/get_stats until its bag is finalized; the final counts per recorder node."""
     from std_srvs.srv import Trigger
 
+    fleet = recorders.fleet
     deadline = time.monotonic() + max(0.0, (stop_ns - time.time_ns()) / 1e9) + FINALIZE_TIMEOUT
     finals: dict[str, dict] = {}
     while time.monotonic() < deadline:
-        pending = [link for link in fleet.answering if link.name not in finals]
+        pending = [recorder for recorder in recorders.live if recorder.node not in finals]
         if not pending:
             break
-        calls = {link.name: (fleet.component_client(link, Trigger, f"{recorders[link.name][1]}/get_stats"),
-                             Trigger.Request()) for link in pending}
-        for name, reply in fleet.repeat_all(calls, min(deadline, time.monotonic() + BUDGET)).items():
+        calls = {r.node: (fleet.component_client(recorders.link(r), Trigger, f"{r.node}/get_stats"), Trigger.Request())
+                 for r in pending}
+        for node, reply in fleet.repeat_all(calls, min(deadline, time.monotonic() + BUDGET)).items():
             stats = json.loads(reply.message)
             if not stats["recording"] and stats["finished"]:
-                finals[name] = stats["finished"][-1]
+                finals[node] = stats["finished"][-1]
         fleet.spin_until(lambda: False, min(deadline, time.monotonic() + 0.2))
-    for link in fleet.answering:
-        if link.name not in finals:
-            link.error = "the bag was not finalized in time"
+    for recorder in recorders.live:
+        if recorder.node not in finals:
+            recorders.errors[recorder.node] = "the bag was not finalized in time"
     return finals
 
 
 def run_split(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     with RosSession(ros_args) as ros:
-        fleet, recorders = _session_recorders(ros, args)
+        recorders = _session_recorders(ros, args)
         split_ns = instant_ns(args, default_in=STOP_AHEAD)
-        _set_on_all(fleet, recorders, "record.split_at", split_ns)
-    for link in fleet.answering:
-        print(f"Split scheduled in {link.name} ({link.host})")
-    _report_failures(fleet.links)
-    return 0 if all(link.ok for link in fleet.links) else 1
+        _set_on_all(recorders, "record.split_at", split_ns)
+    for recorder in recorders.live:
+        print(f"Split scheduled in {recorder.container} ({recorders.link(recorder).host}), session "
+              f"{recorder.session}")
+    recorders.report_failures()
+    return 0 if recorders.ok else 1
 
 
 # --- the command line -----------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """``ipc-component record status``: one table of every recorder in the domain, once or live (``--watch``).
 
-Recorders are found on the graph by the services every ``components::Recorder`` offers (``~/get_stats`` and
-``~/split_bagfile``) and placed in their container through ListNodes; the figures come from ``~/get_stats``
+Recorders are found by what they are (ipc_component.recorder_lookup: the services every ``components::Recorder``
+offers, placed in their container through ListNodes), so recorders loaded by hand are listed too; the figures come from ``~/get_stats``
 (what the recorder already reports live: bytes, messages, drops, free space, the time until the disk's
 reserve is reached) and the host from the container's clock service. Nothing is loaded or changed.
 """
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Sequence
 
 from baglib.format import fleet_keys
-from ipc_component.record_fleet import recorder_full_name
+from ipc_component.recorder_lookup import find_recorders
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.text_table import format_table
 from ipc_component.verb_arguments import add_verb
@@ -22,7 +22,6 @@ from ipc_component.verb_arguments import add_verb
 if TYPE_CHECKING:
     from ipc_component.fleet_link import ContainerLink
 
-RECORDER_SERVICES = {"get_stats": "std_srvs/srv/Trigger", "split_bagfile": "rosbag2_interfaces/srv/SplitBagfile"}
 HEADER = ("HOST", "CONTAINER", "SESSION", "BAG", "ELAPSED", "MB/S", "MESSAGES", "DROPS", "FREE", "TO FULL")
 
 
@@ -32,16 +31,6 @@ class Sample:
 
     when: float
     stats: dict[str, Any]
-
-
-def recorder_nodes(node: Any) -> set[str]:
-    """Full names of the nodes offering every recorder service."""
-    offered: dict[str, set[str]] = {}
-    for name, types in node.get_service_names_and_types():
-        owner, _, service = name.rpartition("/")
-        if RECORDER_SERVICES.get(service) in types:
-            offered.setdefault(owner, set()).add(service)
-    return {owner for owner, services in offered.items() if services == set(RECORDER_SERVICES)}
 
 
 def _row(link: ContainerLink, node_name: str, sample: Sample, previous: Sample | None) -> tuple[str, ...]:
@@ -72,17 +61,9 @@ def _row(link: ContainerLink, node_name: str, sample: Sample, previous: Sample |
 def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     from std_srvs.srv import Trigger
 
-    from ipc_component.container_discovery import list_containers
-
     with RosSession(ros_args) as ros:
-        start = time.monotonic()
-        listings = list_containers(ros.node, ros.executor, deadline=start + BUDGET + args.spin_time,
-                                   discovery_until=start + args.spin_time)
-        recorders = recorder_nodes(ros.node)
-        placed = [(listing.container, name) for listing in listings for _uid, name in listing.components
-                  if name in recorders]
-        if args.session:
-            placed = [(c, n) for c, n in placed if n == recorder_full_name(c, args.session)]
+        placed = [(recorder.container, recorder.node)
+                  for recorder in find_recorders(ros, args.spin_time, args.session, fleet_only=False)]
         if not placed:
             raise CliError("No recorder found" + (f" of session '{args.session}'" if args.session else ""))
         fleet = ros.fleet(sorted({container for container, _ in placed}))

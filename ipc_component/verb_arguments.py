@@ -6,7 +6,8 @@ parent's list of commands and the start of its own ``-h`` text, so the two canno
 from __future__ import annotations
 
 import argparse
-from typing import Any, Sequence
+import re
+from typing import Any, Mapping, Sequence
 
 from ipc_component.ros_session import CliError
 
@@ -66,6 +67,19 @@ def parse_unique_id(text: str) -> int:
     if not 0 <= value <= UINT64_MAX:
         raise CliError(f"Invalid component unique id '{text}': expected a non-negative integer")
     return value
+
+
+def in_options(text: str, options: Mapping[str, str]) -> str:
+    """A component's message (``text``) in the words of the command that set its parameters: each parameter in
+    ``options`` (parameter -> the option that set it, e.g. ``play.exclude_topics_to_filter`` -> ``--exclude-topics``)
+    named as that option. ``parameter 'name'`` and ``'name'`` become the option; ``name:=value`` becomes
+    ``option value``. Parameters not in ``options`` (the user typed them with ``-p``) stay as they are."""
+    if not options:
+        return text
+    names = "|".join(re.escape(name) for name in sorted(options, key=len, reverse=True))
+    text = re.sub(rf"(?<![\w.])({names}):=", lambda m: f"{options[m[1]]} ", text)
+    return re.sub(rf"(?:parameter )?'({names})'|(?<![\w.'])({names})(?![\w.])",
+                  lambda m: options[m[1] or m[2]], text)
 
 
 def add_verb(verbs: Any, name: str, summary: str, details: str = "") -> argparse.ArgumentParser:

@@ -8,8 +8,9 @@ from typing import Any
 
 import pytest
 
+from ipc_component.bag_play import OPTIONS, player_parameters
 from ipc_component.cli import build_parser
-from ipc_component.bag_play import player_parameters
+from test_cli import verb_paths
 
 T0_NS = 1_700_000_000_123_456_789  # more digits than a double holds exactly
 
@@ -97,3 +98,34 @@ def test_clock_options_are_mutually_exclusive(arguments: list[str], capsys: pyte
     with pytest.raises(SystemExit):
         parameters(*arguments)
     assert "not allowed with argument" in capsys.readouterr().err
+
+
+def played(*arguments: str) -> dict[str, Any]:
+    return player_parameters(build_parser().parse_args(["bag", "play", *arguments]))
+
+
+@pytest.mark.parametrize(("arguments", "topics"), [
+    (["--decode", "my_bag"], [""]),                              # every compressed topic of my_bag
+    (["--decode", "/cam/video", "my_bag"], ["/cam/video"]),
+    (["my_bag", "--decode"], [""]),
+    (["my_bag", "--decode", "/cam/video"], ["/cam/video"]),
+    (["-i", "my_bag", "--decode", "/cam/video"], ["/cam/video"]),
+])
+def test_the_bag_may_follow_decode_as_ros2_bag_play_takes_its_bag_anywhere(arguments: list[str],
+                                                                          topics: list[str]) -> None:
+    given = played(*arguments)
+    assert (given["storage.uri"], given["play.decode"], given["play.decode_topics"]) == ("my_bag", True, topics)
+
+
+def test_decode_without_a_bag_still_asks_for_one() -> None:
+    with pytest.raises(ValueError, match=r"name the bag to play \(bag_path, or -i URI\)"):
+        played("--decode")
+
+
+def test_every_option_a_player_error_is_told_in_is_an_option_of_bag_play_and_sets_that_parameter() -> None:
+    """The table that names the player's parameters as the options that set them (ipc_component.bag_play.OPTIONS)
+    stays true to the parser and to player_parameters."""
+    play = dict(verb_paths(build_parser()))[("bag", "play")]
+    flags = {flag for action in play._actions for flag in action.option_strings}
+    assert set(OPTIONS.values()) <= flags
+    assert set(OPTIONS) <= set(parameters())

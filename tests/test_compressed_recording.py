@@ -29,6 +29,7 @@ from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import ImageEncoder
 from ipc_testing import ContainerProcess, wait_until
 from ipc_testing.foxglove_client import install_client
+from test_cli import cli_parallel
 from test_image_encoder import IPC, Probe, decode, manager, psnr  # noqa: F401 - manager: the fixture
 
 REPO = Path(__file__).resolve().parents[1]
@@ -168,35 +169,77 @@ def test_jpeg_recording_holds_every_frame_close_to_the_raw_one(manager: Componen
     assert view["data"] == bytes(messages[0].data)
 
 
-def test_fleet_record_start_compress_records_jpeg_and_unloads_the_encoder_with_the_recorder(tmp_path: Path) -> None:
-    """``ipc-component record start --compress jpeg --max-rates ...`` on a container process: the bag holds the
-    camera as JPEG (not raw), the IMU rate limited, and ``record stop`` unloads the encoder with the recorder."""
+def status_rows(result: subprocess.CompletedProcess) -> list[list[str]]:
+    """``record status``'s table rows (after its header), each as its cells."""
+    assert result.returncode == 0, result.stdout + result.stderr
+    return [line.split() for line in result.stdout.splitlines()[1:]]
+
+
+@pytest.mark.long
+def test_fleet_verbs_find_compressed_sessions_and_unload_their_encoders(tmp_path: Path) -> None:
+    """``ipc-component record`` on a container process while compressed sessions run, one and then two
+    (``comp``: JPEG with ``--max-rates``; ``video``: H.264), each recorder beside its own ImageEncoder
+    (``record_<session>_encoder``, which the fleet's name pattern matches too): ``status``, ``split`` and
+    ``stop`` with and without ``--session`` each reach the recorders they name, and ``stop`` unloads each encoder
+    with its recorder. The bags hold the cameras compressed (not raw), split where asked, and the IMU rate
+    limited. Before them, a session whose codec no container has is refused: nothing announced, why on stderr."""
     rig = [{"package": "components", "plugin": f"components::{plugin}", "name": name, "parameters": parameters,
             "extra_arguments": IPC}
-           for plugin, name, parameters in (("CameraDriver", "cam", {"width": WIDTH, "height": HEIGHT, "fps": 10.0}),
+           for plugin, name, parameters in (("CameraDriver", "cam", {"width": 640, "height": 480, "fps": 10.0}),
                                             ("ImuDriver", "imu", {"rate": 50.0}))]
     load_file = tmp_path / "rig.yaml"
     load_file.write_text(yaml.safe_dump({"components": rig}))
+    host = os.uname().nodename
+    bags = {session: tmp_path / session / f"{host}_cx_container" for session in ("comp", "video")}
     with ContainerProcess("--use-intra-process-comms", "--bag-root", str(tmp_path), "--load", str(load_file),
                           name="/cx/container", cwd=REPO, log_path=tmp_path / "container.log"):
         assert wait_until(lambda: "/imu" in cli("list", "/cx/container").stdout, 120.0)
-        started = cli("record", "start", "/cx/container", "--session", "comp", "--in", "0.5", "--compress", "jpeg",
-                      "--max-rates", "/imu/imu:5")
+        refused, started = cli_parallel(
+            ("record", "start", "/cx/container", "--session", "bad", "--compress", "h266"),
+            ("record", "start", "/cx/container", "--session", "comp", "--in", "0.5", "--compress", "jpeg",
+             "--max-rates", "/imu/imu:5"))
+        assert (refused.returncode, refused.stdout) == (1, ""), refused.stdout  # nothing announced
+        assert "Not recording in /cx/container: recorder not loaded: " in refused.stderr, refused.stderr
+        assert "--compress h266: the image encoder cannot be loaded: --compress: 'h266' is neither" in refused.stderr
+        assert refused.stderr.count("constructor threw") == 1, refused.stderr
         assert started.returncode == 0, started.stdout + started.stderr
-        assert wait_until(lambda: "/record_comp_encoder" in cli("list", "/cx/container").stdout, 60.0)
-        bag = tmp_path / "comp" / f"{os.uname().nodename}_cx_container"
-        assert wait_until(lambda: len(list(bag.glob("*.mcap"))) == 1, 30.0)
-        stopped = cli("record", "stop", "--session", "comp", "--in", "2")
+        assert wait_until(lambda: len(list(bags["comp"].glob("*.mcap"))) == 1, 30.0)
+
+        status, split = cli_parallel(("record", "status"), ("record", "split", "--session", "comp", "--in", "0.5"))
+        assert [row[2] for row in status_rows(status)] == ["comp"]  # the recorder, not its encoder
+        assert split.returncode == 0, split.stdout + split.stderr
+        assert split.stdout == f"Split scheduled in /cx/container ({host}), session comp\n"
+        assert wait_until(lambda: len(list(bags["comp"].glob("*.mcap"))) == 2, 30.0)
+
+        started = cli("record", "start", "/cx/container", "--session", "video", "--in", "0.5", "--compress", "h264")
+        assert started.returncode == 0, started.stdout + started.stderr
+        assert wait_until(lambda: len(list(bags["video"].glob("*.mcap"))) == 1, 30.0)
+        status, one, split = cli_parallel(("record", "status"), ("record", "status", "--session", "video"),
+                                          ("record", "split", "--in", "0.5"))
+        assert [row[2] for row in status_rows(status)] == ["comp", "video"]
+        assert [row[2] for row in status_rows(one)] == ["video"]
+        assert split.returncode == 0, split.stdout + split.stderr
+        assert split.stdout.splitlines() == [f"Split scheduled in /cx/container ({host}), session {session}"
+                                             for session in ("comp", "video")]
+        assert wait_until(lambda: [len(list(bags[s].glob("*.mcap"))) for s in ("comp", "video")] == [3, 2], 30.0)
+
+        stopped = cli("record", "stop", "--session", "video", "--in", "0.5")
         assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        assert str(bags["video"]) in stopped.stdout and str(bags["comp"]) not in stopped.stdout, stopped.stdout
+        stopped = cli("record", "stop", "--in", "0.5")
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        assert str(bags["comp"]) in stopped.stdout, stopped.stdout
         listed = cli("list", "/cx/container").stdout
-        assert "record_comp" not in listed, listed  # the encoder went with the recorder
-    messages = bag_messages(bag)
+        assert "record_" not in listed, listed  # each encoder went with its recorder
+    messages = bag_messages(bags["comp"])
     assert "/cam/image_raw" not in messages and len(messages["/cam/image_raw/compressed"]) >= 10, messages.keys()
     assert {m.format for m in messages["/cam/image_raw/compressed"]} == {"rgb8; jpeg compressed bgr8"}
     frames, imu = len(messages["/cam/image_raw/compressed"]), len(messages["/imu/imu"])
     assert frames / 2 - 3 <= imu <= frames / 2 + 3, (frames, imu)  # 5 Hz of a 50 Hz IMU beside a 10 Hz camera
-    custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
+    custom = yaml.safe_load((bags["comp"] / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
     assert custom["record.max_rates"] == "/imu/imu:5", custom
+    video = bag_messages(bags["video"])
+    assert "/cam/image_raw" not in video and {m.format for m in video["/cam/image_raw/video"]} == {"h264"}
 
 
 def test_a_bad_encoder_setting_is_the_recorders_load_error_and_unloading_takes_the_encoder_along(
@@ -205,8 +248,9 @@ def test_a_bad_encoder_setting_is_the_recorders_load_error_and_unloading_takes_t
                               ({"record.compress": "h264", "record.compress_width": 321}, "'record.compress_width'"),
                               ({"record.compress": "jpeg", "record.compress_quality": 101},
                                "'record.compress_quality'")):
-        with pytest.raises(ComponentConstructionError, match=named):
+        with pytest.raises(ComponentConstructionError, match=named) as error:
             load(manager, "Recorder", "rec_bad", **{"storage.uri": str(tmp_path / "bad"), **parameters})
+        assert str(error.value).count("Component constructor threw an exception") == 1, error.value  # not per level
         assert manager.components() == []  # neither the recorder nor its encoder stays
     recorder = load(manager, "Recorder", "rec_ok", **{"storage.uri": str(tmp_path / "ok"), "record.compress": "jpeg"})
     assert [c.full_name for c in manager.components()] == ["/rec_ok", "/rec_ok_encoder"]

@@ -14,7 +14,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import pytest
@@ -31,6 +31,7 @@ from component_container.component_manager import ComponentConstructionError, Co
 from component_container.component_node import ComponentNode
 from component_container.startup_file import load_request
 from components.image_encoder import codecs
+from components.image_encoder.frame_times import frame_times
 from components.photo_content import PhotoContent
 from components.sensor_driver import stamp_from_ns
 from ipc_testing import call, in_process_manager, wait_until
@@ -62,9 +63,10 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 class CompressedBag:
     """A bag of FRAMES photographic frames as video (VIDEO, H.264 unless told) and JPEG (STILLS), and what
-    went into it."""
+    went into it; ``offsets_ns``: the frames' stamps after T0 (default: every PERIOD_NS), and as many frames."""
 
-    def __init__(self, path: Path, raw_topic: str = "", codec: str = "h264") -> None:
+    def __init__(self, path: Path, raw_topic: str = "", codec: str = "h264",
+                 offsets_ns: Sequence[int] = tuple(index * PERIOD_NS for index in range(FRAMES))) -> None:
         self.path = path
         self.frames: list[np.ndarray] = []
         self.video: list[bytes] = []
@@ -80,8 +82,8 @@ class CompressedBag:
                                        offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
             if raw_topic:
                 writer.add_topic(TopicInfo(raw_topic, "sensor_msgs/msg/Image"))
-            for index in range(FRAMES):
-                t = T0 + index * PERIOD_NS
+            for index, offset in enumerate(offsets_ns):
+                t = T0 + offset
                 buffer = bytearray(WIDTH * HEIGHT * 3)
                 content.fill(index, memoryview(buffer))
                 pixels = np.frombuffer(bytes(buffer), np.uint8).reshape(HEIGHT, WIDTH, 3)
@@ -99,7 +101,7 @@ class CompressedBag:
                 self.jpegs.append(bytes(still.data))
                 writer.write(VIDEO, serialize_message(frame), t, t)
                 writer.write(STILLS, serialize_message(still), t, t)
-        assert self.keyframes[0] and sum(self.keyframes) == -(-FRAMES // KEYFRAME_INTERVAL)
+        assert self.keyframes[0] and sum(self.keyframes) >= -(-len(offsets_ns) // KEYFRAME_INTERVAL)
 
 
 @pytest.fixture(scope="module")
@@ -205,6 +207,18 @@ def test_a_bad_choice_is_a_load_error_naming_it_and_the_container_keeps_running(
     assert load_player(manager, clashing.path, **{"play.decode_topics": [STILLS]}) is not None
 
 
+def test_bag_play_decode_before_the_bag_plays_it_and_its_errors_name_the_options(tmp_path: Path) -> None:
+    """``bag play --decode BAG`` (the bag after the option) takes BAG; the player's refusal (a decoded topic would
+    clash with a played one) names the options the user typed, not the player's parameters."""
+    clashing = CompressedBag(tmp_path / "bag", raw_topic="/cam/image")
+    result = subprocess.run([CLI, "bag", "play", "--no-progress", "--decode", str(clashing.path)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert f"Cannot play {clashing.path}: --decode: '{VIDEO}' would be decoded to '/cam/image', which '/cam/image' " \
+           "is played on too; exclude one of them (--exclude-topics) or choose the topics to decode with --decode\n" \
+           in result.stderr, result.stderr
+
+
 def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBag) -> None:
     got: list[Image] = []
     subscription = probe.create_subscription(Image, "/cam/image", got.append, RELIABLE)
@@ -250,7 +264,8 @@ def test_bag_export_remuxes_a_video_topic_into_mp4_without_re_encoding(
     result = subprocess.run([CLI, "bag", "export", str(bag.path), VIDEO, str(out)], capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stderr
-    assert f"Wrote {FRAMES} frames of {VIDEO} ({codec})" in result.stdout
+    assert result.stdout == f"Wrote 1 MP4 file ({FRAMES} frames) of {VIDEO} ({codec}) to {out}, as recorded (no " \
+                            "re-encoding)\n"
     [stream] = ffprobe(out, "stream=codec_name,codec_tag_string,width,height,nb_read_packets")["streams"]
     assert stream == {"codec_name": {"h265": "hevc"}.get(codec, codec), "codec_tag_string": tag, "width": WIDTH,
                       "height": HEIGHT, "nb_read_packets": str(FRAMES)}
@@ -261,11 +276,48 @@ def test_bag_export_remuxes_a_video_topic_into_mp4_without_re_encoding(
     assert decoded_by_ffmpeg(out.read_bytes(), "mp4") == decoded_by_ffmpeg(b"".join(bag.video), demuxer)
 
 
+def test_bag_export_of_frames_stamped_in_bursts_is_read_by_ffmpeg_without_warnings(tmp_path: Path) -> None:
+    """Stamps as a 30 Hz camera that catches up after stalls gives them: three bursts of frames 1.4 ms apart. The
+    MP4 keeps every frame in order, each at least the camera's frame interval after the one before (a burst spreads
+    into the stall before it) and otherwise at its stamp, and ffmpeg decodes it with its own timing (``-f null``,
+    which times frames at its guess of the frame rate) without a warning."""
+    period = 33_333_333
+    offsets = [index * period for index in range(45)]
+    for burst in (10, 25, 40):  # the frames due at burst - 2 and burst - 1 come late, with the one due at burst
+        offsets[burst - 2:burst + 1] = [burst * period - 2_800_000, burst * period - 1_400_000, burst * period]
+    bag = CompressedBag(tmp_path / "bag", offsets_ns=offsets)
+    out = tmp_path / "video.mp4"
+    result = subprocess.run([CLI, "bag", "export", str(bag.path), VIDEO, str(out)], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    read = subprocess.run([program("ffmpeg"), "-hide_banner", "-i", str(out), "-f", "null", "-"], capture_output=True,
+                          text=True, timeout=60)
+    assert read.returncode == 0 and "non monotonically increasing dts" not in read.stderr, read.stderr
+    times = [round(float(p["pts_time"]) * 1e9) for p in ffprobe(out, "packet=pts_time")["packets"]]
+    assert len(times) == len(offsets) and all(later - earlier >= period - 1_000_000
+                                              for earlier, later in zip(times, times[1:])), times
+    assert max(abs(t - offset) for t, offset in zip(times, offsets)) < 2 * period, times
+    assert all(abs(t - offset) <= 11_112 for t, offset in zip(times[:8], offsets[:8])), times  # the stamps (90 kHz)
+    assert decoded_by_ffmpeg(out.read_bytes(), "mp4") == decoded_by_ffmpeg(b"".join(bag.video), "h264")  # in order
+
+
+def test_frame_times_keep_regular_and_rate_changing_stamps_and_spread_a_burst_into_the_stall_before_it() -> None:
+    ms = 1_000_000
+    changing = [index * 66 * ms for index in range(20)] + [(1287 + index * 33) * ms for index in range(40)]
+    assert [round(t) for t in frame_times(changing)] == changing  # 15 Hz, then 30 Hz: nothing moves
+    # the frames due at 99 and 132 ms come late, 1.4 ms apart, with the one due at 165 ms
+    stalled = [0, 33 * ms, 66 * ms, 162_200_000, 163_600_000, 165 * ms] + [(198 + 33 * i) * ms for i in range(40)]
+    times = frame_times(stalled)
+    assert times[:3] == [0, 33 * ms, 66 * ms] and all(b - a >= 33 * ms - 1 for a, b in zip(times, times[1:]))
+    assert 99 * ms < times[3] < 105 * ms and abs(times[-1] - stalled[-1]) < 3 * ms  # the burst took the stall's slots
+
+
 def test_bag_export_writes_stills_as_numbered_files_of_the_recorded_bytes(bag: CompressedBag, tmp_path: Path) -> None:
     out = tmp_path / "stills"
     result = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith(f"Wrote {FRAMES} JPEG files of {STILLS} to {out}"), result.stdout
     assert sorted(p.name for p in out.iterdir()) == [f"{n:06d}.jpg" for n in range(1, FRAMES + 1)]
     assert [(out / f"{n:06d}.jpg").read_bytes() for n in range(1, FRAMES + 1)] == bag.jpegs
     again = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,

@@ -68,13 +68,13 @@ def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tm
     os.kill(rig["fb"].pid, signal.SIGSTOP)  # a hung computer: it answers nothing, not even discovery
     both = ("/fa/container", "/fb/container")
     aborted = cli("record", "start", *both, "--session", "strict", "--in", "1", "--all-or-nothing")
-    assert aborted.returncode == 1 and "/fb/container: not found" in aborted.stdout, aborted.stdout
+    assert aborted.returncode == 1 and "/fb/container: not found" in aborted.stderr, aborted.stdout + aborted.stderr
     assert "record_strict" not in cli("list", "/fa/container").stdout, "--all-or-nothing left a recorder"
 
     started = cli("record", "start", *both, "--session", "partial", "--in", "1", "--max-duration", "2")
     assert started.returncode == 2, started.stdout + started.stderr
-    assert "Not recording in /fb/container: not found" in started.stdout, started.stdout
-    assert "/fa/container" in started.stdout.split("Not recording")[0]
+    assert "Not recording in /fb/container: not found" in started.stderr, started.stderr  # an error: stderr
+    assert "/fa/container" in started.stdout and "/fb/container" not in started.stdout, started.stdout
     os.kill(rig["fb"].pid, signal.SIGCONT)
     # --max-duration: no stop is ever sent; the recorder finalizes by itself 2 s after the start.
     metadata = tmp_path / "fa" / "partial" / f"{os.uname().nodename}_fa_container" / "metadata.yaml"
@@ -139,7 +139,7 @@ def test_containers_sharing_a_name_are_refused(tmp_path: Path) -> None:
             assert time.monotonic() < deadline, "twins not listed"
         started = cli("record", "start", "/twin/container", "--session", "twins", "--in", "1")
         assert started.returncode == 1, started.stdout + started.stderr
-        assert "2 containers have this name" in started.stdout, started.stdout
+        assert started.stdout == "" and "2 containers have this name" in started.stderr, started.stdout + started.stderr
         assert not list(tmp_path.glob("twins")), "a recorder was loaded"
     finally:
         for process in twins:

@@ -16,9 +16,9 @@ playback thread wakes up for a due message.
 Falling behind: a message that goes out more than :data:`BEHIND_NS` after its scheduled time moves the whole
 schedule back by that lateness instead of publishing the following messages in a catch-up burst; the shifts
 are counted and logged, so a player that cannot keep up slows down smoothly and says so: the first time at
-once, then at most every :data:`BEHIND_WARN_EVERY_NS` with what happened since, and once more at the end of the run
-if anything is left unsaid (a busy machine falls behind every second; a line per second would bury everything
-else).
+once, then at most every :data:`BEHIND_WARN_EVERY_NS` with what happened since (how often, and the worst lag: as
+rclcpp's throttled logging, one line stands for many), and once more at the end of the run if anything is left
+unsaid (a busy machine falls behind every second; a line per second would bury everything else).
 """
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ class Playback:
         self.behind_ns = 0                  # total schedule shift, steady ns
         self._last_warning = 0
         self._behind_reported: tuple[int, int] | None = None  # (steady ns, behind_count) of the last report
-        self._latest_late_ns = 0
+        self._worst_late_ns = 0             # the worst lateness since the last report
 
     # --- runs ---------------------------------------------------------------------------------------------
     @property
@@ -251,7 +251,7 @@ class Playback:
         self.clock.jump(due)  # the message just published is "now": the rest keep their spacing
         self.behind_count += 1
         self.behind_ns += late_ns
-        self._latest_late_ns = late_ns
+        self._worst_late_ns = max(self._worst_late_ns, late_ns)
         self._report_behind(time.monotonic_ns(), final=False)
 
     def _report_behind(self, now: int, final: bool) -> None:
@@ -261,11 +261,15 @@ class Playback:
         if not unsaid or (last is not None and not final and now - last[0] < BEHIND_WARN_EVERY_NS):
             return
         self._behind_reported = (now, self.behind_count)
-        since = "" if last is None else f"{unsaid} more times in the last {(now - last[0]) / 1e9:.0f} s, "
+        lag, self._worst_late_ns = self._worst_late_ns / 1e6, 0
+        if last is None:
+            what = f"Playback is {lag:.1f} ms behind schedule"
+        else:
+            what = (f"Playback fell behind schedule {_times(unsaid)} in the last {(now - last[0]) / 1e9:.0f} s, "
+                    f"by up to {lag:.1f} ms,")
         self._log.warning(
-            f"Playback is {self._latest_late_ns / 1e6:.1f} ms behind schedule at rate {self.clock.rate:g} "
-            f"(reading or publishing cannot keep up); the schedule moves back instead of catching up "
-            f"({since}{self.behind_count} times so far, {self.behind_ns / 1e9:.3f} s in all)")
+            f"{what} at rate {self.clock.rate:g} (reading or publishing cannot keep up); the schedule moves back "
+            f"instead of catching up ({_times(self.behind_count)} so far, {self.behind_ns / 1e9:.3f} s in all)")
 
     # --- take-overs (rosbag2: play_next, burst, seek) -----------------------------------------------------
     def play_next(self) -> bool:
@@ -310,3 +314,7 @@ class Playback:
             self._read_ahead.restart(time_ns)
             self.clock.jump(time_ns)
             self.position_ns = time_ns
+
+
+def _times(count: int) -> str:
+    return f"{count} time{'' if count == 1 else 's'}"
