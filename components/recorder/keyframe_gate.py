@@ -119,10 +119,6 @@ class KeyframeGate:
         self._split_asked = True
         self.video.request_keyframes()
 
-    @property
-    def splitting(self) -> bool:
-        return self._split_since is not None
-
     def admit(self, topic: str, message: Any, log_time_ns: int, full: bool) -> tuple[Verdict, bool]:
         """For the message about to be written: (what to do with it, does the pending split happen now, before
         it?). ``full``: the writer says the current file is full. On a split, the messages held so far begin the
