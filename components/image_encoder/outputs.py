@@ -24,12 +24,17 @@ _streams: weakref.WeakKeyDictionary[Any, dict[str, EncodeStream]] = weakref.Weak
 
 
 def register(container: Any, topic: str, stream: EncodeStream) -> None:
-    """``stream`` publishes ``topic`` in the container whose intra-process manager is ``container``."""
+    """``stream`` publishes ``topic`` in the container whose intra-process manager is ``container`` (None: an
+    encoder without intra-process comms, which no in-process reader sees)."""
+    if container is None:
+        return
     with _lock:
         _streams.setdefault(container, {})[topic] = stream
 
 
 def unregister(container: Any, topic: str, stream: EncodeStream) -> None:
+    if container is None:
+        return
     with _lock:
         streams = _streams.get(container, {})
         if streams.get(topic) is stream:
