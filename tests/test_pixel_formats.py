@@ -101,23 +101,29 @@ def test_yuv_and_bayer_frames_decode_with_ffmpeg_as_ffmpeg_reads_the_camera_byte
         assert min(quality) > 35, (codec, quality)
 
 
-def test_a_yuv_or_bayer_still_is_named_as_the_colour_picture_it_decodes_to() -> None:
-    """image_transport's subscribers read the first part of ``format`` as the decoded image's encoding: a JPEG of
-    a Bayer or YUV frame is a colour picture, named rgb8, and decodes (decoding.py) to rgb8."""
+def test_yuv_and_bayer_stills_are_named_as_what_they_decode_to() -> None:
+    """image_transport's subscribers read the first part of ``format`` as the decoded image's encoding. A JPEG of
+    a Bayer or YUV frame, and a PNG of a YUV frame, are colour pictures FFmpeg made: named rgb8, decoded
+    (decoding.py) to rgb8. A PNG of a Bayer frame keeps the mosaic as it is: named as the camera's, it decodes to
+    the very bytes sent."""
     for encoding in ("yuv422", "bayer_grbg8"):
         message = image(encoding, camera_frames(encoding, [colourful(0)])[0])
         for codec in ("jpeg", "png"):
             still = codecs.StillCodec(codecs.choose(codec, "", -1, 0, 30), 0)
             compressed = CompressedImage(format=still.format_of(encoding), data=still.encode(message))
-            assert compressed.format == f"rgb8; {codec} compressed bgr8"
             back = StillDecoder().decode(compressed)
-            assert (back.encoding, back.width, back.height, back.step) == ("rgb8", WIDTH, HEIGHT, WIDTH * 3)
+            if codec == "png" and encoding.startswith("bayer"):
+                assert compressed.format == f"{encoding}; png compressed "
+                assert (back.encoding, back.step, bytes(back.data)) == (encoding, WIDTH, bytes(message.data))
+            else:
+                assert compressed.format == f"rgb8; {codec} compressed bgr8"
+                assert (back.encoding, back.width, back.height, back.step) == ("rgb8", WIDTH, HEIGHT, WIDTH * 3)
 
 
 def test_scaled_yuv_bayer_and_depth_frames_keep_their_pictures() -> None:
     """``width`` scales in the same swscale pass that converts; depth by nearest sample (no blended ranges)."""
     rgb = colourful(0, 128, 96)
-    for encoding, codec in (("yuyv", "jpeg"), ("bayer_bggr8", "png"), ("uyvy", "h264")):
+    for encoding, codec in (("yuyv", "jpeg"), ("bayer_bggr8", "jpeg"), ("uyvy", "png"), ("uyvy", "h264")):
         message = image(encoding, camera_frames(encoding, [rgb])[0], 128, 96)
         if codec == "h264":
             video = codecs.VideoCodec(codecs.choose(codec, "", -1, 0, 30), 64, 48)
@@ -130,6 +136,8 @@ def test_scaled_yuv_bayer_and_depth_frames_keep_their_pictures() -> None:
     data = encoded("compressedDepth", [image("16UC1", depth.tobytes(), 128, 96)], width=64)[0]
     half = np.frombuffer(ffmpeg_png(data[12:], 64, 48), "<u2").reshape(48, 64)
     assert np.isin(half, depth).all()  # every sample one of the camera's
+    with pytest.raises(codecs.EncodeError, match="^a 128x96 bayer_bggr8 image: PNG keeps a Bayer mosaic as it is"):
+        encoded("png", [image("bayer_bggr8", camera_frames("bayer_bggr8", [rgb])[0], 128, 96)], width=64)
 
 
 # --- 16-bit depth ----------------------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from components.bounds import Bounds
 from components.image_encoder import compressed_depth
 from components.image_encoder._pyav import av
 from components.image_encoder.pixel_formats import (FORMATS, EncodeError, PixelFormat, converted, describe, format_of,
-                                                    pixels_of, plane_view, source_format)
+                                                    pixels_of, plane_view, samples_format)
 from components.image_encoder.scheduling import ordinary_scheduling, without_sys_nice
 
 if TYPE_CHECKING:
@@ -49,9 +49,9 @@ STILLS = ("jpeg", "png", DEPTH)
 #: Quality ranges by codec: JPEG quality, PNG compression level, CRF of x264 / x265 / SVT-AV1.
 QUALITY = {"jpeg": Bounds(1, 100), "png": Bounds(0, 9), DEPTH: Bounds(0, 9), "h264": Bounds(0, 51),
            "h265": Bounds(0, 51), "av1": Bounds(1, 63)}
-#: Defaults where ``quality`` is not given (-1). compressedDepth: level 1, measured by benchmarks/pixel_formats.py
-#: (a third of the CPU of level 3 for 1080p depth, a few per cent more bytes).
-DEFAULT_QUALITY = {"jpeg": 90, "png": 3, DEPTH: 1, "h264": 23, "h265": 28, "av1": 35}
+#: Defaults where ``quality`` is not given (-1). compressedDepth: PNG's level 3 too (upstream's publisher uses 9,
+#: three times the CPU of 3 for a 1080p range image).
+DEFAULT_QUALITY = {"jpeg": 90, "png": 3, DEPTH: 3, "h264": 23, "h265": 28, "av1": 35}
 #: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine.
 DEFAULT_PRESET = {"libx264": "veryfast", "libx265": "ultrafast", "libsvtav1": "10"}
 #: simplejpeg's colourspace, and bytes per pixel, of the FFmpeg pixel formats it encodes as they are.
@@ -162,16 +162,17 @@ class StillCodec:
     def format_of(self, encoding: str) -> str:
         """``format`` as image_transport's publishers write it: ``"<encoding>; jpeg compressed bgr8"``,
         ``"<encoding>; png compressed bgr8"`` (bgra8 with alpha, no target for grey, as upstream), and
-        ``"<encoding>; compressedDepth png"``. A Bayer or YUV image is named ``rgb8``: the picture is the colour
-        image made of it, which is what a decoder gives back."""
+        ``"<encoding>; compressedDepth png"``. A still whose colours FFmpeg made (of YUV, or a JPEG of Bayer) is
+        named ``rgb8``: the encoding its decoder gives back (image_transport's subscribers read the name so)."""
         if self._choice.codec == DEPTH:
             return compressed_depth.format_string(encoding)
         layout = FORMATS[encoding]
-        named = layout.decoded_as or encoding
-        grey = layout.png_format.startswith("gray")
         if self._choice.codec == "jpeg":
-            return f"{named}; jpeg compressed {'mono8' if grey else 'bgr8'}"
-        return f"{named}; png compressed {'' if grey else 'bgra8' if layout.png_format == 'rgba' else 'bgr8'}"
+            named = layout.converted_as or encoding
+            return f"{named}; jpeg compressed {'mono8' if layout.jpeg_input == 'gray' else 'bgr8'}"
+        named = encoding if layout.is_mosaic else layout.converted_as or encoding
+        stored = layout.png_format
+        return f"{named}; png compressed {'' if stored.startswith('gray') else 'bgra8' if stored == 'rgba' else 'bgr8'}"
 
     def encode(self, image: Any) -> bytes:
         pixels = pixels_of(image)
@@ -182,9 +183,12 @@ class StillCodec:
         if self._choice.codec == DEPTH and not layout.is_depth:
             raise EncodeError(f"{describe(image)} is not 16-bit depth: compressedDepth takes 16UC1 and mono16 "
                               "(encode other images with jpeg, png or a video codec)")
+        if layout.is_mosaic and size != (image.width, image.height):
+            raise EncodeError(f"{describe(image)}: PNG keeps a Bayer mosaic as it is (lossless), and a mosaic "
+                              "cannot be scaled to 'width'; scale with jpeg or a video codec, which demosaic it")
         target = layout.png_format
         # Depth scaled to 'width' keeps measured values only (nearest sample), never a blend of near and far.
-        frame = converted(pixels, source_format(image), size, target,
+        frame = converted(pixels, samples_format(image), size, target,
                           **({"interpolation": "POINT"} if layout.is_depth else {}))
         key = (*size, target)
         context = self._png.get(key)

@@ -37,8 +37,9 @@ VIDEO_DECODERS = {"h264": "h264", "h265": "hevc", "av1": "libdav1d"}
 _UNNAMED_PNG = {"gray": "mono8", "rgba": "bgra8", "ya8": "bgra8", "gray16be": "mono16"}
 #: How a kind of still is named in messages.
 _KIND_NAMES = {"jpeg": "JPEG", "png": "PNG"}
-#: The encodings a still decodes to: those a picture holds as they are (not Bayer or YUV, which come back rgb8).
-DECODED = [encoding for encoding, layout in FORMATS.items() if not layout.decoded_as]
+#: The encodings a still decodes to: those a picture holds as they are (a Bayer mosaic in PNG; not YUV, which
+#: comes back rgb8).
+DECODED = [encoding for encoding, layout in FORMATS.items() if not layout.converted_as or layout.is_mosaic]
 
 
 class DecodeError(ValueError):
@@ -115,7 +116,7 @@ class StillDecoder:
             encoding = "mono8" if colourspace == "Gray" else "bgr8"
         if FORMATS[encoding].is_depth:
             raise DecodeError(f"format {message.format!r}: a JPEG holds no 16-bit samples")
-        pixels = simplejpeg.decode_jpeg(data, JPEG_INPUTS[FORMATS[encoding].av_format][0])
+        pixels = simplejpeg.decode_jpeg(data, JPEG_INPUTS[FORMATS[encoding].samples_format][0])
         return image_message(message.header.stamp, message.header.frame_id, pixels, width, height, encoding)
 
     @staticmethod
@@ -126,7 +127,7 @@ class StillDecoder:
         frame = frames[-1]
         if not encoding:
             encoding = _UNNAMED_PNG.get(frame.format.name, "bgr8")
-        pixels = frame.to_ndarray(format=FORMATS[encoding].av_format)
+        pixels = frame.to_ndarray(format=FORMATS[encoding].samples_format)
         return image_message(message.header.stamp, message.header.frame_id, pixels, frame.width, frame.height,
                              encoding)
 

@@ -4,7 +4,8 @@ A camera's pixels reach the codecs without a conversion of ours: this table tell
 its bytes, so that FFmpeg's swscale converts straight from them to what a codec takes. A YUV 4:2:2 camera
 (``yuv422_yuy2``/``yuyv`` = YUYV, ``yuv422``/``uyvy`` = UYVY, as sensor_msgs' image_encodings and usb_cam name them)
 goes to the video encoders' 4:2:0 without an RGB pass; a Bayer camera (``bayer_rggb8`` ...) is demosaiced to RGB
-by swscale; 16-bit depth (``16UC1``, ``mono16``) is stored lossless as 16-bit PNG.
+by swscale for video and JPEG, and kept as its mosaic in PNG; 16-bit depth (``16UC1``, ``mono16``) is stored
+lossless as 16-bit PNG.
 
 Every frame is checked first (:func:`pixels_of`): its pixels are a numpy view of the message's own buffer, and a
 frame that is not what its header says (unknown encoding, too little data, a step shorter than a row, no pixels, a
@@ -35,14 +36,24 @@ class PixelFormat:
     av_format: str           # FFmpeg's name for the bytes (16-bit: little-endian; big-endian images: gray16be)
     bytes_per_pixel: int     # the last axis of the numpy view (a 4:2:2 pixel: Y and one of U, V)
     jpeg_input: str          # the FFmpeg pixel format simplejpeg is handed ("": JPEG cannot hold it)
-    png_format: str          # the FFmpeg pixel format the PNG stores
-    decoded_as: str = ""     # the encoding a still of it decodes to, where not its own: rgb8 (Bayer, YUV)
+    png_format: str          # what the PNG stores: the samples where PNG holds them (a Bayer mosaic: grey), else RGB
+    converted_as: str = ""   # a still whose colours FFmpeg converted is named this (rgb8) instead of the encoding
     block: tuple[int, int] = (1, 1)  # width and height are multiples of these: 4:2:2 pairs, Bayer cells
 
     @property
     def is_depth(self) -> bool:
         """16-bit single-channel samples: lossless PNG only, never 8-bit JPEG or 4:2:0 video."""
         return self.png_format == "gray16be"
+
+    @property
+    def is_mosaic(self) -> bool:
+        """A Bayer mosaic: one colour per pixel, which PNG stores as it is (grey) and everything else demosaics."""
+        return self.av_format.startswith("bayer_")
+
+    @property
+    def samples_format(self) -> str:
+        """FFmpeg's name for the samples as they are, one per byte for a mosaic (what a PNG of them holds)."""
+        return "gray" if self.is_mosaic else self.av_format
 
 
 _YUYV = PixelFormat("yuyv422", 2, "yuv420p", "rgb24", "rgb8", (2, 1))
@@ -54,7 +65,7 @@ FORMATS: dict[str, PixelFormat] = {
     "rgba8": PixelFormat("rgba", 4, "rgba", "rgba"), "bgra8": PixelFormat("bgra", 4, "bgra", "rgba"),
     "mono8": PixelFormat("gray", 1, "gray", "gray"),
     "yuv422_yuy2": _YUYV, "yuyv": _YUYV, "yuv422": _UYVY, "uyvy": _UYVY,
-    **{f"bayer_{order}8": PixelFormat(f"bayer_{order}8", 1, "rgb24", "rgb24", "rgb8", (2, 2))
+    **{f"bayer_{order}8": PixelFormat(f"bayer_{order}8", 1, "rgb24", "gray", "rgb8", (2, 2))
        for order in ("rggb", "bggr", "gbrg", "grbg")},
     "16UC1": _DEPTH, "mono16": _DEPTH,
 }
@@ -96,10 +107,11 @@ def pixels_of(image: Any) -> np.ndarray:
     return rows[:, :row].reshape(height, width, layout.bytes_per_pixel)
 
 
-def source_format(image: Any) -> str:
-    """FFmpeg's name for ``image``'s bytes, with their byte order for 16-bit samples (``is_bigendian``)."""
-    av_format = format_of(image).av_format
-    return av_format.replace("le", "be") if av_format.endswith("16le") and image.is_bigendian else av_format
+def samples_format(image: Any) -> str:
+    """FFmpeg's name for ``image``'s samples as they are (a mosaic's as grey), 16-bit ones in their byte order
+    (``is_bigendian``): what a PNG of them reads."""
+    name = format_of(image).samples_format
+    return name.replace("le", "be") if name.endswith("16le") and image.is_bigendian else name
 
 
 def frame_of(pixels: np.ndarray, av_format: str) -> VideoFrame:
