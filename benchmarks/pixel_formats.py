@@ -125,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     report["pairs"] = []
     for pair in pairs:
         raw = cameras[pair.encoding].image.step * height
-        entry = {"encoding": pair.encoding, "codec": pair.codec, "cpu_ms": round(statistics.fmean(pair.cpu_ms), 2),
+        content = "range image" if FORMATS[pair.encoding].is_depth else "photo"
+        entry = {"encoding": pair.encoding, "codec": pair.codec, "content": content,
+                 "cpu_ms": round(statistics.fmean(pair.cpu_ms), 2),
                  "cpu_ms_median": round(statistics.median(pair.cpu_ms), 2),
                  "caller_ms": round(statistics.fmean(pair.caller_ms), 2),
                  "kb_per_frame": round(pair.bytes / args.frames / 1e3, 1),

@@ -456,7 +456,8 @@ def pixel_formats_table(run: dict[str, Any]) -> list[str]:
     pairs = part(run, "pairs")
     rgb = {pair["codec"]: pair["cpu_ms"] for pair in pairs if pair["encoding"] == "rgb8"}
     rows = [[pair["encoding"], pair["codec"], f"{pair['cpu_ms']:.1f}", f"{pair['caller_ms']:.1f}",
-             f"{pair['cpu_ms'] / rgb[pair['codec']]:.2f}" if pair["codec"] in rgb else "-",
+             f"{pair['cpu_ms'] / rgb[pair['codec']]:.2f}" if pair["codec"] in rgb and pair["content"] == "photo"
+             else "-",
              f"{pair['kb_per_frame']:,.0f}", f"{pair['raw_pct']:.2f} %"] for pair in pairs]
     environment = run["environment"]
     return [*markdown(["camera encoding", "codec", "CPU ms per frame", "of it on the calling thread",
