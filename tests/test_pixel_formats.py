@@ -5,13 +5,14 @@ encoded by the real codecs, decoded by ffmpeg, and compared with what ffmpeg its
 bytes: a wrong byte order, filter pattern or colour range shows as a picture far from it. 16-bit depth comes back
 bit-exact from PNG and from image_transport's ``compressedDepth`` format. A seeded stream of malformed images is
 rejected frame by frame, each time with a reason that names the image. In-process with rclpy at the end: a depth
-camera through the ImageEncoder, and a Bayer camera's H.264 stream.
+camera through the ImageEncoder and through a recorder's ``record.compress``, and a Bayer camera's H.264 stream.
 """
 from __future__ import annotations
 
 import random
 import struct
 import subprocess
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -22,10 +23,12 @@ from sensor_msgs.msg import CompressedImage, Image
 from component_container.component_manager import ComponentManager
 from components.image_encoder import codecs
 from components.image_encoder.decoding import DecodeError, StillDecoder
+from components.image_encoder.image_encoder import ImageEncoder
 from components.image_encoder.pixel_formats import FORMATS
 from components.image_encoder.stream import EncodeStream
 from ffmpeg_tools import ffmpeg
 from ipc_testing import wait_until
+from test_compressed_recording import bag_messages, stamp_ns
 from test_image_encoder import Probe, decode, load, manager, psnr  # noqa: F401 - manager: the fixture
 
 WIDTH, HEIGHT = 64, 48
@@ -325,3 +328,34 @@ def test_a_bayer_camera_gives_an_h264_stream_that_ffmpeg_decodes(manager: Compon
     assert min(psnr(decoded[i], reference[i]) for i in range(len(frames))) > 30
 
 
+
+
+def test_a_recorder_with_compress_depth_records_the_depth_camera_bit_exact(manager: ComponentManager,
+                                                                           tmp_path: Path) -> None:
+    """``record.compress:=compressedDepth``: the recorder learns the output topic from the encoder before any
+    frame (ImageEncoder.output_topic) and records ``<image>/compressedDepth`` in place of the raw topic; the bag's
+    messages, read by rosbags, decode to the camera's very frames."""
+    topic = "/pix_rec_depth/image_raw"
+    recorder = load(manager, "Recorder", "pix_rec", **{
+        "storage.uri": str(tmp_path / "depth"), "record.compress": "compressedDepth",
+        "record.compress_topics": [topic], "record.topics": [topic]})
+    output = f"{topic}/compressedDepth"
+    assert wait_until(lambda: output in recorder._topics, 20.0), "the recorder never took the encoder's output"
+    raw = Probe(manager, Image, topic)
+    camera = load(manager, "CameraDriver", "pix_rec_cam", width=160, height=120, encoding="16UC1",
+                  content="photo", fps=30.0, topic=topic)
+    assert wait_until(lambda: len(raw.messages) >= 10, 30.0)
+    manager.unload(next(c.unique_id for c in manager.components() if c.node is camera))
+    encoder = next(c.node for c in manager.components() if isinstance(c.node, ImageEncoder))
+    assert wait_until(lambda: encoder.stats()["topics"][topic]["waiting"] == 0, 20.0)
+    published = encoder.stats()["topics"][topic]["published"]  # all but what a loaded machine made it skip
+    assert wait_until(lambda: recorder.stats()["current"]["topics"][output]["received"] == published, 20.0)
+    stats = recorder.stop_recording()
+    assert topic not in stats["topics"] and stats["topics"][output]["dropped"] == 0
+    recorded = bag_messages(tmp_path / "depth")[output]
+    sent = {stamp_of(message): bytes(message.data) for message in raw.messages}
+    assert len(recorded) == published >= 5
+    for message in recorded:
+        back = StillDecoder().decode(CompressedImage(header=message.header, format=message.format,
+                                                     data=bytes(message.data)))
+        assert (message.format, bytes(back.data)) == ("16UC1; compressedDepth png", sent[stamp_ns(message.header.stamp)])
