@@ -5,7 +5,8 @@ encoded by the real codecs, decoded by ffmpeg, and compared with what ffmpeg its
 bytes: a wrong byte order, filter pattern or colour range shows as a picture far from it. 16-bit depth comes back
 bit-exact from PNG and from image_transport's ``compressedDepth`` format. A seeded stream of malformed images is
 rejected frame by frame, each time with a reason that names the image. In-process with rclpy at the end: a depth
-camera through the ImageEncoder and through a recorder's ``record.compress``, and a Bayer camera's H.264 stream.
+camera through the ImageEncoder and through a recorder's ``record.compress`` (and ``bag export``), and a Bayer
+camera's H.264 stream.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from sensor_msgs.msg import CompressedImage, Image
 from component_container.component_manager import ComponentManager
 from components.image_encoder import codecs
 from components.image_encoder.decoding import DecodeError, StillDecoder
+from components.image_encoder.export import export_topic
 from components.image_encoder.image_encoder import ImageEncoder
 from components.image_encoder.pixel_formats import FORMATS
 from components.image_encoder.stream import EncodeStream
@@ -356,6 +358,12 @@ def test_a_recorder_with_compress_depth_records_the_depth_camera_bit_exact(manag
     sent = {stamp_of(message): bytes(message.data) for message in raw.messages}
     assert len(recorded) == published >= 5
     for message in recorded:
-        back = StillDecoder().decode(CompressedImage(header=message.header, format=message.format,
-                                                     data=bytes(message.data)))
-        assert (message.format, bytes(back.data)) == ("16UC1; compressedDepth png", sent[stamp_ns(message.header.stamp)])
+        assert message.format == "16UC1; compressedDepth png"
+        back = StillDecoder().decode(CompressedImage(format=message.format, data=bytes(message.data)))
+        assert bytes(back.data) == sent[stamp_ns(message.header.stamp)]
+    # bag export writes each message's PNG (after the header): 16-bit grey files any program opens
+    report = export_topic(tmp_path / "depth", output, tmp_path / "pngs")
+    assert (report.written, report.kind) == (len(recorded), "compressedDepth")
+    files = sorted((tmp_path / "pngs").iterdir())
+    assert [f.suffix for f in files] == [".png"] * len(recorded)
+    assert ffmpeg_png(files[0].read_bytes(), 160, 120) == sent[stamp_ns(recorded[0].header.stamp)]
