@@ -35,7 +35,7 @@ class PixelFormat:
 
     av_format: str           # FFmpeg's name for the bytes (16-bit: little-endian; big-endian images: gray16be)
     bytes_per_pixel: int     # the last axis of the numpy view (a 4:2:2 pixel: Y and one of U, V)
-    jpeg_input: str          # the FFmpeg pixel format simplejpeg is handed ("": JPEG cannot hold it)
+    jpeg_input: str          # the FFmpeg pixel format simplejpeg is handed (yuv420p: its planes; "": none fits)
     png_format: str          # what the PNG stores: the samples where PNG holds them (a Bayer mosaic: grey), else RGB
     converted_as: str = ""   # a still whose colours FFmpeg converted is named this (rgb8) instead of the encoding
     block: tuple[int, int] = (1, 1)  # width and height are multiples of these: 4:2:2 pairs, Bayer cells
@@ -69,8 +69,6 @@ FORMATS: dict[str, PixelFormat] = {
        for order in ("rggb", "bggr", "gbrg", "grbg")},
     "16UC1": _DEPTH, "mono16": _DEPTH,
 }
-#: simplejpeg's colourspace for the FFmpeg pixel formats it encodes as they are (yuv420p: its three planes).
-JPEG_COLOURSPACES = {"rgb24": "RGB", "bgr24": "BGR", "rgba": "RGBA", "bgra": "BGRA", "gray": "GRAY"}
 
 
 def describe(image: Any) -> str:
