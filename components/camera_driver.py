@@ -42,6 +42,7 @@ from std_msgs.msg import Header
 from components.bounds import Bounds
 from components.depth_content import DepthContent
 from components.frame_buffers import FRAME_SLOTS, FrameBuffers
+from components.image_encoder.pixel_formats import FORMATS
 from components.photo_content import PhotoContent
 from components.sensor_driver import FIXED_GEOMETRY, MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
@@ -67,8 +68,6 @@ FRAME_BYTES = Bounds(8, MAX_FRAME_BYTES, "bytes")
 OFFSET_STRIDE = 4099
 #: Values of the ``content`` parameter.
 CONTENTS = ("random", "photo")
-#: Encodings whose ``photo`` content is a range image (components/depth_content.py).
-DEPTH_ENCODINGS = ("16UC1", "mono16")
 #: Horizontal field of view of the simulated pinhole camera, used for CameraInfo.
 HORIZONTAL_FOV_DEG = 60.0
 
@@ -135,8 +134,9 @@ class CameraDriver(SensorDriver):
             "content", "random", CONTENTS, "frame content: 'random' bytes, or 'photo' (a window panning across a "
             "photograph, with sensor noise; a range image for 16-bit depth)", fixed=FIXED_GEOMETRY)
         if self.content == "photo":
+            depth = self.encoding in FORMATS and FORMATS[self.encoding].is_depth  # 16UC1, mono16: a range image
             self._photo: PhotoContent | DepthContent | None = (
-                DepthContent(self.width, self.height) if self.encoding in DEPTH_ENCODINGS
+                DepthContent(self.width, self.height) if depth
                 else PhotoContent(self.width, self.height, self.encoding))
             self._frames = FrameBuffers(FRAME_SLOTS, self._blank_frame)
         else:
