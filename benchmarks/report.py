@@ -452,6 +452,21 @@ def fuzz_table(fuzz: dict[str, Any]) -> list[str]:
                      "RSS MiB: start → 2/3 → end", "RSS over the last third", "result"], rows)
 
 
+def pixel_formats_table(run: dict[str, Any]) -> list[str]:
+    pairs = part(run, "pairs")
+    rgb = {pair["codec"]: pair["cpu_ms"] for pair in pairs if pair["encoding"] == "rgb8"}
+    rows = [[pair["encoding"], pair["codec"], f"{pair['cpu_ms']:.1f}", f"{pair['caller_ms']:.1f}",
+             f"{pair['cpu_ms'] / rgb[pair['codec']]:.2f}" if pair["codec"] in rgb and pair["content"] == "photo"
+             else "-",
+             f"{pair['kb_per_frame']:,.0f}", f"{pair['raw_pct']:.2f} %"] for pair in pairs]
+    environment = run["environment"]
+    return [*markdown(["camera encoding", "codec", "CPU ms per frame", "of it on the calling thread",
+                       "against rgb8", "KB per frame", "of the camera's bytes"], rows), "",
+            f"{run['frames']} frames of {run['size']} per pair, the pairs interleaved in one run, on "
+            f"{environment['cpus']} CPUs shared with other work (load average {environment['loadavg_start'][0]:.1f}"
+            f" at the start, {environment['loadavg_end'][0]:.1f} at the end)."]
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -484,6 +499,8 @@ TABLES: dict[str, Table] = {
     "fuzz": Table("fuzz_load", "seeds", "python benchmarks/fuzz_load.py --seed 1 --seed 2 --seed 3", fuzz_table,
                   "Fuzz load"),
     "soak": Table("soak", "verdicts", "python benchmarks/soak.py", soak_table, "Soak"),
+    "pixel_formats": Table("pixel_formats", "pairs", "python benchmarks/pixel_formats.py", pixel_formats_table,
+                           "Pixel formats"),
 }
 
 

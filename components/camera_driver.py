@@ -15,7 +15,8 @@ Parameters (validated at construction; a bad value raises ValueError naming the 
 ``qos``         ``'reliable'``   ``'reliable'`` or ``'sensor_data'`` (best effort), for both topics
 ``content``     ``'random'``     ``'random'`` (below) or ``'photo'``: a window panning and zooming across a
                                  real photograph, with sensor noise (:mod:`components.photo_content`;
-                                 rgb8, bgr8 or mono8)
+                                 rgb8, bgr8, mono8, YUV 4:2:2 and bayer_*8); for 16UC1 and mono16 a
+                                 smooth range image, what a depth camera sees (:mod:`components.depth_content`)
 ==============  ===============  =====================================================================
 
 Random content: random bytes. A pool of random bytes (the frame size plus a few KiB) is generated once;
@@ -39,7 +40,9 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from components.bounds import Bounds
+from components.depth_content import DepthContent
 from components.frame_buffers import FRAME_SLOTS, FrameBuffers
+from components.image_encoder.pixel_formats import FORMATS
 from components.photo_content import PhotoContent
 from components.sensor_driver import FIXED_GEOMETRY, MAX_FRAME_BYTES, SensorDriver, stamp_from_ns
 
@@ -129,9 +132,12 @@ class CameraDriver(SensorDriver):
 
         self.content = self.declare_choice_parameter(
             "content", "random", CONTENTS, "frame content: 'random' bytes, or 'photo' (a window panning across a "
-            "photograph, with sensor noise)", fixed=FIXED_GEOMETRY)
+            "photograph, with sensor noise; a range image for 16-bit depth)", fixed=FIXED_GEOMETRY)
         if self.content == "photo":
-            self._photo: PhotoContent | None = PhotoContent(self.width, self.height, self.encoding)
+            depth = self.encoding in FORMATS and FORMATS[self.encoding].is_depth  # 16UC1, mono16: a range image
+            self._photo: PhotoContent | DepthContent | None = (
+                DepthContent(self.width, self.height) if depth
+                else PhotoContent(self.width, self.height, self.encoding))
             self._frames = FrameBuffers(FRAME_SLOTS, self._blank_frame)
         else:
             self._photo = None

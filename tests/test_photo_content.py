@@ -3,10 +3,12 @@
 The frames are checked against the photograph read independently with Pillow from the installed package: each
 frame at full zoom is the photo's window of its place, with the documented level mapping, plus noise of the
 documented strength; consecutive frames differ, and the window moves. What a frame costs is measured by
-benchmarks/photo_frames.py, not here.
+benchmarks/photo_frames.py, not here. The YUV 4:2:2 and Bayer frames are the rgb8 frame as Debian's ffmpeg
+reads them; depth cameras get a smooth range image that pans.
 """
 from __future__ import annotations
 
+import subprocess
 from importlib import resources
 
 import numpy as np
@@ -16,8 +18,9 @@ from PIL import Image as PilImage
 from rclpy.context import Context
 from rclpy.parameter import Parameter
 
-from components import photo_content
+from components import depth_content, photo_content
 from components.camera_driver import CameraDriver
+from ffmpeg_tools import ffmpeg
 
 WIDTH, HEIGHT = 1920, 1080
 
@@ -123,3 +126,51 @@ def test_photo_frames_depend_on_their_sequence_number_only(context):
 def test_bad_photo_parameters_raise_value_error(context, params, parameter):
     with pytest.raises(ValueError, match=f"'{parameter}'"):
         camera(context, "bad_photo", **params)
+
+
+def ffmpeg_rgb(data: bytes, pix_fmt: str, width: int, height: int) -> np.ndarray:
+    """Raw ``pix_fmt`` bytes as Debian's ffmpeg reads them (YUV converted, Bayer demosaiced), in RGB."""
+    done = subprocess.run([ffmpeg(), "-v", "error", "-f", "rawvideo", "-pix_fmt", pix_fmt, "-s", f"{width}x{height}",
+                           "-i", "pipe:0", "-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"], input=data,
+                          capture_output=True, timeout=60, check=True)
+    return np.frombuffer(done.stdout, np.uint8).reshape(height, width, 3)
+
+
+@pytest.mark.parametrize("encoding, pix_fmt, min_psnr", [("yuv422", "uyvy422", 33), ("bayer_gbrg8", "bayer_gbrg8", 28)])
+def test_yuv_and_bayer_photo_frames_are_the_rgb_frame_as_ffmpeg_reads_them(context, encoding, pix_fmt, min_psnr):
+    """The camera's 4:2:2 and Bayer frames hold the same picture as its rgb8 frame, in the same window: 35 and
+    37 dB; read in the wrong byte order 5 dB, with another filter pattern 21 to 25 dB."""
+    width, height = 640, 360
+    driver, reference = (camera(context, f"photo_{name}", width=width, height=height, encoding=name)
+                         for name in (encoding, "rgb8"))
+    try:
+        sequences = [n for n in range(2, 40) if driver._photo.window_of(n) == reference._photo.window_of(n)]
+        assert len(sequences) > 5  # windows land on the same cells for most frames
+        for sequence in sequences[:3]:
+            msg = driver.make_image(sequence, 0)
+            assert (msg.encoding, msg.step) == (encoding, width * (1 if encoding.startswith("bayer") else 2))
+            got = ffmpeg_rgb(bytes(msg.data), pix_fmt, width, height)[4:]  # the rows past the sequence number
+            expected = pixels(reference.make_image(sequence, 0), 3)[4:]
+            mse = np.mean((got.astype(np.float64) - expected) ** 2)
+            assert 10 * np.log10(255 ** 2 / mse) > min_psnr
+        assert all(driver._photo.window_of(n).x % 2 == 0 for n in range(0, 600, 7))
+    finally:
+        driver.destroy_node()
+        reference.destroy_node()
+
+
+@pytest.mark.parametrize("encoding", ["16UC1", "mono16"])
+def test_depth_frames_are_a_smooth_range_image_that_pans(context, encoding):
+    driver = camera(context, f"photo_{encoding}", width=320, height=240, encoding=encoding)
+    try:
+        frames = [driver.make_image(sequence, 0) for sequence in (10, 11)]
+        assert (frames[0].encoding, frames[0].step, len(frames[0].data)) == (encoding, 640, 320 * 240 * 2)
+        first, second = (np.frombuffer(bytes(f.data), np.uint16).reshape(240, 320) for f in frames)
+        ranges = first.reshape(-1)[4:]  # past the sequence number
+        assert 1500 <= ranges.min() and ranges.max() <= 6000  # millimetres: a room's walls, pillars and floor
+        assert np.median(np.abs(np.diff(first[1:].astype(np.int32), axis=1))) <= 5  # smooth, apart from edges
+        assert len(np.unique(ranges)) > 200
+        step = depth_content.PAN_PIXELS_PER_FRAME
+        assert np.array_equal(second[1:, :-step], first[1:, step:])  # the window pans across the scene
+    finally:
+        driver.destroy_node()

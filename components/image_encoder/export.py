@@ -9,7 +9,8 @@
   stamps are read in a first pass). The frames before the first keyframe cannot be decoded by anyone and are
   left out, counted.
 * ``sensor_msgs/CompressedImage`` -> ``OUT_DIR/000001.jpg``, ``000002.jpg``... (``.png`` for PNG), each file
-  the recorded bytes as they are, numbered in log-time order.
+  the recorded bytes as they are, numbered in log-time order; for compressedDepth, the 16-bit PNG after
+  image_transport's configuration header.
 
 The bag is read with baglib (which knows nothing of codecs); this module is the codec side, beside the encoder's.
 """
@@ -27,7 +28,8 @@ import av
 from baglib.format.cdr_read import deserialize
 from baglib.format.message_definitions import message_class
 from baglib.read.reader import BagReader, BagReadError, Connection
-from components.image_encoder.decoding import DecodeError, still_kind
+from components.image_encoder import compressed_depth
+from components.image_encoder.decoding import still_kind
 from components.image_encoder.frame_times import frame_times
 
 #: CompressedVideo ``format`` -> FFmpeg's demuxer of the raw stream.
@@ -36,9 +38,10 @@ VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo"
 STILL_TYPE = "sensor_msgs/msg/CompressedImage"
 #: MP4 sample times: the usual 90 kHz video clock.
 TIME_BASE = fractions.Fraction(1, 90_000)
-_EXTENSIONS = {"jpeg": "jpg", "png": "png"}
+_EXTENSIONS = {"jpeg": "jpg", "png": "png", compressed_depth.TRANSPORT: "png"}
 #: How the summary names what was written, by kind.
-_NAMES = {"jpeg": "JPEG", "png": "PNG", "jpeg, png": "JPEG and PNG", "": ""}
+_NAMES = {"jpeg": "JPEG", "png": "PNG", compressed_depth.TRANSPORT: "PNG (compressedDepth)",
+          "jpeg, png": "JPEG and PNG", "": ""}
 
 
 class ExportError(ValueError):
@@ -107,11 +110,14 @@ def _pictures(messages: Iterator[Any], topic: str, output: Path) -> ExportReport
     for message in messages:
         try:
             kind = still_kind(message.format)
-        except DecodeError as exc:
+            data = bytes(message.data)
+            if kind == compressed_depth.TRANSPORT:
+                data = compressed_depth.png_of(message.format, data)
+        except ValueError as exc:  # a DecodeError, or a compressedDepth message without its PNG
             raise ExportError(f"message {report.written + 1} of '{topic}': {exc}") from None
         report.kind = kind if report.kind in ("", kind) else "jpeg, png"
         report.written += 1
-        (output / f"{report.written:06d}.{_EXTENSIONS[kind]}").write_bytes(bytes(message.data))
+        (output / f"{report.written:06d}.{_EXTENSIONS[kind]}").write_bytes(data)
     return report
 
 

@@ -5,6 +5,7 @@ Loaded with ``use_intra_process_comms`` next to the cameras, it takes each ``sen
 (:mod:`components.image_encoder.stream`), outside the executor. Output, per input topic ``<image>``:
 
 * ``codec:=jpeg`` / ``png``: ``sensor_msgs/CompressedImage`` on ``<image>/compressed`` (image_transport's name);
+* ``codec:=compressedDepth``: 16-bit depth as ``sensor_msgs/CompressedImage`` on ``<image>/compressedDepth``;
 * ``codec:=h264`` / ``h265`` / ``av1`` or an FFmpeg encoder name: ``foxglove_msgs/CompressedVideo`` on
   ``<image>/video``.
 
@@ -81,7 +82,7 @@ class ImageEncoder(ComponentNode):
             raise ValueError(f"parameter 'width': {self._width} is odd; {self._choice.codec} encodes 4:2:0, "
                              "which needs an even width")
         check_codec(self._choice)
-        self._suffix = values["suffix"] or ("video" if self._choice.is_video else "compressed")
+        self._suffix = values["suffix"] or self._choice.transport
         if "/" in self._suffix:
             raise ValueError(f"parameter 'suffix': {self._suffix!r} must be one name part, without '/'")
         self._check_types(self._topics)
