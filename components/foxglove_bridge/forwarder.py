@@ -13,7 +13,7 @@ the IMU.
 from __future__ import annotations
 
 import threading
-from typing import Any, Callable
+from typing import Callable
 
 from components.foxglove_bridge.channel_registry import BridgeChannel
 

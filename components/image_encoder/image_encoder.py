@@ -205,11 +205,13 @@ def _describe(counts: dict[str, int]) -> str:
             f"{counts['rate_limited']}, keyframes {counts['keyframes']}, bytes {counts['bytes']}")
 
 
-def _subscriber_count(publisher: Any) -> int:
-    """Readers of an output topic; when it grows, the next frame is a keyframe.
+def _subscriber_count(publisher: Any) -> tuple[int, int]:
+    """Readers of an output topic, (in-process, all); when either grows, the next frame is a keyframe.
 
-    The larger of the in-process and the DDS count: an in-process subscription also has a DDS reader, matched
-    later by discovery, which must not count as a second newcomer (nor ask for a second keyframe).
+    All readers are the larger of the in-process and the DDS count: an in-process subscription also has a DDS
+    reader, matched later by discovery, which must not count as a second newcomer (nor ask for a second keyframe).
+    The in-process count is watched on its own too: a reader unloaded a moment ago may still be matched over DDS,
+    and would hide a new in-process reader from the larger count.
     """
     local = publisher.local_subscription_count() if hasattr(publisher, "local_subscription_count") else 0
-    return max(local, getattr(publisher, "publisher", publisher).get_subscription_count())
+    return local, max(local, getattr(publisher, "publisher", publisher).get_subscription_count())

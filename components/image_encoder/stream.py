@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 from array import array
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -67,7 +68,7 @@ class EncodeStream:
     ``publish(message, keyframe)`` (``keyframe``: a picture that decodes on its own; every still is one)."""
 
     def __init__(self, topic: str, choice: CodecChoice, out_width: int, publish: Callable[[Any, bool], None],
-                 log_error: Callable[[str], None], *, subscribers: Callable[[], int] | None = None,
+                 log_error: Callable[[str], None], *, subscribers: Callable[[], tuple[int, ...]] | None = None,
                  width_at_most: bool = False) -> None:
         """``subscribers``: the readers of the output, a keyframe when they grow (None: keyframes on request
         only); ``width_at_most``: ``out_width`` is a maximum, never an upscale (scaled_size)."""
@@ -81,10 +82,11 @@ class EncodeStream:
         self._still = None if choice.is_video else StillCodec(choice, out_width)
         self._video: VideoCodec | None = None
         self._stamps: dict[int, tuple[Time, str]] = {}
-        self._known_subscribers = 0
+        self._known_subscribers: tuple[int, ...] = ()
         self._queue: collections.deque[Any] = collections.deque()
         self._wake = threading.Condition()
         self._keyframe_requested = False
+        self._keyframe_at_ns: int | None = None  # a keyframe asked for from that wall-clock time on
         self._skip_until_keyframe = False
         # Held while an access unit is published or a keyframe is requested (module docstring); never while
         # encoding, and never by offer(), so a driver's publish() does not wait for it.
@@ -114,12 +116,16 @@ class EncodeStream:
             self._queue.append(image)
             self._wake.notify()
 
-    def request_keyframe(self, skip_until_keyframe: bool = False) -> None:
+    def request_keyframe(self, skip_until_keyframe: bool = False, at_ns: int | None = None) -> None:
         """Make the next access unit published a keyframe with parameter sets (a recording, split or viewer
-        starts; module docstring); with ``skip_until_keyframe``, nothing else is published before it (a viewer
-        whose subscription began before this call)."""
+        starts; module docstring); with ``at_ns`` (wall clock, ns), the first one published at or after that time
+        (a recording window that opens then). With ``skip_until_keyframe``, nothing else is published before it
+        (a viewer whose subscription began before this call)."""
         with self._publish_lock, self._wake:
-            self._keyframe_requested = True
+            if at_ns is None:
+                self._keyframe_requested = True
+            else:
+                self._keyframe_at_ns = at_ns if self._keyframe_at_ns is None else min(at_ns, self._keyframe_at_ns)
             self._skip_until_keyframe = self._skip_until_keyframe or skip_until_keyframe
 
     def set_input_filter(self, admit: Callable[[], bool] | None) -> None:
@@ -214,9 +220,12 @@ class EncodeStream:
                 return
 
     def _take_keyframe_request(self) -> bool:
-        """Whether a keyframe was asked for since the last one was published; the request is taken."""
+        """Whether a keyframe is asked for now (since the last one was published, or from a time that has come);
+        the request is taken."""
         with self._wake:
             requested, self._keyframe_requested = self._keyframe_requested, False
+            if self._keyframe_at_ns is not None and time.time_ns() >= self._keyframe_at_ns:
+                requested, self._keyframe_at_ns = True, None
         return requested
 
     def _keyframe_due(self, units: list[tuple[int, bool, bytes]]) -> bool:
@@ -225,8 +234,9 @@ class EncodeStream:
         keyframe). A keyframe among them meets either."""
         newcomer = False
         if self._subscribers is not None:
-            subscribers = self._subscribers()
-            newcomer, self._known_subscribers = subscribers > self._known_subscribers, subscribers
+            counts = self._subscribers()
+            newcomer = any(now > before for now, before in zip(counts, self._known_subscribers or (0,) * len(counts)))
+            self._known_subscribers = counts
         if any(is_keyframe and data for _, is_keyframe, data in units):
             self._take_keyframe_request()
             return False

@@ -54,15 +54,19 @@ class VideoTopics:
         """``container``: the recorder's intra-process manager (None: not in-process, no topic is gated)."""
         self._container = container
         self._topics: frozenset[str] = frozenset()
+        self._due_ns: int | None = None  # a keyframe asked for from then on (record.start_at), also of later topics
 
     def add(self, topic: str) -> bool:
-        """The recorder subscribes to ``topic``: True if its files are begun at keyframes (an encoder of this
-        container publishes it as video); a keyframe is asked for, for the first message it gets."""
+        """The recorder is about to subscribe to ``topic``: True if its files are begun at keyframes (an encoder
+        of this container publishes it as video). The encoder makes a new in-process reader's first message a
+        keyframe (components/image_encoder/stream.py)."""
         stream = outputs.stream_for(self._container, topic)
         if stream is None or not stream.is_video:
             return False
         self._topics = self._topics | {topic}
-        stream.request_keyframe()
+        due = self._due_ns
+        if due is not None and due > time.time_ns():
+            stream.request_keyframe(at_ns=due)
         return True
 
     def __contains__(self, topic: str) -> bool:
@@ -74,12 +78,15 @@ class VideoTopics:
         stream = outputs.stream_for(self._container, topic)
         return stream is not None and stream.published_keyframe(message.timestamp)
 
-    def request_keyframes(self) -> None:
-        """Ask the encoder of every video topic for a keyframe: the next access unit each publishes is one."""
+    def request_keyframes(self, at_ns: int | None = None) -> None:
+        """Ask the encoder of every video topic for a keyframe: the next access unit each publishes is one (with
+        ``at_ns``, the first one published from that wall-clock time on, also of a topic added before then)."""
+        if at_ns is not None:
+            self._due_ns = at_ns
         for topic in self._topics:
             stream = outputs.stream_for(self._container, topic)
             if stream is not None:  # an encoder unloaded meanwhile
-                stream.request_keyframe()
+                stream.request_keyframe(at_ns=at_ns)
 
 
 class Verdict(enum.Enum):
@@ -103,10 +110,10 @@ class KeyframeGate:
         self._moved: set[str] = set()  # during a split: video topics whose keyframe is held for the new file
         self._restart_ns: int | None = None
 
-    def begin(self) -> None:
-        """The recording (or this bag) starts taking messages: every video topic's next access unit is a
-        keyframe."""
-        self.video.request_keyframes()
+    def begin(self, at_ns: int | None = None) -> None:
+        """The recording (or this bag) starts taking messages, now or (``record.start_at``) at ``at_ns``: every
+        video topic's first access unit from then on is a keyframe."""
+        self.video.request_keyframes(at_ns)
 
     def paused(self) -> None:
         """The recording pauses: messages received from now on (after the resume) begin each video topic anew.

@@ -172,13 +172,8 @@ class Recorder(ComponentNode):
         self._window_bag = None
         self._session = session
         if session.gate is not None:  # after the session takes messages, so that the keyframes asked for reach it
-            opens_in = (self._schedule.start_ns - time.time_ns()) / 1e9
-            if opens_in > 0:  # record.start_at: the encoders' keyframes are due when the window opens
-                timer = threading.Timer(opens_in, self._begin_video, (session,))
-                timer.daemon = True
-                timer.start()
-            else:
-                session.gate.begin()
+            start_ns = self._schedule.start_ns  # record.start_at: the keyframes are due when the window opens
+            session.gate.begin(start_ns if start_ns > time.time_ns() else None)
         self._discovery_running = True
         self.get_logger().info(f"Recording to {session.writer.path} ({self._options.storage_id})"
                                + (" paused" if self._paused else ""))
@@ -310,11 +305,6 @@ class Recorder(ComponentNode):
             return
         self.get_logger().info(f"Subscribed to {topic} ({type_name})"
                                + (f", repeating its last {depth} at every split and snapshot" if depth else ""))
-
-    def _begin_video(self, session: RecordingSession) -> None:
-        """The recording window opens (a timer's thread): every video topic begins at the keyframe asked now."""
-        if session is self._session and session.gate is not None and not self._paused:
-            session.gate.begin()
 
     def _account_encoder(self, session: RecordingSession, topic: str) -> None:
         """An encoder of this container publishes ``topic``: the bag accounts for its raw frames, and a rate
