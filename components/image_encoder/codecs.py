@@ -40,8 +40,14 @@ QUALITY = {"jpeg": Bounds(1, 100), "png": Bounds(0, 9), "h264": Bounds(0, 51), "
            "av1": Bounds(1, 63)}
 #: Defaults where ``quality`` is not given (-1).
 DEFAULT_QUALITY = {"jpeg": 90, "png": 3, "h264": 23, "h265": 28, "av1": 35}
-#: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine.
-DEFAULT_PRESET = {"libx264": "veryfast", "libx265": "ultrafast", "libsvtav1": "10"}
+#: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine; for x264
+#: the cheapest per frame at the benchmark's quality and size targets (ultrafast: 1.7x fewer CPU ms per 1080p photo
+#: frame than veryfast, at a higher PSNR and 0.2 % of the raw bytes; benchmarks/README.md, S4).
+DEFAULT_PRESET = {"libx264": "ultrafast", "libx265": "ultrafast", "libsvtav1": "10"}
+#: x264 encodes pictures up to this size on the calling thread alone (one thread per camera): its own threads cost
+#: 4-10 % more CPU per 1080p frame, and several cameras keep every core busy anyway. Larger pictures (4K) get
+#: x264's threads, without which one camera's frame no longer fits a frame interval at 30 Hz.
+ONE_THREAD_PIXELS = 2560 * 1440
 #: sensor_msgs encodings the encoder takes: numpy channels, simplejpeg colourspace, PyAV pixel format.
 PIXELS = {"rgb8": (3, "RGB", "rgb24"), "bgr8": (3, "BGR", "bgr24"), "rgba8": (4, "RGBA", "rgba"),
           "bgra8": (4, "BGRA", "bgra"), "mono8": (1, "GRAY", "gray")}
@@ -147,11 +153,15 @@ def scaled_size(width: int, height: int, out_width: int, even: bool, at_most: bo
 
 
 def _frame(pixels: np.ndarray, encoding: str, size: tuple[int, int], pix_fmt: str) -> VideoFrame:
-    """An FFmpeg frame of ``pixels`` converted (swscale) to ``size`` and ``pix_fmt``."""
-    frame = av().VideoFrame.from_ndarray(pixels, format=PIXELS[encoding][2])
+    """An FFmpeg frame of ``pixels`` (wrapping the message's buffer: no copy) converted (swscale, on the calling
+    thread) to ``size`` and ``pix_fmt``. At the same size the conversion scales nothing but the chroma of 4:2:0,
+    which point sampling takes for 1.7 ms less per 1080p frame than bilinear averaging, at the same PSNR once
+    encoded (S4's measurements, CHANGELOG.md)."""
+    frame = av().VideoFrame.from_numpy_buffer(pixels, format=PIXELS[encoding][2])
     if (frame.width, frame.height) == size and frame.format.name == pix_fmt:
         return frame
-    return frame.reformat(width=size[0], height=size[1], format=pix_fmt)
+    return frame.reformat(width=size[0], height=size[1], format=pix_fmt, threads=1,
+                          interpolation="POINT" if (frame.width, frame.height) == size else None)
 
 
 class StillCodec:
@@ -201,7 +211,7 @@ class VideoCodec:
         context.time_base, context.framerate = TIME_BASE, 1 / TIME_BASE
         context.gop_size = choice.keyframe_interval
         context.max_b_frames = 0
-        options = _encoder_options(choice)
+        options = _encoder_options(choice, width * height)
         if choice.bitrate:
             context.bit_rate = choice.bitrate
         context.options = options
@@ -229,8 +239,9 @@ class VideoCodec:
         self._context = None
 
 
-def _encoder_options(choice: CodecChoice) -> dict[str, str]:
-    """FFmpeg options for low delay (no look-ahead, forced keyframes are IDR) and the chosen rate control."""
+def _encoder_options(choice: CodecChoice, pixels: int) -> dict[str, str]:
+    """FFmpeg options for low delay (no look-ahead, forced keyframes are IDR), x264's threads for pictures of
+    ``pixels`` (:data:`ONE_THREAD_PIXELS`) and the chosen rate control."""
     options: dict[str, str] = {}
     if choice.preset:
         options["preset"] = choice.preset
@@ -240,6 +251,8 @@ def _encoder_options(choice: CodecChoice) -> dict[str, str]:
             options["x265-params"] = "log-level=error"
     elif choice.encoder == "libsvtav1":
         options["svtav1-params"] = "pred-struct=1:lookahead=0:scd=0"  # low delay: one frame in, one out
+    if choice.encoder == "libx264" and pixels <= ONE_THREAD_PIXELS:
+        options["threads"] = "1"
     if choice.quality != -1 and choice.encoder in ("libx264", "libx265", "libsvtav1"):
         options["crf"] = str(choice.quality)
     elif choice.quality != -1:
