@@ -42,7 +42,7 @@ QUALITY = {"jpeg": Bounds(1, 100), "png": Bounds(0, 9), "h264": Bounds(0, 51), "
 DEFAULT_QUALITY = {"jpeg": 90, "png": 3, "h264": 23, "h265": 28, "av1": 35}
 #: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine; for x264
 #: the cheapest per frame at the benchmark's quality and size targets (ultrafast: 1.7x fewer CPU ms per 1080p photo
-#: frame than veryfast, at a higher PSNR and 0.2 % of the raw bytes; benchmarks/README.md, S4).
+#: frame than veryfast, at a higher PSNR and 0.2 % of the raw bytes; CHANGELOG.md, S4's codec limits).
 DEFAULT_PRESET = {"libx264": "ultrafast", "libx265": "ultrafast", "libsvtav1": "10"}
 #: x264 encodes pictures up to this size on the calling thread alone (one thread per camera): its own threads cost
 #: 4-10 % more CPU per 1080p frame, and several cameras keep every core busy anyway. Larger pictures (4K) get
