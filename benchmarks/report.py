@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: benchmarks.* from this checkout
     sys.path.insert(1, str(REPO))
 
-from benchmarks.record.report import fmt, s4_steps  # noqa: E402
+from benchmarks.record.report import fmt, s4_steps, search_text  # noqa: E402
 from benchmarks.result_folder import RESULTS  # noqa: E402
 
 BLOCK = re.compile(r"^<!-- BEGIN GENERATED: (?P<name>[\w.-]+) -->\n(?P<body>.*?)^<!-- END GENERATED: (?P=name) -->$",
@@ -189,10 +189,9 @@ def s4_limits_table(s4: dict[str, Any]) -> list[str]:
 
 
 def s4_ramp_text(s4: dict[str, Any]) -> str:
-    """How the run's ramps chose their camera counts."""
+    """How the run's ramps chose their camera counts: searched, or doubled (results before the search)."""
     if s4.get("ramp") == "search":
-        return (f"per codec the largest camera count without loss, searched from its codec limit (cap {s4['cap']}; "
-                f"raw from {s4['caps'].get('raw', '-')} down)")
+        return search_text(s4)
     return f"1, 2, 4 ... cameras per codec until a frame is lost (cap {s4['cap']})"
 
 

@@ -292,10 +292,15 @@ def limit_lines(s4: dict[str, Any]) -> list[str]:
     return lines
 
 
+def search_text(s4: dict[str, Any]) -> str:
+    """How a run's ramps chose their camera counts (camera_search.py)."""
+    raw = f"; raw from {s4['caps']['raw']} down" if "raw" in s4["caps"] else ""
+    return f"per codec the largest camera count without loss, searched from its codec limit (cap {s4['cap']}{raw})"
+
+
 def print_s4(s4: dict[str, Any]) -> None:
-    print(f"\n== {s4['scenario']['title'].split(',')[0]}: {s4['scenario']['describe']}; per codec the largest "
-          f"camera count without loss, searched from its codec limit (cap {s4['cap']}; raw from "
-          f"{s4['caps'].get('raw', '-')} down); each codec beside raw")
+    print(f"\n== {s4['scenario']['title'].split(',')[0]}: {s4['scenario']['describe']}; {search_text(s4)}; each "
+          "codec beside raw")
     print(table(["codec", "cameras", "lost/published", "enc skipped", "min pub %nom", "MB/s", "% raw", "PSNR dB",
                  "CPU/camera", "lat p50 ms", "p99 ms", "h per TB", "lossless"],
                 [s4_row(step) for step in [*s4_steps(s4), *s4["beside"]]]))
