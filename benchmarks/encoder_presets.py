@@ -13,8 +13,8 @@ one after the other, as fast as it takes them; no ROS. Per codec and preset:
 * **PSNR**: of the decoded frames (PyAV) against the frames encoded, over all of them;
 * **1080p30 cameras per core**: 1000 / (CPU ms/frame * 30).
 
-Which preset is the default (codecs.DEFAULT_PRESET) follows from these numbers: the slowest preset whose
-frames still fit, with the driver and the recorder, a 1080p30 camera on one core of a small machine.
+Which preset is the default (codecs.DEFAULT_PRESET) follows from these numbers: for x264 the cheapest per frame
+that keeps S4's targets (at least 36 dB, at most 3 % of the raw bytes), so that the most cameras fit the cores.
 
     python benchmarks/encoder_presets.py [--frames 90] [--codecs h264:ultrafast,h264:superfast,...]
 """

@@ -29,8 +29,8 @@ REPO = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):  # run as a script: benchmarks.* from this checkout
     sys.path.insert(1, str(REPO))
 
-from benchmarks.record.report import fmt  # noqa: E402
 from benchmarks.locations import RESULTS  # noqa: E402
+from benchmarks.record.report import fmt, s4_steps, search_text  # noqa: E402
 
 BLOCK = re.compile(r"^<!-- BEGIN GENERATED: (?P<name>[\w.-]+) -->\n(?P<body>.*?)^<!-- END GENERATED: (?P=name) -->$",
                    re.MULTILINE | re.DOTALL)
@@ -171,11 +171,35 @@ def s3_table(record: dict[str, Any]) -> list[str]:
                      "recorder CPU per message"], rows)
 
 
+def s4_limits_table(s4: dict[str, Any]) -> list[str]:
+    """Per compressed codec, its codec limit and its ramp's share of it (runs that measured limits)."""
+    limits = s4.get("limits") or {}
+    if not limits.get("codecs"):
+        return [] if "limits" not in s4 else ["", f"Codec limits: failed: {limits.get('error', 'none measured')}"]
+    rows = [[label, f"{limit['ms_per_frame']:.2f} ms ({limit['clock']})", f"{limit['cameras']:.2f}",
+             str(s4["largest_lossless"].get(label, 0)),
+             f"{100 * s4['largest_lossless'].get(label, 0) / limit['cameras']:.0f} %"]
+            for label, limit in limits["codecs"].items()]
+    return ["", *markdown(["codec", "CPU per frame, codec alone", "codec limit (cameras)", "cameras without loss",
+                           "of the limit"], rows), "",
+            f"Codec limit: {limits['cores']} cores x {limits['frame_interval_ms']:.1f} ms frame interval / the CPU "
+            f"time one frame costs the codec alone (colour conversion and encoding through "
+            f"`components/image_encoder/codecs.py`, {limits['frames']} photo frames, `time.thread_time`; the "
+            "process's CPU time for an encoder with threads of its own), measured in the same run."]
+
+
+def s4_ramp_text(s4: dict[str, Any]) -> str:
+    """How the run's ramps chose their camera counts: searched, or doubled (results before the search)."""
+    if s4.get("ramp") == "search":
+        return search_text(s4)
+    return f"1, 2, 4 ... cameras per codec until a frame is lost (cap {s4['cap']})"
+
+
 def s4_table(record: dict[str, Any]) -> list[str]:
-    """S4: each codec's ramp and its run beside raw, then S4's targets."""
+    """S4: each codec's ramp and its run beside raw, its codec limits, then S4's targets."""
     s4, config = part(record, "S4"), record["config"]
     rows = []
-    for step in [*s4["steps"], *s4["beside"]]:
+    for step in [*s4_steps(s4), *s4["beside"]]:
         label = f"{step['codec']}" + (" + raw" if step.get("beside") else "")
         if not measured(step):
             rows.append([label, str(step["cameras"]), f"failed: {step['error'][:80]}"] + [""] * 7)
@@ -190,11 +214,10 @@ def s4_table(record: dict[str, Any]) -> list[str]:
     targets = [f"* {t['result']}: {t['target']}: {t['detail']}." for t in record.get("targets", [])
                if t["target"].startswith("S4")]
     return [*markdown(["codec", "cameras", "frames lost", "MB/s", "of raw", "PSNR dB", "CPU cores per camera",
-                       "receive-to-write p50 / p99", "hours per TB", "lossless"], rows), "",
+                       "receive-to-write p50 / p99", "hours per TB", "lossless"], rows), *s4_limits_table(s4), "",
             f"{config['width']}x{config['height']} rgb8 cameras at {config['fps']:g} Hz with photo content, "
-            f"{s4['seconds']:g} s windows, drivers, "
-            "encoder and recorder in one container; 1, 2, 4 ... cameras per codec until a frame is lost (cap "
-            f"{s4['cap']}). Targets of the same run:", "", *targets]
+            f"{s4['seconds']:g} s windows, drivers, encoder and recorder in one container; {s4_ramp_text(s4)}. "
+            "Targets of the same run:", "", *targets]
 
 
 def s4_sizing_table(record: dict[str, Any]) -> list[str]:

@@ -15,6 +15,10 @@ from benchmarks.record.measure import machine_busy_seconds
 from benchmarks.record.scenarios import Scenario
 
 
+#: Deleting bags of this many bytes or more calls for the page pause before the next run (wait_for_fresh_pages).
+PAGE_PAUSE_BYTES = 64 * 2**20
+
+
 @dataclass
 class Bench:
     args: argparse.Namespace
@@ -39,11 +43,15 @@ class Bench:
         return path
 
     def discard_bags(self, *paths: Path) -> None:
-        """Delete bag directories (unless --keep-bags) and note when, for the page pause."""
+        """Delete bag directories (unless --keep-bags) and, when they held :data:`PAGE_PAUSE_BYTES` or more, note
+        when, for the page pause (a compressed recording's few MB free too few pages to matter)."""
         if not self.args.keep_bags:
+            held = sum(file.stat().st_size for path in paths if path.is_dir()
+                       for file in path.rglob("*") if file.is_file())
             for path in paths:
                 shutil.rmtree(path, ignore_errors=True)
-            self.last_free = time.monotonic()
+            if held >= PAGE_PAUSE_BYTES:
+                self.last_free = time.monotonic()
 
     def wait_for_fresh_pages(self) -> None:
         """Wait until --page-pause s have passed since the benchmark last deleted a bag or ceiling file.

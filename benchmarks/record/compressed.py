@@ -1,9 +1,12 @@
 """S4, compressed recording: 1080p30 cameras with photographic content (``content:=photo``), drivers, encoder
 and recorder in one container process, intra-process.
 
+* **codec limit**, per compressed codec: cores x frame interval / the CPU time one frame costs the codec alone
+  (benchmarks/record/codec_limit.py), measured first;
 * **ramp**, per codec (``raw``, ``jpeg``, ``h264``, ``h265``, ``av1`` at the encoder's defaults, or
-  ``codec:preset`` such as ``h264:ultrafast``): 1, 2, 4 ...
-  cameras (up to ``--s4-max-cameras``) until a step loses a frame. ``raw`` records ``image_raw``; the others
+  ``codec:preset`` such as ``h264:ultrafast``): the largest camera count without loss, to the camera, searched
+  from the target share of the codec limit (benchmarks/record/camera_search.py; raw, without a limit, from
+  ``--s4-raw-cameras`` down), up to ``--s4-max-cameras``. ``raw`` records ``image_raw``; the others
   record with ``record.compress:=<codec>`` (the recorder loads its own ImageEncoder and records
   ``<image>/compressed`` or ``<image>/video`` instead). Every camera's CameraInfo is recorded too: the frames'
   accounting (benchmarks/record/frames.py).
@@ -25,12 +28,15 @@ import numpy as np
 from std_srvs.srv import Trigger
 
 from benchmarks.record.bench import Bench, guarded
+from benchmarks.record.camera_search import largest_lossless, lossy_above, next_count, start_count
+from benchmarks.record.codec_limit import measure_limits
 from benchmarks.record.figures import good
 from benchmarks.record.frames import camera_counts, decoded_frames, psnr, read_stamps, sample_stamps
 from benchmarks.record.measure import MB
 from benchmarks.record.modes import (Processes, RecorderServices, record_window, recorder_component,
                                      start_container, window_result)
 from benchmarks.record.scenarios import PUBLISH_RATE_OK, Scenario, TopicSpec
+from benchmarks.record.targets import S4_LIMIT_SHARE
 from ipc_testing import call
 
 CODECS = ("raw", "jpeg", "h264", "h265", "av1")
@@ -162,39 +168,50 @@ def frames_result(bag: Path, scenario: Scenario, codec: str, beside: bool, t0: i
     return result
 
 
-def ramp(bench: Bench, s4: dict[str, Any], codec: str) -> None:
-    """1, 2, 4 ... cameras of ``codec`` until a step loses a frame or passes ``--s4-max-cameras``."""
+def cap_of(args: argparse.Namespace, label: str) -> int:
+    """The most cameras a codec's ramp runs: raw, which has no codec limit to start from, starts at its cap."""
+    return args.s4_raw_cameras if codec_of(label)[0] == "raw" else args.s4_max_cameras
+
+
+def ramp(bench: Bench, s4: dict[str, Any], label: str) -> None:
+    """The largest lossless camera count of ``label`` (camera_search.py), started near its codec limit."""
     args = bench.args
-    s4["largest_lossless"][codec], s4["limit_reached"][codec] = 0, False  # codec: its S4 label
-    cameras = 1
-    while cameras <= args.s4_max_cameras:
+    limit = ((s4["limits"].get("codecs") or {}).get(label) or {}).get("cameras")
+    cap = s4["caps"][label] = cap_of(args, label)
+    start = start_count(limit, S4_LIMIT_SHARE, cap)
+    outcomes: dict[int, bool] = {}
+    kept: dict[int, float] = {}
+    while (cameras := next_count(outcomes, start, cap, kept)) is not None:
         scenario = s4_scenario(args, cameras)
-        step = guarded(bench, f"S4 {codec} {cameras} camera(s)", lambda: run_compressed(bench, scenario, codec))
-        step.update({"codec": codec, "cameras": cameras})
+        step = guarded(bench, f"S4 {label} {cameras} camera(s)", lambda: run_compressed(bench, scenario, label))
+        step.update({"codec": label, "cameras": cameras})
         s4["steps"].append(step)
-        if not (good(step) and step["lossless"]):
-            s4["limit_reached"][codec] = True
-            return
-        s4["largest_lossless"][codec] = cameras
-        cameras *= 2
+        outcomes[cameras] = good(step) and step["lossless"]
+        if good(step) and step["published"]:
+            kept[cameras] = cameras * step["recorded"] / step["published"] * min(1.0, step["min_pub_ratio"])
+    s4["largest_lossless"][label] = largest_lossless(outcomes)
+    s4["limit_reached"][label] = lossy_above(outcomes) is not None
 
 
 def run_s4(bench: Bench) -> dict[str, Any]:
-    """S4: each codec's ramp, then each compressed codec recorded beside raw."""
+    """S4: the codec limits, each codec's ramp, then each compressed codec recorded beside raw."""
     args = bench.args
     codecs = [codec.strip() for codec in args.s4_codecs.split(",") if codec.strip()]
     s4: dict[str, Any] = {"scenario": s4_scenario(args, 1).summary(), "codecs": codecs, "cap": args.s4_max_cameras,
-                          "seconds": args.s4_seconds, "steps": [], "largest_lossless": {}, "limit_reached": {},
-                          "beside": []}
+                          "ramp": "search", "caps": {}, "seconds": args.s4_seconds, "steps": [],
+                          "largest_lossless": {}, "limit_reached": {}, "beside": []}
+    compressed = {label: codec_of(label) for label in codecs if codec_of(label)[0] != "raw"}
+    s4["limits"] = guarded(bench, "S4 codec limits (CPU per frame of each codec alone)",
+                           lambda: measure_limits(compressed, args.width, args.height, args.fps,
+                                                  args.s4_cost_frames), retry=False)
     for codec in codecs:
         ramp(bench, s4, codec)
     scenario = s4_scenario(args, args.s4_beside_cameras)
-    for codec in codecs:
-        if codec_of(codec)[0] != "raw":
-            run = guarded(bench, f"S4 {codec} beside raw, {scenario.cameras} camera(s)",
-                          lambda: run_compressed(bench, scenario, codec, beside=True))
-            run.update({"codec": codec, "cameras": scenario.cameras, "beside": True})
-            s4["beside"].append(run)
+    for codec in compressed:
+        run = guarded(bench, f"S4 {codec} beside raw, {scenario.cameras} camera(s)",
+                      lambda: run_compressed(bench, scenario, codec, beside=True))
+        run.update({"codec": codec, "cameras": scenario.cameras, "beside": True})
+        s4["beside"].append(run)
     s4["sizing"] = sizing(s4)
     return s4
 

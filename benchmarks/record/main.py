@@ -51,7 +51,12 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--s4-seconds", type=float, default=5.0, help="S4 window per run")
     p.add_argument("--s4-codecs", default=",".join(CODECS), help="S4 codecs (comma-separated subset of "
                    + ",".join(CODECS) + "), each at the encoder's defaults, or codec:preset (h264:ultrafast)")
-    p.add_argument("--s4-max-cameras", type=int, default=8, help="S4 ramp cap (1, 2, 4 ... up to this)")
+    p.add_argument("--s4-max-cameras", type=int, default=16,
+                   help="S4: the most cameras a compressed codec's ramp runs (it starts near its codec limit)")
+    p.add_argument("--s4-raw-cameras", type=int, default=8,
+                   help="S4: raw's ramp (no codec limit to start from) starts at this many cameras, and runs no more")
+    p.add_argument("--s4-cost-frames", type=int, default=120,
+                   help="S4: frames encoded by each codec alone for its CPU time per frame (the codec limit)")
     p.add_argument("--s4-beside-cameras", type=int, default=1,
                    help="S4: cameras recorded raw and compressed at once, per codec")
     p.add_argument("--s4-psnr-frames", type=int, default=30,
@@ -131,8 +136,9 @@ def parse_arguments(argv: Optional[list[str]] = None) -> argparse.Namespace:
     unknown = (args.scenario_set - {"s1", "s2", "s3", "s4"}) | (args.mode_set - {*RECORDER_MODES, "drivers", "ceiling"})
     if unknown:
         p.error(f"unknown scenario/mode: {', '.join(sorted(unknown))}")
-    if args.repeat < 0 or min(args.s2_cameras, args.s4_max_cameras, args.s4_beside_cameras) < 1:
-        p.error("--repeat must be >= 0, --s2-cameras, --s4-max-cameras and --s4-beside-cameras >= 1")
+    if args.repeat < 0 or min(args.s2_cameras, args.s4_max_cameras, args.s4_raw_cameras, args.s4_beside_cameras,
+                              args.s4_cost_frames) < 1:
+        p.error("--repeat must be >= 0, --s2-cameras and every --s4-... count >= 1")
     if {codec_of(c.strip())[0] for c in args.s4_codecs.split(",") if c.strip()} - set(CODECS):
         p.error(f"--s4-codecs: each of {', '.join(CODECS)}, optionally with ':preset'")
     if 0 < args.direct_mb < DIRECT_BLOCK / 2**20:

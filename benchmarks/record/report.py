@@ -271,12 +271,41 @@ def sizing_lines(s4: dict[str, Any]) -> list[str]:
     return lines
 
 
+def s4_steps(s4: dict[str, Any]) -> list[dict[str, Any]]:
+    """The ramps' runs by codec (in --s4-codecs order) and camera count, not in the order the search ran them."""
+    return sorted(s4["steps"], key=lambda step: (s4["codecs"].index(step["codec"]), step["cameras"]))
+
+
+def limit_lines(s4: dict[str, Any]) -> list[str]:
+    """Per compressed codec: its codec limit, how it was measured, and how close its ramp came to it."""
+    limits = s4.get("limits") or {}
+    if "error" in limits:
+        return [f"codec limits: ERROR {limits['error']}"]
+    lines = []
+    for label, limit in (limits.get("codecs") or {}).items():
+        count = s4["largest_lossless"].get(label, 0)
+        lines.append(f"{label}: codec limit {limit['cameras']:.2f} cameras = {limits['cores']} cores x "
+                     f"{limits['frame_interval_ms']:.1f} ms / {limit['ms_per_frame']:.2f} ms {limit['clock']} CPU per "
+                     f"frame (thread {limit['thread_ms_per_frame']:.2f}, process {limit['process_ms_per_frame']:.2f} "
+                     f"ms over {limit['frames']} frames); {count} camera(s) without loss = "
+                     f"{100 * count / limit['cameras']:.0f} % of it")
+    return lines
+
+
+def search_text(s4: dict[str, Any]) -> str:
+    """How a run's ramps chose their camera counts (camera_search.py)."""
+    raw = f"; raw from {s4['caps']['raw']} down" if "raw" in s4["caps"] else ""
+    return f"per codec the largest camera count without loss, searched from its codec limit (cap {s4['cap']}{raw})"
+
+
 def print_s4(s4: dict[str, Any]) -> None:
-    print(f"\n== {s4['scenario']['title'].split(',')[0]}: {s4['scenario']['describe']}; 1, 2, 4 ... cameras up to "
-          f"{s4['cap']} per codec until one is lost; each codec beside raw")
+    print(f"\n== {s4['scenario']['title'].split(',')[0]}: {s4['scenario']['describe']}; {search_text(s4)}; each "
+          "codec beside raw")
     print(table(["codec", "cameras", "lost/published", "enc skipped", "min pub %nom", "MB/s", "% raw", "PSNR dB",
                  "CPU/camera", "lat p50 ms", "p99 ms", "h per TB", "lossless"],
-                [s4_row(step) for step in [*s4["steps"], *s4["beside"]]]))
+                [s4_row(step) for step in [*s4_steps(s4), *s4["beside"]]]))
+    for line in limit_lines(s4):
+        print("  " + line)
     for run in s4["beside"]:
         if good(run):
             p = run["psnr"]

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from benchmarks.record.figures import good, total_us_per_msg
-from benchmarks.record.previous import compare, find_previous, machine
+from benchmarks.record.previous import COMPARE, find_previous, machine, measured
 from benchmarks.record.report import fmt
 from benchmarks.record.scenarios import PUBLISH_RATE_OK
 from benchmarks.result_folder import RESULTS
@@ -30,6 +30,11 @@ S3_BASELINE_RATIO = 0.5       # S3: drivers + recorder CPU per message at most h
 #: S4, per codec at the encoder's defaults: (at most % of the raw bytes, at least PSNR dB, at least cameras
 #: without loss, drivers included)
 S4_CODEC_TARGETS = {"jpeg": (15.0, 38.0, 4), "h264": (3.0, 36.0, 1)}
+#: S4, per codec of S4_CODEC_TARGETS: the largest lossless camera count (drivers included) at least this share of
+#: the codec limit of the same run (cores x frame interval / the codec's own CPU time per frame, codec_limit.py)
+S4_LIMIT_SHARE = 0.85
+#: S4's moonshot, reported beside that target: 1080p30 cameras without loss on the reference machine's 2 cores
+S4_MOONSHOT = {"jpeg": 6, "h264": 3}
 REPEAT_RUNS = 5               # --repeat: ipc lossless in every one of at least this many runs
 REPEAT_CPU_RATIO = 0.33       # --repeat: ipc / dds total CPU per GB in every run
 
@@ -201,19 +206,27 @@ def repeat_targets(repeat: dict[str, Any], args: argparse.Namespace, targets: Ta
                     + ", ".join(fmt(r, ".2f") for r in ratios))
 
 
-def previous_target(report: dict[str, Any], results: Path, targets: Targets) -> None:
-    """No S1 CPU figure worse than in the previous result file of the same rig by more than the noise
-    (benchmarks.record.previous)."""
-    name = "S1 CPU figures no worse than the previous result of the same rig, beyond the --repeat noise"
-    if not good((report.get("S1") or {}).get("ipc")):
-        targets.add(name, None, "S1 ipc not measured")
+#: The parts compared with the previous result of the same rig (benchmarks.record.previous), by target name.
+PREVIOUS_TARGETS = {
+    "S1": "S1 CPU figures no worse than the previous result of the same rig, beyond the --repeat noise",
+    "S4": "S4 lossless camera counts and codec CPU per frame no worse than the previous S4 result of "
+          "the same cameras, beyond the noise",
+}
+
+
+def previous_target(report: dict[str, Any], results: Path, targets: Targets, part: str = "S1") -> None:
+    """No figure of ``part`` (S1, S4) worse than in the previous result file of the same rig by more than the
+    noise (benchmarks.record.previous)."""
+    name = PREVIOUS_TARGETS[part]
+    if not measured(report, part):
+        targets.add(name, None, f"{part} not measured")
         return
-    found = find_previous(results, report)
+    found = find_previous(results, report, part)
     if found is None:
-        targets.add(name, None, f"no earlier S1 result of the same rig under {results}")
+        targets.add(name, None, f"no earlier {part} result of the same rig under {results}")
         return
     path, previous = found
-    changes = compare(report, previous)
+    changes = COMPARE[part](report, previous)
     where = (f"previous: {path.parent.name} (code at {previous.get('git', {}).get('commit', '?')}, "
              f"{previous.get('command', '?')})")
     if machine(report) != machine(previous):
@@ -246,6 +259,7 @@ def s4_targets(s4: dict[str, Any], targets: Targets) -> None:
         targets.add(name, None if ok is None else bool(ok),
                     f"{step['raw_pct']:.2f} % of raw at {step['cameras']} camera(s), {quality:.1f} dB, largest "
                     f"lossless camera count {count}{capped}")
+        s4_limit_target(s4, codec, targets)
     name = "S4 raw recorded beside each encoder loses no frame"
     runs = [b for b in s4["beside"] if good(b)]
     if not runs:
@@ -259,11 +273,33 @@ def s4_targets(s4: dict[str, Any], targets: Targets) -> None:
                 + (f"; failed: {', '.join(failed)}" if failed else ""))
 
 
+def s4_limit_target(s4: dict[str, Any], codec: str, targets: Targets) -> None:
+    """The largest lossless camera count of ``codec`` at least S4_LIMIT_SHARE of its codec limit in the same run;
+    below, a FAIL only when the ramp lost frames above it (a ramp capped below proves nothing)."""
+    name = (f"S4 {codec}: lossless cameras (drivers included) >= {S4_LIMIT_SHARE:g} x the codec limit (cores x "
+            "frame interval / the codec's CPU per frame)")
+    limits = s4.get("limits") or {}
+    limit = (limits.get("codecs") or {}).get(codec)
+    if codec not in s4["largest_lossless"] or not limit:
+        targets.add(name, None, "not measured" if codec in s4["codecs"] else f"{codec} not in --s4-codecs")
+        return
+    count, cameras = s4["largest_lossless"][codec], limit["cameras"]
+    reached = s4["limit_reached"][codec]
+    capped = "" if reached else f" (no loss up to the cap of {s4.get('caps', {}).get(codec, s4['cap'])})"
+    enough = count >= S4_LIMIT_SHARE * cameras
+    targets.add(name, True if enough else (False if reached else None),
+                f"{count} camera(s) without loss{capped} = {100 * count / cameras:.0f} % of the codec limit "
+                f"{cameras:.2f} ({limits['cores']} cores x {limits['frame_interval_ms']:.1f} ms / "
+                f"{limit['ms_per_frame']:.2f} ms {limit['clock']} CPU per frame over {limit['frames']} frames); "
+                f"moonshot {S4_MOONSHOT[codec]} camera(s): {'reached' if count >= S4_MOONSHOT[codec] else 'not yet'}")
+
+
 def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
     targets = Targets()
     s1 = report.get("S1") or {}
     s1_targets(s1, args, targets)
-    previous_target(report, Path(args.results) if args.results else RESULTS, targets)
+    results = Path(args.results) if args.results else RESULTS
+    previous_target(report, results, targets)
     if s1.get("repeat"):
         repeat_targets(s1["repeat"], args, targets)
     s2_targets(report.get("S2"), targets)
@@ -272,4 +308,5 @@ def evaluate_targets(report: dict[str, Any], args: argparse.Namespace) -> list[d
     s3_targets(report.get("S3") or {}, args, targets)
     if report.get("S4"):
         s4_targets(report["S4"], targets)
+        previous_target(report, results, targets, "S4")
     return targets.rows

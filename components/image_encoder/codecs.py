@@ -52,8 +52,14 @@ QUALITY = {"jpeg": Bounds(1, 100), "png": Bounds(0, 9), DEPTH: Bounds(0, 9), "h2
 #: Defaults where ``quality`` is not given (-1). compressedDepth: PNG's level 3 too (upstream's publisher uses 9,
 #: three times the CPU of 3 for a 1080p range image).
 DEFAULT_QUALITY = {"jpeg": 90, "png": 3, DEPTH: 3, "h264": 23, "h265": 28, "av1": 35}
-#: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine.
-DEFAULT_PRESET = {"libx264": "veryfast", "libx265": "ultrafast", "libsvtav1": "10"}
+#: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine; for x264
+#: the cheapest per frame at the benchmark's quality and size targets (ultrafast: 1.7x fewer CPU ms per 1080p photo
+#: frame than veryfast, at a higher PSNR and 0.2 % of the raw bytes; CHANGELOG.md, S4's codec limits).
+DEFAULT_PRESET = {"libx264": "ultrafast", "libx265": "ultrafast", "libsvtav1": "10"}
+#: x264 encodes pictures up to this size on the calling thread alone (one thread per camera): its own threads cost
+#: 4-10 % more CPU per 1080p frame, and several cameras keep every core busy anyway. Larger pictures (4K) get
+#: x264's threads, without which one camera's frame no longer fits a frame interval at 30 Hz.
+ONE_THREAD_PIXELS = 2560 * 1440
 #: simplejpeg's colourspace, and bytes per pixel, of the FFmpeg pixel formats it encodes as they are.
 JPEG_INPUTS = {"rgb24": ("RGB", 3), "bgr24": ("BGR", 3), "rgba": ("RGBA", 4), "bgra": ("BGRA", 4), "gray": ("GRAY", 1)}
 #: Time base of the pts handed to the encoder: frame numbers at a nominal 30 Hz (rate control only).
@@ -263,14 +269,15 @@ def _open_video(choice: CodecChoice, width: int, height: int) -> CodecContext:
     context.max_b_frames = 0
     if choice.bitrate:
         context.bit_rate = choice.bitrate
-    context.options = _encoder_options(choice)
+    context.options = _encoder_options(choice, width * height)
     with ordinary_scheduling():  # SVT-AV1 as root makes threads real-time
         context.open()
     return context
 
 
-def _encoder_options(choice: CodecChoice) -> dict[str, str]:
-    """FFmpeg options for low delay (no look-ahead, forced keyframes are IDR) and the chosen rate control."""
+def _encoder_options(choice: CodecChoice, pixels: int) -> dict[str, str]:
+    """FFmpeg options for low delay (no look-ahead, forced keyframes are IDR), x264's threads for pictures of
+    ``pixels`` (:data:`ONE_THREAD_PIXELS`) and the chosen rate control."""
     options: dict[str, str] = {}
     if choice.preset:
         options["preset"] = choice.preset
@@ -280,6 +287,8 @@ def _encoder_options(choice: CodecChoice) -> dict[str, str]:
             options["x265-params"] = "log-level=error"
     elif choice.encoder == "libsvtav1":
         options["svtav1-params"] = "pred-struct=1:lookahead=0:scd=0"  # low delay: one frame in, one out
+    if choice.encoder == "libx264" and pixels <= ONE_THREAD_PIXELS:
+        options["threads"] = "1"
     if choice.quality != -1 and choice.encoder in ("libx264", "libx265", "libsvtav1"):
         options["crf"] = str(choice.quality)
     elif choice.quality != -1:
