@@ -11,7 +11,12 @@ Preparing: turning a recorded message into the object in-process subscribers get
 frame: 0.3 to several ms, holding the GIL) is done by this same thread, in the time it would otherwise sleep:
 before waiting for a message, it prepares that message and then as many of the queued ones after it as fit
 before it is due (costs measured per topic). Done on another thread, it would hold the GIL exactly when the
-playback thread wakes up for a due message.
+playback thread wakes up for a due message. A decoded topic's message is the exception: its stream's decoding
+thread made its objects (decoded_topics.py); this thread takes them before it sleeps until the message is due,
+waiting for them only if that decoder is late.
+
+A run that ends (its end, the "until" time, ``stop``) halts the read-ahead: the queue is dropped and the decoding
+threads end.
 
 Falling behind: a message that goes out more than :data:`BEHIND_NS` after its scheduled time moves the whole
 schedule back by that lateness instead of publishing the following messages in a catch-up burst; the shifts
@@ -173,6 +178,7 @@ class Playback:
             self._log.error(f"Failed to play: {exc}")
         finally:
             self._report_behind(time.monotonic_ns(), final=True)
+            self._read_ahead.halt()  # nothing queued stays in memory, no decoder works for a run that ended
             try:
                 self._on_run_end()
             finally:
@@ -213,6 +219,9 @@ class Playback:
     def _prepare(self, item: Queued) -> None:
         if item.ready:
             return
+        if item.decoding is not None:
+            item.take_decoded()  # its stream's thread made the objects; waits only if that decoder is late
+            return
         started = time.monotonic_ns()
         item.prepared = self._make(item.message)
         item.ready = True
@@ -223,7 +232,7 @@ class Playback:
     def _prepare_ahead(self, due_ns: int | None) -> None:
         """Prepare queued messages after the next one while they fit before it is due (None: paused)."""
         for item in self._read_ahead.head(PREPARE_AHEAD)[1:]:
-            if item.ready:
+            if item.ready or item.decoding is not None:
                 continue
             if due_ns is not None and (time.monotonic_ns() + self._costs.get(item.message.connection.topic, 0)
                                        + PREPARE_MARGIN_NS > due_ns):
