@@ -31,6 +31,7 @@ from sensor_msgs.msg import Image
 
 from baglib.format.cdr_read import deserialize
 from baglib.read.reader import BagMessage
+from components.image_encoder._pyav import av
 from components.image_encoder.decoding import DecodeCounts, StillDecoder, VideoDecoder
 from components.player.decode_worker import Job, StreamWorker
 
@@ -89,6 +90,10 @@ class DecodedStream:
         self._worker = StreamWorker(f"decode:{topic}", self._decode, DECODE_AHEAD)
         self._new_pass = True
         self._picture_bytes = 0   # of the last picture: what the next one is expected to take
+        if video:
+            # PyAV now, at load: its import is ~60 ms of Python holding the GIL, which at the first frame the
+            # other streams' decoders and the playback thread would wait for (up to a second on a busy machine).
+            av()
 
     def start_pass(self) -> None:
         """The next message begins a new pass; what the last pass left undecoded is dropped."""
