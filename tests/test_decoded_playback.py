@@ -28,12 +28,16 @@ from sensor_msgs.msg import CompressedImage, Image
 
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.read.reader import BagMessage, BagReader
+from baglib.read.timeline import Timeline
 from baglib.write.writer import BagWriter
 from component_container.component_manager import ComponentConstructionError, ComponentManager
 from component_container.component_node import ComponentNode
 from component_container.startup_file import load_request
 from components.image_encoder import codecs
 from components.player.decode_worker import Job, StreamWorker
+from components.player.decoded_topics import DecodedStream, Decoding, decoded_name
+from components.player.playback import HEAD_START_NS
+from components.player.read_ahead import ReadAhead
 from components.photo_content import PhotoContent
 from components.sensor_driver import stamp_from_ns
 from ipc_testing import call, in_process_manager, wait_until
@@ -239,6 +243,33 @@ def test_each_loop_decodes_the_bag_again_from_its_first_keyframe(manager: Compon
     stamps = [stamp_from_ns(stamp_ns(index)) for index in range(FRAMES)]
     assert [m.header.stamp for m in video.messages[:2 * FRAMES]] == stamps + stamps
     assert player.stats()["decoded"][VIDEO]["failed"] == player.stats()["decoded"][VIDEO]["skipped"] == 0
+
+
+def test_a_pass_waits_for_the_pictures_of_its_head_start_before_its_clock_starts(
+        manager: ComponentManager, bag: CompressedBag) -> None:
+    node = Probe(manager, "/unused")
+    logged: list[str] = []
+    decoding = Decoding([DecodedStream(node, topic, decoded_name(topic), topic == VIDEO, RELIABLE, msg_class,
+                                       logged.append) for topic, msg_class in ((VIDEO, CompressedVideo),
+                                                                               (STILLS, CompressedImage))])
+    timeline = Timeline([bag.path])
+    errors: list[BaseException] = []
+    read_ahead = ReadAhead(timeline, [VIDEO, STILLS], 1000, 256 << 20, errors.append, decoding)
+    try:
+        read_ahead.restart(timeline.starting_time_ns)  # what a run does before playback's head start
+        assert read_ahead.wait_decoded(HEAD_START_NS, 30.0)
+        # The whole bag is within the head start: when the wait ends, every message is queued and decoded.
+        assert FRAMES * PERIOD_NS < HEAD_START_NS
+        queued = read_ahead.head(4 * FRAMES)
+        assert len(queued) == 2 * FRAMES and all(item.decoding.wait_done(0.0) for item in queued)
+        for item in queued:
+            item.take_decoded()
+        assert [item.decoded.header.stamp for item in queued if item.message.connection.topic == VIDEO] == [
+            stamp_from_ns(stamp_ns(index)) for index in range(FRAMES)]
+    finally:
+        read_ahead.close()
+        timeline.close()
+    assert errors == [] and logged == [] and decode_threads() == []
 
 
 def test_a_stream_whose_frames_all_fail_does_not_hold_up_the_others(

@@ -46,6 +46,10 @@ class Job:
         self._result, self._error = result, error
         self._done.set()
 
+    def wait_done(self, timeout: float) -> bool:
+        """Whether it is done (or cancelled) within ``timeout`` s."""
+        return self._done.wait(max(timeout, 0.0))
+
     def wait(self) -> tuple[Any, Any]:
         """The result once done: the compressed message object and its picture (both None: cancelled; the
         picture None: skipped or failed, counted by the stream). Re-raises what the decoding raised."""

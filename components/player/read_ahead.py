@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import heapq
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Collection, Iterable, Iterator
 from itertools import islice
@@ -92,6 +93,7 @@ class ReadAhead:
         self._bytes = 0
         self._pass = 0            # bumped by restart(): the loader drops a pass that is no longer wanted
         self._pass_done = True    # the current pass reached its end (or failed)
+        self._filled = False      # the current pass filled the queue once (the loader waited for room)
         self._start_ns = 0
         self._stop_ns: int | None = None
         self._closed = False
@@ -107,6 +109,7 @@ class ReadAhead:
             self._bytes = 0
             self._pass += 1
             self._pass_done = False
+            self._filled = False
             self._start_ns, self._stop_ns = start_ns, stop_ns
             self._changed.notify_all()
 
@@ -128,6 +131,23 @@ class ReadAhead:
                 self.starved += 1
                 self._changed.wait_for(lambda: self._queue or self._pass_done or self._closed, timeout)
             return self._queue[0] if self._queue else None
+
+    def wait_decoded(self, lead_ns: int, timeout: float) -> bool:
+        """With decoded topics: wait until the queue holds the pass's first ``lead_ns`` of bag time (or is full, or
+        holds the whole pass) and every picture among them is decoded, at most ``timeout`` s; True if there was
+        such a wait (False: nothing is decoded)."""
+        if self._decoder is None:
+            return False
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            current, until = self._pass, self._start_ns + lead_ns
+            self._changed.wait_for(lambda: self._filled or self._pass_done or self._pass != current
+                                   or (self._queue and self._queue[-1].time_ns >= until), timeout)
+            lead = [item.decoding for item in self._queue if item.decoding is not None and item.time_ns < until]
+        for job in lead:
+            if not job.wait_done(deadline - time.monotonic()):
+                break
+        return True
 
     def head(self, count: int) -> list[Queued]:
         """The first ``count`` queued messages (a snapshot: the loader may append meanwhile)."""
@@ -183,6 +203,9 @@ class ReadAhead:
         try:
             for item in items:
                 with self._changed:
+                    if not self._filled and self._full(item.size):
+                        self._filled = True
+                        self._changed.notify_all()
                     self._changed.wait_for(lambda: self._pass != current or not self._full(item.size))
                     if self._pass != current:
                         return
