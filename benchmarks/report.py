@@ -308,19 +308,23 @@ def decode_replay_table(decode: dict[str, Any]) -> list[str]:
         ratio = (f"{current['fast_speed'] / baseline['fast_speed']:.2f}x"
                  if baseline and baseline["fast_speed"] and current["fast_speed"] else "")
         rows.append([" + ".join(f"{n} {CODEC_NAMES[codec]}" for codec, n in decode["bags"][scenario]["streams"].items()),
-                     pair("speed", ".3f"), pair("lag_s", ".2f"), pair("cores", ".2f"), pair("fast_speed", ".2f"),
+                     pair("speed", ".3f"), pair("lag_s", ".2f"), pair("wall_s", ".2f"), pair("cores", ".2f"),
+                     pair("fast_speed", ".2f"),
                      ratio, pair("fast_cores", ".2f"), pair("cpu_ms_per_frame", ".1f"),
                      " / ".join("yes" if by_code[code]["complete"] else "NO" for code in by_code)])
     target, environment = decode["target"], decode["environment"]
     baseline = decode["codes"].get("baseline")
     code = f"the baseline ({baseline}) → this code" if baseline else "this code"
-    return [*markdown(["1080p30 streams", "rate 1: speed", "lag s", "cores", "fastest: x real time",
+    runs = [run for by_code in decode["runs"].values() for runs in by_code.values() for run in runs if "error" not in run]
+    loads = sorted(run["loadavg"] for run in runs)
+    others = statistics.median(run["other_cpu_s"] / run["wall_s"] for run in runs)
+    return [*markdown(["1080p30 streams", "rate 1: speed", "lag s", "wall s", "cores", "fastest: x real time",
                        "fastest: this / baseline", "cores", "CPU ms per frame", "every frame decoded"], rows),
             "", f"Each figure: {code}, median of {decode['config']['repeat']} run(s) each; the fastest runs at rate "
-                f"{decode['config']['fast_rate']:g}. {decode['bags'][next(iter(summary))]['span_s']:.1f} s bags; load "
-                f"average {environment['loadavg_start'][0]:.1f} → {environment['loadavg_end'][0]:.1f} on "
-                f"{environment['cpus']} CPUs shared with other work. Target ({target['target']}): {target['result']}; "
-                f"{target['detail']}."]
+                f"{decode['config']['fast_rate']:g}. {decode['bags'][next(iter(summary))]['span_s']:.1f} s bags. "
+                f"{environment['cpus']} CPUs shared with other work: load average {loads[0]:.1f} to {loads[-1]:.1f} "
+                f"at the runs' ends, other processes using {others:.2f} cores (median over the runs). Target "
+                f"({target['target']}): {target['result']}; {target['detail']}."]
 
 
 def recover_table(recover: dict[str, Any]) -> list[str]:
