@@ -85,7 +85,7 @@ from components.player.playback_clock import PlaybackClock  # noqa: E402
 from benchmarks.record.measure import cpu_seconds, machine_snapshot, other_cpu  # noqa: E402
 from benchmarks.record.report import fmt, table  # noqa: E402
 from benchmarks.record.scenarios import Scenario  # noqa: E402
-from benchmarks.result_folder import RESULTS, run_header, save  # noqa: E402
+from benchmarks.result_folder import RESULTS, run_environment, run_header, save  # noqa: E402
 from ipc_testing import ContainerClient, ContainerProcess, call, stop_process  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -477,21 +477,34 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def log(text: str) -> None:
+    """Progress, on stderr (the report goes to stdout)."""
+    print(text, file=sys.stderr, flush=True)
+
+
+@contextlib.contextmanager
+def bench_node(name: str, output_dir: str | None) -> Iterator[tuple[Node, Path]]:
+    """rclpy, the benchmark's node and a temporary directory for its bags, all gone afterwards, whatever happens."""
+    workdir = Path(tempfile.mkdtemp(prefix=f"{name}_", dir=output_dir))
+    rclpy.init()
+    node = rclpy.create_node(f"{name}_{os.getpid()}")
+    log(f"{name}: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, bags in {workdir}")
+    try:
+        yield node, workdir
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = parse_arguments(argv)
-    log = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
-    workdir = Path(tempfile.mkdtemp(prefix="replay_bench_", dir=args.output_dir))
     started = time.monotonic()
     scenario = Scenario("S1", "S1 multi-camera rig", args.seconds, cameras=2, lidar_points=131072, imus=1)
     report: dict[str, Any] = {**run_header("replay_bench.py", argv), "config": dict(vars(args)),
-                              "environment": {"ros_domain_id": os.environ["ROS_DOMAIN_ID"], "cpus": os.cpu_count(),
-                                              "python": sys.version.split()[0], "loadavg_start": os.getloadavg()},
-                              "modes": {}}
-    log(f"replay_bench: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, bag in {workdir}")
-    rclpy.init()
-    node = rclpy.create_node(f"replay_bench_{os.getpid()}")
-    try:
+                              "environment": run_environment(), "modes": {}}
+    with bench_node("replay_bench", args.output_dir) as (node, workdir):
         log(f"writing the bag: {scenario.describe()} ...")
         bag = make_bag(workdir / "s1", scenario)
         warm = warm_page_cache(bag)
@@ -507,10 +520,6 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"    {mode} FAILED: {type(exc).__name__}: {exc}")
                 report["modes"][mode] = {"error": f"{type(exc).__name__}: {exc}"}
         report["clock_floor"].append(clock_floor(bag))
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-        shutil.rmtree(workdir, ignore_errors=True)
     report["elapsed_s"] = time.monotonic() - started
     report["environment"]["loadavg_end"] = os.getloadavg()
     report["target"] = evaluate_target(report)

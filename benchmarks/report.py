@@ -316,6 +316,40 @@ def replay_table(replay: dict[str, Any]) -> list[str]:
             "", f"Target ({target['target']}): {target['result']}; {target['detail']}."]
 
 
+CODEC_NAMES = {"h264": "H.264", "jpeg": "JPEG"}
+
+
+def decode_replay_table(decode: dict[str, Any]) -> list[str]:
+    """Per scenario: the baseline's figure -> this code's (one of them when the run had no baseline)."""
+    summary = part(decode, "summary")
+    rows = []
+    for scenario, by_code in summary.items():
+        def pair(key: str, spec: str) -> str:
+            return " → ".join(fmt(by_code[code][key], spec) for code in ("baseline", "current") if code in by_code)
+
+        current, baseline = by_code["current"], by_code.get("baseline")
+        ratio = (f"{current['fast_speed'] / baseline['fast_speed']:.2f}x"
+                 if baseline and baseline["fast_speed"] and current["fast_speed"] else "")
+        rows.append([" + ".join(f"{n} {CODEC_NAMES[codec]}" for codec, n in decode["bags"][scenario]["streams"].items()),
+                     pair("speed", ".3f"), pair("lag_s", ".2f"), pair("wall_s", ".2f"), pair("cores", ".2f"),
+                     pair("fast_speed", ".2f"),
+                     ratio, pair("fast_cores", ".2f"), pair("cpu_ms_per_frame", ".1f"),
+                     " / ".join("yes" if by_code[code]["complete"] else "NO" for code in by_code)])
+    target, environment = decode["target"], decode["environment"]
+    baseline = decode["codes"].get("baseline")
+    code = f"the baseline ({baseline}) → this code" if baseline else "this code"
+    runs = [run for by_code in decode["runs"].values() for runs in by_code.values() for run in runs if "error" not in run]
+    loads = sorted(run["loadavg"] for run in runs)
+    others = statistics.median(run["other_cpu_s"] / run["wall_s"] for run in runs)
+    return [*markdown(["1080p30 streams", "rate 1: speed", "lag s", "wall s", "cores", "fastest: x real time",
+                       "fastest: this / baseline", "cores", "CPU ms per frame", "every frame decoded"], rows),
+            "", f"Each figure: {code}, median of {decode['config']['repeat']} run(s) each; the fastest runs at rate "
+                f"{decode['config']['fast_rate']:g}. {decode['bags'][next(iter(summary))]['span_s']:.1f} s bags. "
+                f"{environment['cpus']} CPUs shared with other work: load average {loads[0]:.1f} to {loads[-1]:.1f} "
+                f"at the runs' ends, other processes using {others:.2f} cores (median over the runs). Target "
+                f"({target['target']}): {target['result']}; {target['detail']}."]
+
+
 def recover_table(recover: dict[str, Any]) -> list[str]:
     if "in_place" not in recover:
         raise Missing("no recover run measured")
@@ -513,6 +547,9 @@ TABLES: dict[str, Table] = {
     "targets": Table("record", "targets of S1, S2 and S3", "make bench", full_run_targets_table, ""),
     "run_targets": Table("record", "targets", "python benchmarks/record_bench.py --quick", targets_table, "Targets"),
     "replay": Table("replay", "modes", "python benchmarks/replay_bench.py --quick", replay_table, "Replay"),
+    "decode_replay": Table("decode_replay", "summary",
+                           "python benchmarks/decode_replay_bench.py --baseline REV", decode_replay_table,
+                           "Decoded replay"),
     "recover": Table("recover", "in_place", "python benchmarks/recover_bench.py", recover_table, "Recover"),
     "fleet": Table("fleet", "central", "python benchmarks/fleet_bench.py", fleet_table, "Fleet"),
     "merge": Table("merge", "workloads", "python benchmarks/merge_bench.py", merge_table, "Merge"),

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -50,6 +52,12 @@ def run_header(script: str, argv: list[str]) -> dict[str, Any]:
     """What every result file says about its run first: the command, when it started (local time), the code."""
     return {"command": shlex.join(["python", f"benchmarks/{script}", *argv]),
             "started_at": time.strftime("%Y-%m-%dT%H:%M:%S"), "git": git_state()}
+
+
+def run_environment() -> dict[str, Any]:
+    """Where a benchmark of ROS processes runs: its domain, the CPUs, Python and the load average at its start."""
+    return {"ros_domain_id": os.environ["ROS_DOMAIN_ID"], "cpus": os.cpu_count(), "python": sys.version.split()[0],
+            "loadavg_start": os.getloadavg()}
 
 
 def folder_for(results: Path, name: str, started_at: str, commit: str) -> Path:

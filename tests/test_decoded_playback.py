@@ -13,6 +13,7 @@ import json
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -26,12 +27,18 @@ from rosbag2_interfaces.srv import Resume
 from sensor_msgs.msg import CompressedImage, Image
 
 from baglib.format.metadata import TopicInfo, qos_profile_dict
+from baglib.read.reader import BagMessage, BagReader
+from baglib.read.timeline import Timeline
 from baglib.write.writer import BagWriter
 from component_container.component_manager import ComponentConstructionError, ComponentManager
 from component_container.component_node import ComponentNode
 from component_container.startup_file import load_request
 from components.image_encoder import codecs
 from components.image_encoder.frame_times import frame_times
+from components.player.decode_worker import Job, StreamWorker
+from components.player.decoded_topics import DecodedStream, Decoding, decoded_name
+from components.player.playback import HEAD_START_NS
+from components.player.read_ahead import ReadAhead
 from components.photo_content import PhotoContent
 from components.sensor_driver import stamp_from_ns
 from ipc_testing import call, in_process_manager, wait_until
@@ -61,46 +68,63 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
 
 
+def camera_topics(camera: int) -> tuple[str, str]:
+    """The video and the JPEG topic of camera pair ``camera`` (0: VIDEO and STILLS)."""
+    return (VIDEO, STILLS) if camera == 0 else (f"/cam{2 * camera + 1}/image/video",
+                                                f"/cam{2 * camera + 2}/image/compressed")
+
+
+def stamp_ns(index: int, camera: int = 0) -> int:
+    """Frame ``index`` of camera pair ``camera``: the pairs 1 us apart, so that no stream has another's stamps."""
+    return T0 + index * PERIOD_NS + camera * 1000
+
+
 class CompressedBag:
     """A bag of FRAMES photographic frames as video (VIDEO, H.264 unless told) and JPEG (STILLS), and what
-    went into it; ``offsets_ns``: the frames' stamps after T0 (default: every PERIOD_NS), and as many frames."""
+    went into it; ``offsets_ns``: the frames' stamps after T0 (default: every PERIOD_NS), and as many frames; with
+    ``cameras`` > 1 the same pictures also on the topics of more pairs (camera_topics), each pair with stamps of
+    its own (1 us apart) and frame_id ``camera<pair>``."""
 
-    def __init__(self, path: Path, raw_topic: str = "", codec: str = "h264",
+    def __init__(self, path: Path, raw_topic: str = "", codec: str = "h264", cameras: int = 1,
                  offsets_ns: Sequence[int] = tuple(index * PERIOD_NS for index in range(FRAMES))) -> None:
         self.path = path
         self.frames: list[np.ndarray] = []
         self.video: list[bytes] = []
         self.keyframes: list[bool] = []
         self.jpegs: list[bytes] = []
+        self.topics = [topic for camera in range(cameras) for topic in camera_topics(camera)]
         content = PhotoContent(WIDTH, HEIGHT, "rgb8")
         video = codecs.VideoCodec(codecs.choose(codec, "", -1, 0, KEYFRAME_INTERVAL), WIDTH, HEIGHT)
         jpeg = codecs.StillCodec(codecs.choose("jpeg", "", -1, 0, KEYFRAME_INTERVAL), 0)
         with BagWriter(path) as writer:
-            writer.add_topic(TopicInfo(VIDEO, "foxglove_msgs/msg/CompressedVideo",
-                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
-            writer.add_topic(TopicInfo(STILLS, "sensor_msgs/msg/CompressedImage",
-                                       offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
+            for topic in self.topics:
+                writer.add_topic(TopicInfo(topic, "foxglove_msgs/msg/CompressedVideo" if topic.endswith("/video")
+                                           else "sensor_msgs/msg/CompressedImage",
+                                           offered_qos_profiles=[qos_profile_dict(RELIABLE)]))
             if raw_topic:
                 writer.add_topic(TopicInfo(raw_topic, "sensor_msgs/msg/Image"))
             for index, offset in enumerate(offsets_ns):
-                t = T0 + offset
                 buffer = bytearray(WIDTH * HEIGHT * 3)
                 content.fill(index, memoryview(buffer))
                 pixels = np.frombuffer(bytes(buffer), np.uint8).reshape(HEIGHT, WIDTH, 3)
                 image = Image(height=HEIGHT, width=WIDTH, encoding="rgb8", step=WIDTH * 3)
-                image.header.stamp, image.header.frame_id = stamp_from_ns(t), "camera"
                 image.data = pixels.tobytes()
                 self.frames.append(pixels)
                 [(_, keyframe, data)] = video.encode(pixels, "rgb8", False)
                 self.video.append(data)
                 self.keyframes.append(keyframe)
-                frame = CompressedVideo(timestamp=image.header.stamp, frame_id="camera", format=codec)
-                frame.data = data
-                still = CompressedImage(header=image.header, format=jpeg.format_of("rgb8"))
-                still.data = jpeg.encode(image)
-                self.jpegs.append(bytes(still.data))
-                writer.write(VIDEO, serialize_message(frame), t, t)
-                writer.write(STILLS, serialize_message(still), t, t)
+                self.jpegs.append(jpeg.encode(image))
+                for camera in range(cameras):
+                    t = T0 + offset + camera * 1000
+                    image.header.stamp, image.header.frame_id = stamp_from_ns(t), f"camera{camera or ''}"
+                    frame = CompressedVideo(timestamp=image.header.stamp, frame_id=image.header.frame_id,
+                                            format=codec)
+                    frame.data = data
+                    still = CompressedImage(header=image.header, format=jpeg.format_of("rgb8"))
+                    still.data = self.jpegs[-1]
+                    video_topic, still_topic = camera_topics(camera)
+                    writer.write(video_topic, serialize_message(frame), t, t)
+                    writer.write(still_topic, serialize_message(still), t, t)
         assert self.keyframes[0] and sum(self.keyframes) >= -(-len(offsets_ns) // KEYFRAME_INTERVAL)
 
 
@@ -186,6 +210,169 @@ def test_a_frame_that_fails_to_decode_is_counted_and_its_compressed_message_stil
     assert player.stats()["decoded"][STILLS] == {"topic": "/cam2/image", "decoded": FRAMES - 1, "skipped": 0,
                                                  "failed": 1}
     assert player.stats()["published"][STILLS] == FRAMES
+
+
+def decode_threads() -> list[str]:
+    """The names of the decoding threads alive in this process (decode_worker.py names them ``decode:<topic>``)."""
+    return sorted(thread.name for thread in threading.enumerate() if thread.name.startswith("decode:"))
+
+
+def test_several_streams_decode_side_by_side_each_frame_once_and_in_order(
+        manager: ComponentManager, tmp_path: Path) -> None:
+    cameras = 2
+    bag = CompressedBag(tmp_path / "bag", cameras=cameras)
+    outputs = {topic: topic.rpartition("/")[0] for topic in bag.topics}
+    probes = {topic: Probe(manager, output) for topic, output in outputs.items()}
+    player = load_player(manager, bag.path, **{"play.decode": True})
+    assert player._playback.wait_finished(30.0)
+    for camera in range(cameras):
+        for topic in camera_topics(camera):
+            got = probes[topic].messages
+            assert [m.header.stamp for m in got] == [stamp_from_ns(stamp_ns(i, camera)) for i in range(FRAMES)], topic
+            assert {m.header.frame_id for m in got} == {f"camera{camera or ''}"}
+            for image, sent in zip(got, bag.frames):
+                assert psnr(pixels_of(image), sent) >= MIN_PSNR_DB
+    assert player.stats()["decoded"] == {
+        topic: {"topic": output, "decoded": FRAMES, "skipped": 0, "failed": 0} for topic, output in outputs.items()}
+    assert wait_until(lambda: decode_threads() == [], 10.0), decode_threads()  # each ends with its pass
+
+
+def test_each_loop_decodes_the_bag_again_from_its_first_keyframe(manager: ComponentManager, bag: CompressedBag
+                                                                 ) -> None:
+    video = Probe(manager, "/cam/image")
+    player = load_player(manager, bag.path, **{"play.decode_topics": [VIDEO], "play.loop": True})
+    assert wait_until(lambda: len(video.messages) >= 2 * FRAMES, 30.0), len(video.messages)
+    player.stop()
+    stamps = [stamp_from_ns(stamp_ns(index)) for index in range(FRAMES)]
+    assert [m.header.stamp for m in video.messages[:2 * FRAMES]] == stamps + stamps
+    assert player.stats()["decoded"][VIDEO]["failed"] == player.stats()["decoded"][VIDEO]["skipped"] == 0
+
+
+def test_a_pass_waits_for_the_pictures_of_its_head_start_before_its_clock_starts(
+        manager: ComponentManager, bag: CompressedBag) -> None:
+    node = Probe(manager, "/unused")
+    logged: list[str] = []
+    decoding = Decoding([DecodedStream(node, topic, decoded_name(topic), topic == VIDEO, RELIABLE, msg_class,
+                                       logged.append) for topic, msg_class in ((VIDEO, CompressedVideo),
+                                                                               (STILLS, CompressedImage))])
+    timeline = Timeline([bag.path])
+    errors: list[BaseException] = []
+    read_ahead = ReadAhead(timeline, [VIDEO, STILLS], 1000, 256 << 20, errors.append, decoding)
+    try:
+        read_ahead.restart(timeline.starting_time_ns)  # what a run does before playback's head start
+        assert read_ahead.wait_decoded(HEAD_START_NS, 30.0)
+        # The whole bag is within the head start: when the wait ends, every message is queued and decoded.
+        assert FRAMES * PERIOD_NS < HEAD_START_NS
+        queued = read_ahead.head(4 * FRAMES)
+        assert len(queued) == 2 * FRAMES and all(item.decoding.wait_done(0.0) for item in queued)
+        for item in queued:
+            item.take_decoded()
+        assert [item.decoded.header.stamp for item in queued if item.message.connection.topic == VIDEO] == [
+            stamp_from_ns(stamp_ns(index)) for index in range(FRAMES)]
+    finally:
+        read_ahead.close()
+        timeline.close()
+    assert errors == [] and logged == [] and decode_threads() == []
+
+
+def test_a_stream_whose_frames_all_fail_does_not_hold_up_the_others(
+        manager: ComponentManager, bag: CompressedBag, tmp_path: Path) -> None:
+    broken_still, broken_video = "/broken/image/compressed", "/broken_video/image/video"
+    with BagWriter(tmp_path / "mixed") as writer:
+        for topic, msgtype in ((VIDEO, "foxglove_msgs/msg/CompressedVideo"),
+                               (STILLS, "sensor_msgs/msg/CompressedImage"),
+                               (broken_still, "sensor_msgs/msg/CompressedImage"),
+                               (broken_video, "foxglove_msgs/msg/CompressedVideo")):
+            writer.add_topic(TopicInfo(topic, msgtype))
+        for index in range(FRAMES):
+            t = stamp_ns(index)
+            stamp = stamp_from_ns(t)
+            good_video = CompressedVideo(timestamp=stamp, frame_id="camera", format="h264")
+            good_video.data = bag.video[index]
+            good_still = CompressedImage(format="rgb8; jpeg compressed bgr8")
+            good_still.header.stamp = stamp
+            good_still.data = bag.jpegs[index]
+            bad_still = CompressedImage(format="jpeg")
+            bad_still.data = b"\xff\xd8 not a picture"
+            bad_video = CompressedVideo(timestamp=stamp, format="vp9")  # a format the player does not decode
+            bad_video.data = bag.video[index]
+            for topic, message in ((broken_still, bad_still), (VIDEO, good_video), (broken_video, bad_video),
+                                   (STILLS, good_still)):
+                writer.write(topic, serialize_message(message), t, t)
+    video, stills = Probe(manager, "/cam/image"), Probe(manager, "/cam2/image")
+    player = load_player(manager, tmp_path / "mixed", **{"play.decode": True})
+    assert player._playback.wait_finished(30.0)
+    stamps = [stamp_from_ns(stamp_ns(index)) for index in range(FRAMES)]
+    assert [m.header.stamp for m in video.messages] == stamps
+    assert [m.header.stamp for m in stills.messages] == stamps
+    stats = player.stats()
+    assert stats["decoded"] == {
+        VIDEO: {"topic": "/cam/image", "decoded": FRAMES, "skipped": 0, "failed": 0},
+        STILLS: {"topic": "/cam2/image", "decoded": FRAMES, "skipped": 0, "failed": 0},
+        broken_still: {"topic": "/broken/image", "decoded": 0, "skipped": 0, "failed": FRAMES},
+        broken_video: {"topic": "/broken_video/image", "decoded": 0, "skipped": 0, "failed": FRAMES}}
+    assert {topic: stats["published"][topic] for topic in (VIDEO, STILLS, broken_still, broken_video)} == {
+        VIDEO: FRAMES, STILLS: FRAMES, broken_still: FRAMES, broken_video: FRAMES}
+
+
+def test_a_stream_decodes_ahead_of_playback_with_a_bounded_number_of_frames_in_flight(
+        bag: CompressedBag) -> None:
+    depth = 3
+    with BagReader(bag.path) as reader:
+        messages = [message._replace(data=bytes(message.data)) for message in reader.messages([VIDEO])]
+    gate = threading.Semaphore(0)
+    decoded: list[BagMessage] = []
+
+    def decode(job: Job) -> tuple[Any, Any]:  # a decoder held at the gate, one message per release
+        gate.acquire()
+        decoded.append(job.message)
+        return job.message, None
+
+    worker = StreamWorker("decode:bounded", decode, depth)
+    jobs: list[Job] = []
+
+    def read() -> None:  # the read-ahead thread's part
+        for message in messages:
+            job = Job(message, 0, False)
+            worker.submit(job)
+            jobs.append(job)
+
+    reader_thread = threading.Thread(target=read)
+    reader_thread.start()
+    try:
+        assert wait_until(lambda: worker.in_flight == depth, 10.0)  # ahead: the reader did not wait for the first
+        for released in range(len(messages)):
+            assert worker.in_flight <= depth and len(jobs) <= depth + released  # then it waits for a free place
+            gate.release()
+            assert wait_until(lambda: len(decoded) == released + 1, 10.0)
+        reader_thread.join(10.0)
+        assert decoded == messages and [job.wait()[0] for job in jobs] == messages  # in order, each once
+    finally:
+        gate.release(len(messages))
+        worker.close()
+    assert not reader_thread.is_alive() and decode_threads() == []
+
+
+def test_a_decoding_thread_per_stream_that_stop_and_unload_end(manager: ComponentManager, tmp_path: Path) -> None:
+    bag = CompressedBag(tmp_path / "bag", cameras=2)
+    streams = sorted(f"decode:{topic}" for topic in bag.topics)
+    images = Probe(manager, "/cam/image")
+    # Paused with a read-ahead of one message per stream: every stream has a message handed to its thread, and the
+    # pass cannot end, so the threads wait for more.
+    loaded = manager.load(load_request({
+        "package": "components", "plugin": "components::Player", "name": "player",
+        "parameters": {"storage.uri": str(bag.path), "play.decode": True, "play.start_paused": True,
+                       "play.read_ahead_queue_size": len(streams)},
+        "extra_arguments": {"use_intra_process_comms": True}}, 1))
+    player = loaded.node
+    assert wait_until(lambda: decode_threads() == streams, 10.0), decode_threads()
+    player.stop()
+    assert wait_until(lambda: decode_threads() == [], 10.0), decode_threads()
+    player.resume()
+    assert player.play()
+    assert wait_until(lambda: len(images.messages) >= 2, 10.0)  # decoding again, on new threads
+    assert manager.unload(loaded.unique_id).found
+    assert decode_threads() == [] and not [t.name for t in threading.enumerate() if t.name.startswith("player-")]
 
 
 @pytest.mark.parametrize(("parameters", "names"), [

@@ -145,6 +145,8 @@ class VideoDecoder:
         self._context.thread_type = "SLICE"
         if decoder == "libdav1d":
             self._context.options = {"max_frame_delay": "1"}
+        # One colour converter for the stream: a frame's own reformat() sets up FFmpeg's scaler for every frame.
+        self._to_rgb = av().video.reformatter.VideoReformatter()
         self._started = False
 
     def decode(self, message: Any) -> Image | None:
@@ -167,7 +169,7 @@ class VideoDecoder:
                 picture = frame
         if picture is None:
             return None
-        rgb = picture.reformat(format="rgb24")
+        rgb = self._to_rgb.reformat(picture, format="rgb24")
         plane = rgb.planes[0]
         pixels = plane if plane.line_size == rgb.width * 3 else rgb.to_ndarray()
         return image_message(message.timestamp, message.frame_id, pixels, rgb.width, rgb.height, "rgb8")

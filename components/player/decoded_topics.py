@@ -11,12 +11,14 @@ compressed bag unchanged.
 * **Messages**: the original size, the encoding the JPEG/PNG ``format`` names (video: rgb8), the header stamp
   and frame_id of the compressed message (components/image_encoder/decoding.py). The QoS is the compressed
   topic's.
-* **Where and when**: on the read-ahead thread, as each message is read, in recorded order (a stream's decoder
-  needs every access unit in turn); the codecs release the GIL, so the playback thread's wake-ups are not held
-  up, and the read-ahead's byte bound counts the decoded pixels. Each pass (play, loop, seek) starts new
-  decoders: a video stream gives frames from its first keyframe on, and counts the frames before it as skipped.
-  A frame that fails to decode is counted and logged (once per kind of problem); the compressed message is
-  still played.
+* **Where and when**: on a thread per compressed topic (decode_worker.py), fed by the read-ahead thread as it
+  reads, in recorded order (a stream's decoder needs every access unit in turn): streams decode on all cores, since
+  the codecs release the GIL, and ahead of playback, at most :data:`DECODE_AHEAD` messages of a stream waiting for
+  their decoder; the read-ahead's byte bound counts the decoded pictures (each at the size of its stream's previous
+  picture, known before it is decoded). The playback thread takes a picture when its message is due, waiting for
+  it only if its decoder is late. Each pass (play, loop, seek) starts new decoders: a video stream gives frames
+  from its first keyframe on, and counts the frames before it as skipped. A frame that fails to decode is counted
+  and logged (once per kind of problem); the compressed message is still played, and the other streams go on.
 """
 from __future__ import annotations
 
@@ -29,12 +31,16 @@ from sensor_msgs.msg import Image
 
 from baglib.format.cdr_read import deserialize
 from baglib.read.reader import BagMessage
+from components.image_encoder._pyav import av
 from components.image_encoder.decoding import DecodeCounts, StillDecoder, VideoDecoder
+from components.player.decode_worker import Job, StreamWorker
 
 #: The compressed types that decode, and whether they are video.
 DECODABLE = {"sensor_msgs/msg/CompressedImage": False, "foxglove_msgs/msg/CompressedVideo": True}
 #: Last name components that name a transport of the image topic before them.
 TRANSPORTS = ("compressed", "video")
+#: Messages of one stream read and not decoded yet, at most: how far the reader may run ahead of a decoder.
+DECODE_AHEAD = 8
 
 
 def decoded_name(topic: str) -> str:
@@ -67,7 +73,7 @@ def choose_topics(played: Mapping[str, str], decode: bool, named: list[str]) -> 
 
 
 class DecodedStream:
-    """One compressed topic's decoder (new for every pass) and the publisher of its images."""
+    """One compressed topic's decoder (new for every pass) on a thread of its own, and the publisher of its images."""
 
     def __init__(self, node: Node, topic: str, output: str, video: bool, qos: QoSProfile,
                  msg_class: type, log_error: Callable[[str], None]) -> None:
@@ -81,16 +87,39 @@ class DecodedStream:
         self._log_error = log_error
         self._decoder: StillDecoder | VideoDecoder | None = None
         self._reported: set[str] = set()
+        self._worker = StreamWorker(f"decode:{topic}", self._decode, DECODE_AHEAD)
+        self._new_pass = True
+        self._picture_bytes = 0   # of the last picture: what the next one is expected to take
+        if video:
+            # PyAV now, at load: its import is ~60 ms of Python holding the GIL, which at the first frame the
+            # other streams' decoders and the playback thread would wait for (up to a second on a busy machine).
+            av()
 
     def start_pass(self) -> None:
-        self._decoder = None
+        """The next message begins a new pass; what the last pass left undecoded is dropped."""
+        self._worker.cancel_pending()
+        self._new_pass = True
 
-    def decode(self, message: BagMessage) -> tuple[Any, Image | None]:
-        """The compressed message object and its image (None: skipped or failed, counted)."""
+    def submit(self, message: BagMessage) -> Job:
+        """Hand ``message`` to this stream's thread (waiting while DECODE_AHEAD are in flight)."""
+        job = Job(message, self._picture_bytes, self._new_pass)
+        self._new_pass = False
+        self._worker.submit(job)
+        return job
+
+    def end_pass(self) -> None:
+        self._worker.end_pass()
+
+    def close(self) -> None:
+        self._worker.close()
+
+    def _decode(self, job: Job) -> tuple[Any, Image | None]:
+        """On the stream's thread: the compressed message object and its image (None: skipped or failed,
+        counted)."""
         compressed = None
         try:
-            compressed = deserialize(message.data, self._msg_class)
-            if self._decoder is None:
+            compressed = deserialize(job.message.data, self._msg_class)
+            if self._decoder is None or job.new_pass:
                 self._decoder = VideoDecoder(compressed.format) if self._video else StillDecoder()
             image = self._decoder.decode(compressed)
         except Exception as exc:  # noqa: BLE001 - one frame a codec cannot take is counted, playback goes on
@@ -101,6 +130,7 @@ class DecodedStream:
             self.counts.skipped += 1
         else:
             self.counts.decoded += 1
+            self._picture_bytes = len(image.data)
         return compressed, image
 
     def publish(self, image: Image) -> None:
@@ -128,10 +158,20 @@ class Decoding:
         for stream in self.streams.values():
             stream.start_pass()
 
-    def decode(self, message: BagMessage) -> tuple[Any, Image | None] | None:
-        """For a decoded topic: its compressed object and image; None for any other topic."""
+    def submit(self, message: BagMessage) -> Job | None:
+        """For a decoded topic: the job its stream's thread decodes it in; None for any other topic."""
         stream = self.streams.get(message.connection.topic)
-        return None if stream is None else stream.decode(message)
+        return None if stream is None else stream.submit(message)
+
+    def end_pass(self) -> None:
+        """The pass is read: each stream's thread ends once its last messages are decoded."""
+        for stream in self.streams.values():
+            stream.end_pass()
+
+    def close(self) -> None:
+        """Stop every stream's thread (what is not decoded yet is dropped)."""
+        for stream in self.streams.values():
+            stream.close()
 
     def publish(self, topic: str, image: Image) -> None:
         self.streams[topic].publish(image)

@@ -11,7 +11,16 @@ Preparing: turning a recorded message into the object in-process subscribers get
 frame: 0.3 to several ms, holding the GIL) is done by this same thread, in the time it would otherwise sleep:
 before waiting for a message, it prepares that message and then as many of the queued ones after it as fit
 before it is due (costs measured per topic). Done on another thread, it would hold the GIL exactly when the
-playback thread wakes up for a due message.
+playback thread wakes up for a due message. A decoded topic's message is the exception: its stream's decoding
+thread made its objects (decoded_topics.py); this thread takes them before it sleeps until the message is due,
+waiting for them only if that decoder is late. Decoders start cold (FFmpeg's threads, new buffers: the first
+frames of a stream take ten times as long), so a run's pass with decoded topics starts its clock only once they are
+ahead: the pictures of its first :data:`HEAD_START_NS` of bag time decoded (waiting at most
+:data:`HEAD_START_TIMEOUT_S`); without that, every stream's first frames went out late, each moving the schedule
+back.
+
+A run that ends (its end, the "until" time, ``stop``) halts the read-ahead: the queue is dropped and the decoding
+threads end.
 
 Falling behind: a message that goes out more than :data:`BEHIND_NS` after its scheduled time moves the whole
 schedule back by that lateness instead of publishing the following messages in a catch-up burst; the shifts
@@ -39,6 +48,9 @@ BEHIND_NS = 10_000_000
 PREPARE_AHEAD = 64
 #: Time kept free before a message is due when preparing others ahead of it.
 PREPARE_MARGIN_NS = 500_000
+#: Bag time a run's pass of decoded topics has decoded before its clock starts, and how long it waits for that.
+HEAD_START_NS = 250_000_000
+HEAD_START_TIMEOUT_S = 1.0
 #: Publish-time errors kept for the percentiles (the newest ones).
 TIMING_SAMPLES = 100_000
 _WARN_EVERY_NS = 1_000_000_000
@@ -173,6 +185,7 @@ class Playback:
             self._log.error(f"Failed to play: {exc}")
         finally:
             self._report_behind(time.monotonic_ns(), final=True)
+            self._read_ahead.halt()  # nothing queued stays in memory, no decoder works for a run that ended
             try:
                 self._on_run_end()
             finally:
@@ -180,6 +193,7 @@ class Playback:
 
     def _play_queue(self) -> bool:
         """Play the current pass; True if it reached the end of the bag (not a stop or the "until" time)."""
+        self._head_start()
         while not self._stop.is_set():
             item = self._next()
             if item is None:
@@ -210,8 +224,19 @@ class Playback:
                     self._fall_behind(due, late)
         return False
 
+    def _head_start(self) -> None:
+        """Start the pass's clock again once its decoders are ahead (a pass without decoded topics starts at
+        once): the pictures of its first HEAD_START_NS decoded, waiting at most HEAD_START_TIMEOUT_S."""
+        if self._read_ahead.wait_decoded(HEAD_START_NS, HEAD_START_TIMEOUT_S):
+            with self._take_over:
+                if not self._skip:  # a seek or play_next meanwhile has set the schedule itself
+                    self.clock.jump(self.limits.start_ns)
+
     def _prepare(self, item: Queued) -> None:
         if item.ready:
+            return
+        if item.decoding is not None:
+            item.take_decoded()  # its stream's thread made the objects; waits only if that decoder is late
             return
         started = time.monotonic_ns()
         item.prepared = self._make(item.message)
@@ -223,7 +248,7 @@ class Playback:
     def _prepare_ahead(self, due_ns: int | None) -> None:
         """Prepare queued messages after the next one while they fit before it is due (None: paused)."""
         for item in self._read_ahead.head(PREPARE_AHEAD)[1:]:
-            if item.ready:
+            if item.ready or item.decoding is not None:
                 continue
             if due_ns is not None and (time.monotonic_ns() + self._costs.get(item.message.connection.topic, 0)
                                        + PREPARE_MARGIN_NS > due_ns):

@@ -15,7 +15,7 @@ the playback thread before they are due, only while such a subscriber exists); D
 Topics whose type is not installed are skipped with a warning naming the type; the rest plays.
 
 Decoding (``play.decode``, ``play.decode_topics``): compressed image topics are played also as
-``sensor_msgs/Image``, decoded on the read-ahead thread (player/decoded_topics.py).
+``sensor_msgs/Image``, each decoded on a thread of its own ahead of playback (player/decoded_topics.py).
 
 Timing: start the container with ``--low-latency`` (component_container.process_tuning; ``ipc-component bag
 play`` does). Without it CPython hands the GIL over only every 5 ms and large frames are page-faulted in, so a

@@ -6,9 +6,11 @@ also bounds the queue's bytes (a count alone lets 1000 camera frames take 6 GB).
 bag from a start time: ``restart`` (play, seek, loop) drops what is queued and starts a new pass; the
 playback thread sees the new pass's messages only. Reading mostly waits on the file (the GIL released);
 turning messages into objects is left to the playback thread (see playback.py), which knows when it has time.
-The exception is decoding compressed images (a :class:`Decoder`, components/player/decoded_topics.py): a
-stream's decoder needs its messages in recorded order, each pass from its start, which is this thread's order;
-the codecs release the GIL while they work. The byte bound counts the decoded pictures.
+Compressed images to decode (a :class:`Decoder`, components/player/decoded_topics.py) are handed, as they are
+read, to their stream's own decoding thread (decode_worker.py): a stream's decoder needs its messages in
+recorded order, each pass from its start, which is this thread's order. The byte bound counts the decoded
+pictures, each at the size its stream's previous one had. When a run ends (:meth:`ReadAhead.halt`) the pass ends
+too, and with it the decoding threads.
 
 Publish-time order (``play.message_order`` SENT_TIMESTAMP, rosbag2 #1876): the bag is read in receive-time
 order, so the loader sorts a window of messages by publish time before queueing them, as rosbag2 sorts its
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import heapq
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Collection, Iterable, Iterator
 from itertools import islice
@@ -29,6 +32,7 @@ from typing import Any, Protocol
 
 from baglib.read.reader import BagMessage
 from baglib.read.timeline import Timeline
+from components.player.decode_worker import Job
 
 
 class Decoder(Protocol):
@@ -36,32 +40,40 @@ class Decoder(Protocol):
 
     def start_pass(self) -> None: ...
 
-    def decode(self, message: BagMessage) -> tuple[Any, Any] | None: ...
+    def submit(self, message: BagMessage) -> Job | None: ...
+
+    def end_pass(self) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class Queued:
     """A queued message, the bag time it is due at (``time_ns``: its receive or publish time), what the
-    playback thread prepared for it (``None``: not yet, or nothing) and its decoded picture (``None``: none)."""
+    playback thread prepared for it (``None``: not yet, or nothing), its decoding (``None``: not a decoded topic)
+    and its decoded picture (``None``: none, or not taken yet)."""
 
-    __slots__ = ("decoded", "message", "prepared", "ready", "size", "time_ns")
+    __slots__ = ("decoded", "decoding", "message", "prepared", "ready", "size", "time_ns")
 
     def __init__(self, message: BagMessage, time_ns: int) -> None:
         self.message = message
         self.time_ns = time_ns
         self.prepared: Any = None
         self.ready = False
+        self.decoding: Job | None = None
         self.decoded: Any = None
         self.size = len(message.data) if isinstance(message.data, bytes) else message.data.nbytes
 
-    def add_decoded(self, decoder: Decoder) -> None:
-        """Decode the message if it is of a decoded topic: its compressed object is then prepared too."""
-        result = decoder.decode(self.message)
-        if result is None:
-            return
-        self.prepared, self.decoded = result
+    def add_decoding(self, decoder: Decoder) -> None:
+        """Hand the message to its stream's decoder if it is of a decoded topic."""
+        self.decoding = decoder.submit(self.message)
+        if self.decoding is not None:
+            self.size += self.decoding.expected_bytes
+
+    def take_decoded(self) -> None:
+        """The compressed object and the picture of a decoded topic's message, waiting for its decoder."""
+        assert self.decoding is not None
+        self.prepared, self.decoded = self.decoding.wait()
         self.ready = True
-        if self.decoded is not None:
-            self.size += len(self.decoded.data)
 
 
 class ReadAhead:
@@ -81,6 +93,7 @@ class ReadAhead:
         self._bytes = 0
         self._pass = 0            # bumped by restart(): the loader drops a pass that is no longer wanted
         self._pass_done = True    # the current pass reached its end (or failed)
+        self._filled = False      # the current pass filled the queue once (the loader waited for room)
         self._start_ns = 0
         self._stop_ns: int | None = None
         self._closed = False
@@ -96,7 +109,18 @@ class ReadAhead:
             self._bytes = 0
             self._pass += 1
             self._pass_done = False
+            self._filled = False
             self._start_ns, self._stop_ns = start_ns, stop_ns
+            self._changed.notify_all()
+
+    def halt(self) -> None:
+        """End the current pass and drop the queue (a run ended): the loader and the decoders go idle until the
+        next ``restart``."""
+        with self._changed:
+            self._queue.clear()
+            self._bytes = 0
+            self._pass += 1
+            self._pass_done = True
             self._changed.notify_all()
 
     def peek(self, timeout: float) -> Queued | None:
@@ -107,6 +131,23 @@ class ReadAhead:
                 self.starved += 1
                 self._changed.wait_for(lambda: self._queue or self._pass_done or self._closed, timeout)
             return self._queue[0] if self._queue else None
+
+    def wait_decoded(self, lead_ns: int, timeout: float) -> bool:
+        """With decoded topics: wait until the queue holds the pass's first ``lead_ns`` of bag time (or is full, or
+        holds the whole pass) and every picture among them is decoded, at most ``timeout`` s; True if there was
+        such a wait (False: nothing is decoded)."""
+        if self._decoder is None:
+            return False
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            current, until = self._pass, self._start_ns + lead_ns
+            self._changed.wait_for(lambda: self._filled or self._pass_done or self._pass != current
+                                   or (self._queue and self._queue[-1].time_ns >= until), timeout)
+            lead = [item.decoding for item in self._queue if item.decoding is not None and item.time_ns < until]
+        for job in lead:
+            if not job.wait_done(deadline - time.monotonic()):
+                break
+        return True
 
     def head(self, count: int) -> list[Queued]:
         """The first ``count`` queued messages (a snapshot: the loader may append meanwhile)."""
@@ -126,10 +167,13 @@ class ReadAhead:
             return self._pass_done and not self._queue
 
     def close(self) -> None:
+        """Stop the loader and the decoders; their threads are gone when this returns."""
         with self._changed:
             self._closed = True
             self._pass += 1
             self._changed.notify_all()
+        if self._decoder is not None:
+            self._decoder.close()  # a loader waiting for a decoder's free place goes on at once
         self._thread.join(5.0)
 
     # --- the loader thread --------------------------------------------------------------------------------
@@ -159,6 +203,9 @@ class ReadAhead:
         try:
             for item in items:
                 with self._changed:
+                    if not self._filled and self._full(item.size):
+                        self._filled = True
+                        self._changed.notify_all()
                     self._changed.wait_for(lambda: self._pass != current or not self._full(item.size))
                     if self._pass != current:
                         return
@@ -167,13 +214,15 @@ class ReadAhead:
                     self._changed.notify_all()
         finally:
             messages.close()  # type: ignore[attr-defined]  # a generator: releases its files' positions
+            if self._decoder is not None:
+                self._decoder.end_pass()
 
     def _items(self, messages: Iterable[BagMessage]) -> Iterator[Queued]:
-        """The messages as read (receive-time order), decoded where a decoder wants them."""
+        """The messages as read (receive-time order), handed to their decoders where a decoder wants them."""
         for message in messages:
             item = Queued(message, message.log_time_ns)
             if self._decoder is not None:
-                item.add_decoded(self._decoder)
+                item.add_decoding(self._decoder)
             yield item
 
     def _full(self, size: int) -> bool:
