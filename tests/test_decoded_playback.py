@@ -510,3 +510,11 @@ def test_bag_export_writes_stills_as_numbered_files_of_the_recorded_bytes(bag: C
     again = subprocess.run([CLI, "bag", "export", str(bag.path), STILLS, str(out)], capture_output=True, text=True,
                            timeout=120)
     assert again.returncode == 1 and f"'{out}' exists" in again.stderr
+
+
+def test_each_transport_is_played_decoded_on_its_image_topic() -> None:
+    """image_transport's names (compressed, compressedDepth) and the encoder's (video) give the image topic back;
+    any other compressed topic is played beside itself."""
+    assert [decoded_name(f"/cam/image/{transport}") for transport in ("compressed", "compressedDepth", "video")] \
+        == ["/cam/image"] * 3
+    assert decoded_name("/cam/jpeg") == "/cam/jpeg/decoded"

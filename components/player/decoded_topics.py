@@ -31,20 +31,23 @@ from sensor_msgs.msg import Image
 
 from baglib.format.cdr_read import deserialize
 from baglib.read.reader import BagMessage
+from components.image_encoder import compressed_depth
 from components.image_encoder._pyav import av
 from components.image_encoder.decoding import DecodeCounts, StillDecoder, VideoDecoder
 from components.player.decode_worker import Job, StreamWorker
 
 #: The compressed types that decode, and whether they are video.
 DECODABLE = {"sensor_msgs/msg/CompressedImage": False, "foxglove_msgs/msg/CompressedVideo": True}
-#: Last name components that name a transport of the image topic before them.
-TRANSPORTS = ("compressed", "video")
+#: Last name components that name a transport of the image topic before them (image_transport's and the
+#: encoder's: components/image_encoder/compressed_depth.py).
+TRANSPORTS = ("compressed", compressed_depth.TRANSPORT, "video")
 #: Messages of one stream read and not decoded yet, at most: how far the reader may run ahead of a decoder.
 DECODE_AHEAD = 8
 
 
 def decoded_name(topic: str) -> str:
-    """Where a compressed topic's images are played: its base for ``<base>/compressed`` or ``<base>/video``."""
+    """Where a compressed topic's images are played: its base for ``<base>/compressed``, ``<base>/compressedDepth``
+    or ``<base>/video``."""
     base, _, last = topic.rpartition("/")
     return base if last in TRANSPORTS and base else f"{topic}/decoded"
 
