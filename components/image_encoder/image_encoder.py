@@ -154,10 +154,6 @@ class ImageEncoder(ComponentNode):
                             else f"{self._choice.codec} pictures are all self-contained")
         return response
 
-    def stream(self, topic: str) -> EncodeStream | None:
-        """The stream that encodes the image topic ``topic``, if it is encoded."""
-        return self._streams.get(topic)
-
     def stats(self) -> dict[str, Any]:
         """Counts per input topic: received, published, skipped (behind), rejected, stopped, rate_limited,
         keyframes, bytes, waiting."""

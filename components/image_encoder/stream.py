@@ -190,9 +190,7 @@ class EncodeStream:
             message = CompressedImage(check_fields=True)
             message.header = image.header
             message.format = self._still.format_of(image.encoding)
-            with self._publish_lock:
-                self._take_keyframe_request()  # every still is one
-                self._send(message, data, True)
+            self._send(message, data, True)  # every still is a keyframe
             return
         pixels = pixels_of(image)
         size = scaled_size(image.width, image.height, self._out_width, even=True, at_most=self._width_at_most)
@@ -206,6 +204,8 @@ class EncodeStream:
             with self._publish_lock:
                 if units and self._keyframe_due(units):
                     keyframe = True  # asked for while encoding: this picture again, as a keyframe
+                    for pts, _, _ in units:  # the units not published leave no stamp behind
+                        self._stamps.pop(pts, None)
                     continue
                 for pts, is_keyframe, data in units:
                     if not data:
