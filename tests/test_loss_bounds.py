@@ -10,6 +10,7 @@ before the kill. The kill comes at a seeded random moment: a fixed seed by defau
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import random
@@ -49,8 +50,10 @@ def imu_sequences_in_mcap(path: pathlib.Path) -> list[int]:
 
 
 def imu_sequences_in_sqlite(path: pathlib.Path) -> list[int]:
-    """Sequence numbers of the IMU rows a crashed SQLite3 bag holds (sqlite rolls back what was in flight)."""
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+    """Sequence numbers of the IMU rows a crashed SQLite3 bag holds. Opened read-write, as ``bag recover`` or the
+    sqlite3 shell would: a kill in the middle of a commit leaves a hot journal, which sqlite rolls back on opening
+    (``mode=ro`` refuses it with SQLITE_READONLY_ROLLBACK)."""
+    with contextlib.closing(sqlite3.connect(path)) as db:
         rows = db.execute("SELECT data FROM messages JOIN topics ON topics.id = messages.topic_id "
                           "WHERE topics.name = '/imu/imu' ORDER BY messages.id").fetchall()
     return [_sequence(bytes(data)) for (data,) in rows]
