@@ -14,7 +14,7 @@ import socket
 import threading
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -117,6 +117,8 @@ class ComponentManager(Node):
                                                          make_wakeup=self._executor.make_wakeup)
         self._components: dict[int, LoadedComponent] = {}
         self._failed_components: dict[int, LoadedComponent] = {}  # delisted, waiting for the policy
+        #: unloaded components' work going on (ComponentNode.work_left), by the name /diagnostics shows
+        self._work_left: dict[str, Callable[[], Health | None]] = {}
         self._last_id = 0
         self._lock = threading.Lock()
         self._unload_lock = threading.Lock()  # the service thread and the supervisor never unload at once
@@ -283,6 +285,10 @@ class ComponentManager(Node):
         if loaded.logger_level_set:  # logger levels outlive nodes: the next node of that name starts clean
             loaded.node.get_logger().set_level(LoggingSeverity.UNSET)
         error = _destroy_within(loaded.node, max(0.0, deadline - time.monotonic()))
+        work_left = getattr(loaded.node, "work_left", None)
+        if work_left is not None and work_left() is not None:
+            with self._lock:
+                self._work_left[f"{loaded.full_name} (unloaded, id {loaded.unique_id})"] = work_left
         if error:
             error = f"Unloading {loaded.full_name} (id {loaded.unique_id}): {error}"
             self.get_logger().error(error)
@@ -365,6 +371,15 @@ class ComponentManager(Node):
             if failure.full_name not in running:
                 statuses.append(status(f"{prefix}: {failure.full_name}", Health(
                     ERROR, f"failed and unloaded: {failure.reason}", {"unique_id": str(failure.unique_id)})))
+        with self._lock:
+            work_left = list(self._work_left.items())
+        for name, work in work_left:
+            health = work()
+            if health is None:
+                with self._lock:
+                    self._work_left.pop(name, None)
+            else:
+                statuses.append(status(f"{prefix}: {name}", health))
         return statuses
 
     def _free_disk(self) -> dict[str, str]:

@@ -106,6 +106,12 @@ class ComponentNode(Node):
         """
         return None
 
+    def work_left(self) -> Health | None:
+        """What this component still does after it was unloaded (a recorder's uploads going on in a process
+        of their own), for ``/diagnostics``; None: nothing. The container asks once a second after the unload,
+        until it answers None; it must not use the destroyed node's ROS handles."""
+        return None
+
     def publish_counters(self) -> list[tuple[str, PublishCounter]]:
         """``(topic, counter)`` of every publisher this component created (thread-safe: a snapshot)."""
         publishers = list(self.__counted or ())

@@ -5,18 +5,24 @@ A full disk in the middle of a chunk costs the chunk and leaves the machine with
 it and, once the free space drops below it while recording, ends the session as a storage failure, which
 finalizes the bag with what was written. The guard is checked after every batch the writer thread writes
 (``statvfs`` costs microseconds), so the margin only has to hold what one batch can add.
+
+A recorder that uploads its bags gives the guard a way to make room first (:attr:`DiskGuard.reclaim`): files
+already verified in the store are deleted, oldest first, before the recording is stopped for want of space.
 """
 from __future__ import annotations
 
 import errno
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from baglib.write.writer import BagWriteError
 
 #: Rate samples older than this are forgotten: the estimate follows the current write rate.
 RATE_WINDOW = 5.0
+#: Room a reclaim makes beyond the minimum, so that it is not repeated at every batch.
+RECLAIM_HEADROOM = 64 * 1024 * 1024
 
 
 def free_bytes(path: Path) -> int:
@@ -39,6 +45,8 @@ class DiskGuard:
         self.min_free = min_free
         self.free = free_bytes(path)
         self._samples: list[tuple[float, int]] = []  # (monotonic time, bytes written)
+        #: Frees at least the bytes asked for if it can (deleting what is safe to delete); returns bytes freed.
+        self.reclaim: Callable[[int], int] | None = None
         if self.free < min_free:
             raise ValueError(f"parameter 'storage.min_free_space': only {self.free} bytes are free on the disk of "
                              f"{path}, less than the {min_free} bytes to keep free: not recording")
@@ -48,6 +56,9 @@ class DiskGuard:
         now = time.monotonic()
         self.free = free_bytes(self.path)
         self._samples.append((now, bytes_written))
+        if self.min_free and self.free < self.min_free and self.reclaim is not None:
+            if self.reclaim(self.min_free + RECLAIM_HEADROOM - self.free):
+                self.free = free_bytes(self.path)
         while len(self._samples) > 2 and now - self._samples[0][0] > RATE_WINDOW:
             self._samples.pop(0)
         if self.min_free and self.free < self.min_free:

@@ -44,7 +44,7 @@ from rosbag2_interfaces.srv import (IsDiscoveryRunning, IsPaused, Pause, Record,
 from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
-from component_container.health import Health
+from component_container.health import OK, WARN, Health
 from baglib.write.writer import BagWriter
 from baglib.format.action_topics import INTERFACES, SERVICE_INTERFACES, actions_of
 from baglib.format.message_definitions import message_definition
@@ -62,6 +62,7 @@ from components.recorder.recorder_options import custom_data_pairs, declare_opti
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
 from components.recorder.recording_session import RecordingSession
 from components.recorder.schedule import Schedule, instant_ns
+from components.recorder.uploads import BagUploads, declare_upload_options, upload_values
 from components.recorder.topic_selection import TopicFilter, adapt_qos, load_qos_overrides
 
 SPLIT_EVENT_TOPIC = "events/write_split"
@@ -92,9 +93,12 @@ class Recorder(ComponentNode):
         self._lock = threading.RLock()
         self._session: RecordingSession | None = None
         self._health = HealthMonitor()
+        self._uploads: BagUploads | None = None
         super().__init__("recorder", **kwargs)
         try:
             self._options = declare_options(self, overrides)
+            upload_options = declare_upload_options(self)
+            self._uploads = BagUploads(upload_options) if upload_options else None
             if self._options.local_only and not self.uses_intra_process:
                 raise ValueError("parameter 'record.local_only' records what this container publishes in-process: "
                                  "load the recorder with use_intra_process_comms:=true")
@@ -126,6 +130,8 @@ class Recorder(ComponentNode):
             self._start_session()
         except Exception:
             self.stop_recording()  # no half-built node or open bag is left behind
+            if self._uploads is not None:
+                self._uploads.close()
             super().destroy_node()
             raise
         self._recorder_services = [
@@ -171,6 +177,9 @@ class Recorder(ComponentNode):
             self._account_encoder(session, info.name)
         self._window_bag = None
         self._session = session
+        if self._uploads is not None:
+            self._uploads.open(session.writer.path)
+            session.disk.reclaim = self._uploads.reclaim
         if session.gate is not None:  # after the session takes messages, so that the keyframes asked for reach it
             start_ns = self._schedule.start_ns  # record.start_at: the keyframes are due when the window opens
             session.gate.begin(start_ns if start_ns > time.time_ns() else None)
@@ -202,6 +211,8 @@ class Recorder(ComponentNode):
         session.finish(timeout=FINISH_SHARE * self.shutdown_timeout,
                        on_late_close=functools.partial(self._finished.changed, session))
         self._loss_events.close_bag(session)
+        if self._uploads is not None and session.writer.closed:
+            self._uploads.bag_closed(session.writer.path)
         return self._finished.add(session, may_change=window_ended or session.writing_after_finish)
 
     def _warn_missing_action_topics(self) -> None:
@@ -218,6 +229,8 @@ class Recorder(ComponentNode):
                                           f"{', '.join(missing)} topic{'s' if len(missing) > 1 else ''}{hint}")
 
     def _publish_split(self, closed_file: str, opened_file: str) -> None:
+        if self._uploads is not None and closed_file:
+            self._uploads.file_closed(Path(closed_file))
         if self.context.ok():
             self._split_events.publish(WriteSplitEvent(closed_file=closed_file, opened_file=opened_file,
                                                        node_name=self.get_fully_qualified_name()))
@@ -410,12 +423,30 @@ class Recorder(ComponentNode):
                 "window_ns": [schedule.start_ns, schedule.end_ns],
                 "custom_data": dict(self._options.custom_data),
                 "current": session.stats() if session else None,
-                "finished": self._finished.stats(), "finished_bags": self._finished.count}
+                "finished": self._finished.stats(), "finished_bags": self._finished.count,
+                **({"upload": self._uploads.stats()} if self._uploads is not None else {})}
 
     def health(self) -> Health:
         """For /diagnostics: OK while recording, WARN when not (or dropping), ERROR after a storage failure."""
         session = self._session
-        return self._health.sample(session.stats() if session else None, self._paused)
+        health = self._health.sample(session.stats() if session else None, self._paused)
+        if self._uploads is not None:
+            upload = self._uploads.stats()
+            health.values.update(upload_values(upload))
+            if upload["last_error"] and health.level == OK:
+                health = Health(WARN, f"upload failing: {upload['last_error']}", health.values)
+        return health
+
+    def work_left(self) -> Health | None:
+        """Uploads going on after the unload (the container's upload process finishes them), until complete."""
+        if self._uploads is None:
+            return None
+        upload = self._uploads.stats()
+        if upload["complete"] or not upload["running"]:
+            return None
+        return Health(WARN if upload["last_error"] else OK,
+                      f"uploading: {upload['files_pending']} files pending"
+                      + (f" ({upload['last_error']})" if upload["last_error"] else ""), upload_values(upload))
 
     # --- services -----------------------------------------------------------------------------------------
     def _set_paused(self, paused: bool) -> None:
@@ -569,6 +600,8 @@ class Recorder(ComponentNode):
         for subscription in getattr(self, "_topic_subscriptions", {}).values():
             self.destroy_subscription(subscription)
         self.stop_recording()
+        if self._uploads is not None:
+            self._uploads.close()
         # The bag's closing event was just published; a publisher destroyed at once can take it along with it
         # before a (reliable) subscriber has it. Give them a moment to acknowledge it.
         events = getattr(self, "_split_events", None)

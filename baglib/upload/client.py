@@ -1,0 +1,82 @@
+"""The S3 client (boto3) and what its errors mean to a person.
+
+Credentials come from boto3's standard chain only (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, ``AWS_PROFILE``
+with ``~/.aws/credentials`` and ``~/.aws/config``): nothing here takes a secret as an argument, so none can end up
+in a parameter, a log line or a bag. An explicit endpoint (any S3-compatible store) is addressed path-style, as
+local servers need. botocore's default CRC32 checksums on every request are turned off
+(``request_checksum_calculation="when_required"``): several S3-compatible servers reject them, and every part
+carries its Content-MD5 instead, which the transfer checks against the ETag the server answers.
+
+Timeouts are short on purpose: a server that stalls must show up as an error in ``~/get_stats`` within seconds,
+and the upload queue retries with a back-off of its own.
+"""
+from __future__ import annotations
+
+import socket
+from typing import Any
+
+import boto3
+import botocore.exceptions
+from botocore.config import Config
+
+#: Seconds to connect and to wait for each read from the server.
+CONNECT_TIMEOUT = 5.0
+READ_TIMEOUT = 20.0
+
+#: Error codes that mean the credentials are wrong or not allowed to write here.
+_CREDENTIAL_CODES = {"InvalidAccessKeyId", "SignatureDoesNotMatch", "AccessDenied", "InvalidToken",
+                     "ExpiredToken", "AuthorizationHeaderMalformed", "403"}
+
+
+class UploadError(Exception):
+    """An upload step failed; the message says what and is safe to log (it never holds a credential).
+
+    ``permanent``: retrying cannot help until a person changes something (credentials, bucket, a conflicting
+    object); the queue still retries, slower, since a person may fix it while the recorder runs.
+    """
+
+    def __init__(self, message: str, permanent: bool = False) -> None:
+        super().__init__(message)
+        self.permanent = permanent
+
+
+def make_client(endpoint_url: str = "", read_timeout: float = READ_TIMEOUT) -> Any:
+    """An S3 client for ``endpoint_url`` (empty: what the AWS configuration says) with the standard credential
+    chain; raises UploadError when no credentials are configured at all."""
+    session = boto3.session.Session()
+    if session.get_credentials() is None:
+        raise UploadError("no AWS credentials: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or "
+                          "~/.aws/credentials", permanent=True)
+    config = Config(connect_timeout=CONNECT_TIMEOUT, read_timeout=read_timeout,
+                    retries={"max_attempts": 2, "mode": "standard"},
+                    request_checksum_calculation="when_required", response_checksum_validation="when_required",
+                    s3={"addressing_style": "path"} if endpoint_url else None)
+    return session.client("s3", endpoint_url=endpoint_url or None,
+                          region_name=session.region_name or "us-east-1", config=config)
+
+
+def describe(error: BaseException, what: str) -> UploadError:
+    """An UploadError saying, in words, why ``what`` failed (wrong credentials, a missing bucket, an
+    unreachable or stalled endpoint, a server error)."""
+    if isinstance(error, UploadError):
+        return error
+    if isinstance(error, botocore.exceptions.ClientError):
+        info = error.response.get("Error", {})
+        code = str(info.get("Code", ""))
+        status = error.response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
+        if code in _CREDENTIAL_CODES:
+            return UploadError(f"{what}: the store refused the credentials ({code}): check AWS_ACCESS_KEY_ID / "
+                               "AWS_SECRET_ACCESS_KEY or the profile", permanent=True)
+        if code == "NoSuchBucket":
+            return UploadError(f"{what}: the bucket does not exist ({code})", permanent=True)
+        if status >= 500:
+            return UploadError(f"{what}: the server answered {status} ({code or 'no code'})")
+        return UploadError(f"{what}: {code or status}: {info.get('Message', '')}".rstrip(": "))
+    if isinstance(error, botocore.exceptions.NoCredentialsError):
+        return UploadError(f"{what}: no AWS credentials", permanent=True)
+    if isinstance(error, (botocore.exceptions.ReadTimeoutError, socket.timeout, TimeoutError)):
+        return UploadError(f"{what}: the server stopped answering (read timeout)")
+    if isinstance(error, (botocore.exceptions.EndpointConnectionError, botocore.exceptions.ConnectionError,
+                          ConnectionError)):
+        return UploadError(f"{what}: the endpoint cannot be reached ({type(error).__name__})")
+    return UploadError(f"{what}: {type(error).__name__}: {error}")

@@ -1,0 +1,79 @@
+"""What a store's ETag of a file is, computed from the local bytes, so a remote copy can be verified.
+
+An S3 ETag is the MD5 of the content for a single PUT, and for a multipart object the MD5 of the concatenated
+binary MD5s of its parts followed by ``-N``: not a hash of the whole file, so the local side computes the same
+thing with the same part size. Some stores (localbucket among them) give a completed multipart object the MD5 of
+the whole content instead; both are computed, and either verifies. The part size is stored with the object
+(user metadata ``part-size``), so a later check or a download can compute it too.
+"""
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+MiB = 1 << 20
+#: The part size of a multipart upload (S3's minimum is 5 MiB for all but the last part); doubled for a file that
+#: would need more than MAX_PARTS parts. Files up to one part are uploaded with a single PUT.
+PART_SIZE = 8 * MiB
+MAX_PARTS = 10_000
+#: The user metadata key (``x-amz-meta-part-size``) that records the part size.
+PART_SIZE_KEY = "part-size"
+
+
+def part_size_for(size: int, part_size: int = PART_SIZE) -> int:
+    """The part size for a file of ``size`` bytes: ``part_size``, doubled until the parts fit S3's limit."""
+    while -(-size // part_size) > MAX_PARTS:
+        part_size *= 2
+    return part_size
+
+
+def parts_of(size: int, part_size: int) -> Iterator[tuple[int, int, int]]:
+    """(part number from 1, offset, length) of each part of a file of ``size`` bytes."""
+    for number, offset in enumerate(range(0, size, part_size), start=1):
+        yield number, offset, min(part_size, size - offset)
+
+
+@dataclass
+class Digests:
+    """The MD5 of each part and of the whole content, filled as the parts are read in order."""
+
+    part_md5s: list[bytes] = field(default_factory=list)
+    whole: "hashlib._Hash" = field(default_factory=hashlib.md5)
+
+    def add(self, data: bytes | memoryview) -> str:
+        """Add the next part; its MD5 in hex (an ETag without quotes)."""
+        digest = hashlib.md5(data)
+        self.part_md5s.append(digest.digest())
+        self.whole.update(data)
+        return digest.hexdigest()
+
+    def etags(self, multipart: bool) -> set[str]:
+        """The ETags (without quotes) a store may give the content: the multipart form and the whole MD5."""
+        whole = self.whole.hexdigest()
+        if not multipart:
+            return {whole}
+        combined = hashlib.md5(b"".join(self.part_md5s)).hexdigest()
+        return {f"{combined}-{len(self.part_md5s)}", whole}
+
+
+def file_digests(path: Path, part_size: int, chunk: int = PART_SIZE) -> Digests:
+    """The digests of the file at ``path`` for parts of ``part_size`` bytes, read ``chunk`` bytes at a time."""
+    digests = Digests()
+    with open(path, "rb") as stream:
+        while True:
+            part = hashlib.md5()
+            left = part_size
+            while left:
+                data = stream.read(min(chunk, left))
+                if not data:
+                    break
+                part.update(data)
+                digests.whole.update(data)
+                left -= len(data)
+            if left == part_size:
+                return digests
+            digests.part_md5s.append(part.digest())
+            if left:
+                return digests

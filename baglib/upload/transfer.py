@@ -1,0 +1,193 @@
+"""Uploading one file, resumably, and verifying the remote copy against the local bytes.
+
+A file of up to one part goes in a single PUT with its Content-MD5; a larger one as a multipart upload whose id
+and confirmed parts the journal keeps. Resuming asks the server which parts it holds (``ListParts``) and reuses
+each whose ETag is the MD5 of the local part, so a cut costs at most the part in flight. Every part carries its
+Content-MD5 and the ETag the server answers must be that MD5. After completion the object's size and ETag must
+match what the local bytes give (:mod:`~baglib.upload.digests`) before the file counts as verified; a mismatch
+is counted and the file uploaded again, never deleted.
+
+An object already at the key is never overwritten blindly: if it verifies against the local file, nothing is
+transferred (uploading a bag twice costs a read of it, no bytes); if it holds something else, the upload stops
+with an error naming the key (another robot's bag under the same name, say), unless this journal's own earlier
+attempt put it there.
+"""
+from __future__ import annotations
+
+import base64
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import botocore.exceptions
+
+from baglib.upload.client import UploadError
+from baglib.upload.digests import PART_SIZE_KEY, Digests, file_digests, part_size_for, parts_of
+from baglib.upload.journal import Entry, UploadJournal
+from baglib.upload.throttle import Throttle
+
+
+class Interrupted(Exception):
+    """The uploader was asked to stop between two requests."""
+
+
+@dataclass
+class Transferred:
+    """What uploading one file took: bytes sent, bytes the server already had, and whether the object was
+    already there whole (nothing sent)."""
+
+    sent: int = 0
+    reused: int = 0
+    already_there: bool = False
+
+
+def _md5_header(hex_digest: str) -> str:
+    return base64.b64encode(bytes.fromhex(hex_digest)).decode()
+
+
+def _not_found(error: botocore.exceptions.ClientError) -> bool:
+    return str(error.response.get("Error", {}).get("Code")) in ("404", "NoSuchKey", "NotFound", "NoSuchUpload")
+
+
+def _etag(value: str) -> str:
+    return value.strip('"')
+
+
+class FileUpload:
+    """Uploads one journal entry with ``client``; ``progress(bytes)`` is called after each request."""
+
+    def __init__(self, client: Any, journal: UploadJournal, entry: Entry, throttle: Throttle,
+                 stop: threading.Event, progress: Callable[[int], None] = lambda sent: None) -> None:
+        self.client = client
+        self.journal = journal
+        self.entry = entry
+        self.throttle = throttle
+        self.stop = stop
+        self.progress = progress
+        self.target = f"s3://{entry.bucket}/{entry.key}"
+
+    def run(self) -> Transferred:
+        """Upload and verify; raises FileNotFoundError (the local file is gone), UploadError or Interrupted."""
+        entry = self.entry
+        size = entry.local.stat().st_size
+        if entry.upload_id is None and not entry.mismatches:
+            existing = self._head()
+            if existing is not None:
+                return self._existing(existing, size)
+        part_size = entry.part_size or part_size_for(size)
+        if size <= part_size:
+            return self._single(size, part_size)
+        return self._multipart(size, part_size)
+
+    # --- the object at the key --------------------------------------------------------------------------
+    def _head(self) -> dict[str, Any] | None:
+        try:
+            return self.client.head_object(Bucket=self.entry.bucket, Key=self.entry.key)
+        except botocore.exceptions.ClientError as error:
+            if _not_found(error):
+                return None
+            raise
+
+    def _existing(self, head: dict[str, Any], size: int) -> Transferred:
+        """An object is at the key already: done if it is this file, an error otherwise."""
+        stored = int(head.get("Metadata", {}).get(PART_SIZE_KEY) or 0) or part_size_for(size)
+        if head["ContentLength"] == size:
+            digests = file_digests(self.entry.local, stored)
+            if _etag(head["ETag"]) in digests.etags(multipart=size > stored):
+                return Transferred(already_there=True)
+        raise UploadError(f"{self.target} exists and holds other content ({head['ContentLength']} bytes, "
+                          f"ETag {head['ETag']}) than {self.entry.local}: not overwritten", permanent=True)
+
+    def _verify(self, size: int, digests: Digests, multipart: bool) -> None:
+        head = self._head()
+        if head is None or head["ContentLength"] != size or _etag(head["ETag"]) not in digests.etags(multipart):
+            found = "nothing" if head is None else f"{head['ContentLength']} bytes, ETag {head['ETag']}"
+            error = (f"{self.target} did not verify: the store holds {found}, the local file {size} bytes, "
+                     f"ETag one of {sorted(digests.etags(multipart))}; uploading it again")
+            self.journal.mismatch(self.entry.id, error)
+            raise UploadError(error)
+
+    # --- one request ------------------------------------------------------------------------------------
+    def _single(self, size: int, part_size: int) -> Transferred:
+        data = self.entry.local.read_bytes()
+        if len(data) != size:
+            raise UploadError(f"{self.entry.local} changed size while being uploaded")
+        digests = Digests()
+        md5 = digests.add(data)
+        if not self.throttle.wait(size):
+            raise Interrupted()
+        answer = self.client.put_object(Bucket=self.entry.bucket, Key=self.entry.key, Body=data,
+                                        ContentMD5=_md5_header(md5), Metadata={PART_SIZE_KEY: str(part_size)})
+        self.journal.count_sent(self.entry.id, size, 0)
+        self.progress(size)
+        if _etag(answer["ETag"]) != md5:
+            self.journal.mismatch(self.entry.id, f"{self.target}: the store answered ETag {answer['ETag']} for "
+                                                 f"content whose MD5 is {md5}")
+            raise UploadError(f"{self.target}: the store received other bytes than were sent (ETag mismatch)")
+        self._verify(size, digests, multipart=False)
+        return Transferred(sent=size)
+
+    # --- multipart --------------------------------------------------------------------------------------
+    def _server_parts(self, upload_id: str) -> dict[int, tuple[str, int]] | None:
+        """The parts the server holds for ``upload_id`` (None: it knows no such upload any more)."""
+        parts: dict[int, tuple[str, int]] = {}
+        marker = 0
+        try:
+            while True:
+                page = self.client.list_parts(Bucket=self.entry.bucket, Key=self.entry.key, UploadId=upload_id,
+                                              PartNumberMarker=marker)
+                for part in page.get("Parts", []):
+                    parts[part["PartNumber"]] = (_etag(part["ETag"]), part["Size"])
+                if not page.get("IsTruncated"):
+                    return parts
+                marker = page["NextPartNumberMarker"]
+        except botocore.exceptions.ClientError as error:
+            if _not_found(error):
+                return None
+            raise
+
+    def _multipart(self, size: int, part_size: int) -> Transferred:
+        entry = self.entry
+        upload_id, held = entry.upload_id, None
+        if upload_id is not None:
+            held = self._server_parts(upload_id)
+            if held is None:  # completed (then killed before it was verified) or aborted: look at the key
+                self.journal.start_multipart(entry.id, None, None)
+                existing = self._head()
+                if existing is not None and not entry.mismatches:
+                    return self._existing(existing, size)
+                upload_id = None
+        if upload_id is None:
+            upload_id = self.client.create_multipart_upload(
+                Bucket=entry.bucket, Key=entry.key, Metadata={PART_SIZE_KEY: str(part_size)})["UploadId"]
+            self.journal.start_multipart(entry.id, upload_id, part_size)
+            held = {}
+        done = Transferred()
+        digests = Digests()
+        completed: list[dict[str, Any]] = []
+        with open(entry.local, "rb") as stream:
+            for number, offset, length in parts_of(size, part_size):
+                data = stream.read(length)
+                if len(data) != length:
+                    raise UploadError(f"{entry.local} changed size while being uploaded")
+                md5 = digests.add(data)
+                if held.get(number) == (md5, length):
+                    done.reused += length
+                else:
+                    if not self.throttle.wait(length):
+                        raise Interrupted()
+                    answer = self.client.upload_part(Bucket=entry.bucket, Key=entry.key, UploadId=upload_id,
+                                                     PartNumber=number, Body=data, ContentMD5=_md5_header(md5))
+                    if _etag(answer["ETag"]) != md5:
+                        raise UploadError(f"{self.target}: the store answered ETag {answer['ETag']} for part "
+                                          f"{number}, whose MD5 is {md5}: sending it again")
+                    self.journal.confirm_part(entry.id, number, md5, length)
+                    done.sent += length
+                    self.progress(length)
+                completed.append({"PartNumber": number, "ETag": f'"{md5}"'})
+        self.journal.count_sent(entry.id, 0, done.reused)
+        self.client.complete_multipart_upload(Bucket=entry.bucket, Key=entry.key, UploadId=upload_id,
+                                              MultipartUpload={"Parts": completed})
+        self._verify(size, digests, multipart=True)
+        return done
