@@ -4,6 +4,7 @@
     components                   may use component_container and baglib
     component_container          may use baglib only where a runtime needs it (today: the action topic names)
     baglib.tools                 may use baglib.read, baglib.write, baglib.format
+    baglib.upload                may use baglib.read, baglib.format (uploading finished bags beside the tools)
     baglib.read | baglib.write   may use baglib.format, never each other nor the tools
     baglib.format                the bottom: no other layer of the project
 
@@ -24,13 +25,15 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 #: For each layer, the project layers it must not import. Layers are module prefixes; the longest one wins.
 FORBIDDEN: dict[str, set[str]] = {
-    "baglib.format": {"baglib.read", "baglib.write", "baglib.tools", "components", "component_container",
+    "baglib.format": {"baglib.read", "baglib.write", "baglib.tools", "baglib.upload", "components", "component_container",
                       "ipc_component", "ipc_testing", "benchmarks"},
-    "baglib.read": {"baglib.write", "baglib.tools", "components", "component_container", "ipc_component",
+    "baglib.read": {"baglib.write", "baglib.tools", "baglib.upload", "components", "component_container", "ipc_component",
                     "ipc_testing", "benchmarks"},
-    "baglib.write": {"baglib.read", "baglib.tools", "components", "component_container", "ipc_component",
+    "baglib.write": {"baglib.read", "baglib.tools", "baglib.upload", "components", "component_container", "ipc_component",
                      "ipc_testing", "benchmarks"},
-    "baglib.tools": {"components", "component_container", "ipc_component", "ipc_testing", "benchmarks"},
+    "baglib.tools": {"baglib.upload", "components", "component_container", "ipc_component", "ipc_testing", "benchmarks"},
+    "baglib.upload": {"baglib.write", "baglib.tools", "components", "component_container", "ipc_component",
+                      "ipc_testing", "benchmarks"},
     "component_container": {"components", "ipc_component", "ipc_testing", "benchmarks"},
     "components": {"ipc_component", "ipc_testing", "benchmarks"},
     "ipc_component": {"ipc_testing", "benchmarks"},
