@@ -26,7 +26,7 @@ import sys
 import time
 from typing import Sequence
 
-from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_play, create, record_fleet,
+from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_upload, bag_play, create, record_fleet,
                            record_status, top)
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.verb_arguments import (LOG_LEVEL_HELP, add_verb, parameter_msgs, parse_log_level,
@@ -297,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     bag_merge.register(bag_verbs)
     bag_convert.register(bag_verbs)
     bag_export.register(bag_verbs)
+    bag_upload.register(bag_verbs)
     p = add_verb(bag_verbs, "play", "Play back bags (like ros2 bag play)",
                  "Several bags play as one timeline.")
     bag_play.add_arguments(p)

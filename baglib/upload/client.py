@@ -8,7 +8,7 @@ local servers need. botocore's default CRC32 checksums on every request are turn
 carries its Content-MD5 instead, which the transfer checks against the ETag the server answers.
 
 Timeouts are short on purpose: a server that stalls must show up as an error in ``~/get_stats`` within seconds,
-and the upload queue retries with a back-off of its own.
+and botocore does not retry on its own: the upload queue retries with a back-off of its own.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from botocore.config import Config
 
 #: Seconds to connect and to wait for each read from the server.
 CONNECT_TIMEOUT = 5.0
-READ_TIMEOUT = 20.0
+READ_TIMEOUT = 10.0
 
 #: Error codes that mean the credentials are wrong or not allowed to write here.
 _CREDENTIAL_CODES = {"InvalidAccessKeyId", "SignatureDoesNotMatch", "AccessDenied", "InvalidToken",
@@ -48,7 +48,7 @@ def make_client(endpoint_url: str = "", read_timeout: float = READ_TIMEOUT) -> A
         raise UploadError("no AWS credentials: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or "
                           "~/.aws/credentials", permanent=True)
     config = Config(connect_timeout=CONNECT_TIMEOUT, read_timeout=read_timeout,
-                    retries={"max_attempts": 2, "mode": "standard"},
+                    retries={"max_attempts": 1, "mode": "standard"},
                     request_checksum_calculation="when_required", response_checksum_validation="when_required",
                     s3={"addressing_style": "path"} if endpoint_url else None)
     return session.client("s3", endpoint_url=endpoint_url or None,

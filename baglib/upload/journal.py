@@ -17,7 +17,7 @@ import contextlib
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,19 +90,21 @@ class UploadJournal:
             return self._db.execute(query, args).fetchall()
 
     # --- the queue --------------------------------------------------------------------------------------
-    def enqueue(self, local: Path, uri: str, endpoint: str, bucket: str, key: str, delete_after: bool) -> bool:
-        """Queue ``local`` (a closed file) for ``bucket``/``key``; False if it is queued or done already."""
+    def enqueue(self, local: Path, uri: str, endpoint: str, bucket: str, key: str, delete_after: bool) -> int:
+        """Queue ``local`` (a closed file) for ``bucket``/``key``; its entry's id (the existing one if it is
+        queued or done already)."""
         with self._transaction() as db:
-            cursor = db.execute(
-                "INSERT OR IGNORE INTO files(local, uri, endpoint, bucket, key, size, delete_after) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (str(local), uri, endpoint, bucket, key, local.stat().st_size, int(delete_after)))
-            return cursor.rowcount == 1
+            db.execute("INSERT OR IGNORE INTO files(local, uri, endpoint, bucket, key, size, delete_after) "
+                       "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                       (str(local), uri, endpoint, bucket, key, local.stat().st_size, int(delete_after)))
+            return db.execute("SELECT id FROM files WHERE local = ? AND bucket = ? AND key = ?",
+                              (str(local), bucket, key)).fetchone()[0]
 
-    def next_pending(self) -> Entry | None:
-        """The oldest file not yet verified (files go in the order they were queued)."""
-        rows = self._rows("SELECT id, local, uri, endpoint, bucket, key, size, delete_after, state, upload_id, "
-                          "part_size, mismatches FROM files WHERE state = 'pending' ORDER BY id LIMIT 1")
+    def next_pending(self, only: Collection[int] | None = None) -> Entry | None:
+        """The oldest file not yet verified (files go in the order they were queued), among ``only`` if given."""
+        rows = [row for row in self._rows(
+            "SELECT id, local, uri, endpoint, bucket, key, size, delete_after, state, upload_id, part_size, "
+            "mismatches FROM files WHERE state = 'pending' ORDER BY id") if only is None or row[0] in only][:1]
         if not rows:
             return None
         (id_, local, uri, endpoint, bucket, key, size, delete_after, state, upload_id, part_size,

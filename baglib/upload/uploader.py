@@ -11,7 +11,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +29,14 @@ class Uploader:
     """Uploads what ``journal`` holds; ``stop`` ends the work between two requests."""
 
     def __init__(self, journal: UploadJournal, max_rate: float = 0.0, stop: threading.Event | None = None,
-                 on_file: Callable[[Entry, Transferred], None] = lambda entry, done: None) -> None:
+                 on_file: Callable[[Entry, Transferred], None] = lambda entry, done: None,
+                 on_progress: Callable[[Entry, int], None] = lambda entry, sent: None,
+                 only: Collection[int] | None = None) -> None:
+        """``on_file``: after each file verified; ``on_progress``: after each request, with the bytes it sent;
+        ``only``: the entries to upload (None: the whole queue)."""
         self.journal = journal
+        self.only = only
+        self.on_progress = on_progress
         self.stop = stop or threading.Event()
         self.throttle = Throttle(max_rate, self.stop)
         self.on_file = on_file
@@ -41,12 +47,12 @@ class Uploader:
     def drain(self) -> UploadError | None:
         """Upload until the queue is empty (None), ``stop`` is set (None) or a file fails (its error)."""
         while not self.stop.is_set():
-            entry = self.journal.next_pending()
+            entry = self.journal.next_pending(self.only)
             if entry is None:
                 return None
             try:
                 done = FileUpload(self._client(entry.endpoint), self.journal, entry, self.throttle, self.stop,
-                                  lambda sent, uri=entry.uri: self._progress(uri, sent)).run()
+                                  lambda sent, entry=entry: self._progress(entry, sent)).run()
             except Interrupted:
                 return None
             except FileNotFoundError:
@@ -76,12 +82,13 @@ class Uploader:
         self.journal.report(entry.uri, self._rate(), "")
         self.on_file(entry, done)
 
-    def _progress(self, uri: str, sent: int) -> None:
+    def _progress(self, entry: Entry, sent: int) -> None:
+        self.on_progress(entry, sent)
         now = time.monotonic()
         self._sent.append((now, sent))
         if now - self._last_report >= 1.0:
             self._last_report = now
-            self.journal.report(uri, self._rate(), "")
+            self.journal.report(entry.uri, self._rate(), "")
 
     def _rate(self) -> float:
         now = time.monotonic()
