@@ -9,6 +9,7 @@ port and data (a server restart in the middle of an upload).
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -29,11 +30,14 @@ def _free_port() -> int:
 
 
 class S3Server:
-    """``kind`` ("nanio" or "localbucket") serving ``data_dir`` on 127.0.0.1; a context manager."""
+    """``kind`` ("nanio" or "localbucket") serving ``data_dir`` on 127.0.0.1; a context manager. ``secret_key``:
+    the account's secret (another than :meth:`env` gives: a store that refuses the client's credentials)."""
 
-    def __init__(self, data_dir: Path, kind: str = "nanio", log: Path | None = None) -> None:
+    def __init__(self, data_dir: Path, kind: str = "nanio", log: Path | None = None,
+                 secret_key: str = SECRET_KEY) -> None:
         self.data_dir = data_dir
         self.kind = kind
+        self.secret_key = secret_key
         self.port = _free_port()
         self.log = log or data_dir.with_suffix(".log")
         self.process: subprocess.Popen[bytes] | None = None
@@ -56,7 +60,7 @@ class S3Server:
                        "--data-dir", str(self.data_dir)]
         else:
             command = [str(bin_dir / "localbucket"), str(self.data_dir), "--port", str(self.port)]
-        env = {**os.environ, "NANIO_ACCESS_KEY": ACCESS_KEY, "NANIO_SECRET_KEY": SECRET_KEY}
+        env = {**os.environ, "NANIO_ACCESS_KEY": ACCESS_KEY, "NANIO_SECRET_KEY": self.secret_key}
         with open(self.log, "ab") as log:
             self.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + 20.0
@@ -75,6 +79,15 @@ class S3Server:
         if self.process is not None and self.process.poll() is None:
             self.process.kill()
             self.process.wait()
+
+    def pause(self) -> None:
+        """SIGSTOP the server: connections are accepted by the kernel, nothing is answered (a stalled store)."""
+        assert self.process is not None
+        self.process.send_signal(signal.SIGSTOP)
+
+    def resume(self) -> None:
+        assert self.process is not None
+        self.process.send_signal(signal.SIGCONT)
 
     def stop(self) -> None:
         if self.process is not None:

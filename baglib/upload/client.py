@@ -48,7 +48,7 @@ def make_client(endpoint_url: str = "", read_timeout: float = READ_TIMEOUT) -> A
         raise UploadError("no AWS credentials: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or "
                           "~/.aws/credentials", permanent=True)
     config = Config(connect_timeout=CONNECT_TIMEOUT, read_timeout=read_timeout,
-                    retries={"max_attempts": 1, "mode": "standard"},
+                    retries={"total_max_attempts": 1, "mode": "standard"},
                     request_checksum_calculation="when_required", response_checksum_validation="when_required",
                     s3={"addressing_style": "path"} if endpoint_url else None)
     return session.client("s3", endpoint_url=endpoint_url or None,

@@ -82,6 +82,11 @@ class FileUpload:
 
     # --- the object at the key --------------------------------------------------------------------------
     def _head(self) -> dict[str, Any] | None:
+        """The object at the key (HeadObject's answer), None if there is none. Asked with a listing first: a
+        HEAD answer has no body, so its errors come without a code (a missing bucket, refused credentials)."""
+        listing = self.client.list_objects_v2(Bucket=self.entry.bucket, Prefix=self.entry.key, MaxKeys=1)
+        if not any(item["Key"] == self.entry.key for item in listing.get("Contents", [])):
+            return None
         try:
             return self.client.head_object(Bucket=self.entry.bucket, Key=self.entry.key)
         except botocore.exceptions.ClientError as error:

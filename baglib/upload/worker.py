@@ -7,8 +7,9 @@ memory. What it is told:
 
 * a byte on its standard input: the journal has something new;
 * end of its input: nothing more will be queued: it finishes the queue, then exits;
-* SIGTERM, or its parent's death (the container exited, even by SIGKILL): it stops between two requests; the
-  journal keeps what it had not done, for the next recorder over that directory or ``bag upload --resume``.
+* SIGTERM, or its parent's death (the container exited, even by SIGKILL): it stops between two requests (a
+  request in flight gets STOP_GRACE seconds); the journal keeps what it had not done, for the next recorder over
+  that directory or ``bag upload --resume``.
 
 One process works on a journal at a time (an exclusive lock beside it). After a failure it retries with a
 back-off from 1 to 30 seconds, or at once when woken.
@@ -21,6 +22,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from baglib.upload.journal import UploadJournal
@@ -33,6 +35,9 @@ LAST_RETRY = 30.0
 NICENESS = 10
 #: Seconds between two looks at whether the parent process is still there.
 PARENT_POLL = 0.5
+#: Seconds a request in flight may take to end once the process is told to stop; then it exits anyway (what the
+#: journal holds is consistent at any moment: it is built for SIGKILL).
+STOP_GRACE = 2.0
 
 
 def lock_journal(journal: Path, wait: bool) -> int | None:
@@ -54,13 +59,22 @@ class _Signals:
     def __init__(self) -> None:
         self.wake, self.finishing, self.stop = threading.Event(), threading.Event(), threading.Event()
         self._parent = os.getppid()
-        signal.signal(signal.SIGTERM, lambda signum, frame: self._stop())
+        # SIGTERM is taken by a thread of its own (sigwait), blocked everywhere else: a Python handler setting an
+        # Event could deadlock on the Event's lock if the signal came while the main thread held it.
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+        threading.Thread(target=self._wait_for_sigterm, name="sigterm", daemon=True).start()
         threading.Thread(target=self._read_input, name="input", daemon=True).start()
         threading.Thread(target=self._watch_parent, name="parent", daemon=True).start()
 
     def _stop(self) -> None:
         self.stop.set()
         self.wake.set()
+        time.sleep(STOP_GRACE)  # the main thread ends the process first unless a request holds it
+        os._exit(0)
+
+    def _wait_for_sigterm(self) -> None:
+        signal.sigwait({signal.SIGTERM})
+        self._stop()
 
     def _read_input(self) -> None:
         while os.read(sys.stdin.fileno(), 4096):
@@ -72,6 +86,7 @@ class _Signals:
         while not self.stop.wait(PARENT_POLL):
             if os.getppid() != self._parent:
                 self._stop()
+                return
 
 
 def main(argv: list[str] | None = None) -> int:

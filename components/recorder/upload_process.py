@@ -84,11 +84,13 @@ def running(journal: Path) -> bool:
         return worker is not None and worker.process.poll() is None
 
 
-def stop_all() -> None:
-    """At exit: every upload process stops between two requests (the journal keeps the rest) and is reaped."""
+def stop(journal: Path | None = None) -> None:
+    """The upload process of ``journal`` (None: every one; at exit) stops between two requests, the journal
+    keeping the rest, and is reaped."""
     with _lock:
-        workers = list(_workers.values())
-        _workers.clear()
+        workers = [worker for path, worker in _workers.items() if journal is None or path == journal]
+        for path in [path for path in _workers if journal is None or path == journal]:
+            del _workers[path]
     for worker in workers:
         if worker.process.poll() is None:
             worker.process.terminate()
@@ -100,4 +102,4 @@ def stop_all() -> None:
             worker.process.wait()
 
 
-atexit.register(stop_all)
+atexit.register(stop)
