@@ -94,9 +94,9 @@ def download_file(client: Any, location: S3Location, name: str, target: Path,
         os.fsync(output.fileno())
     if not matches_object(partial, head):
         partial.unlink()
-        raise UploadError(f"{name} did not verify: {source} is {size} bytes with ETag {head['ETag']}, the "
-                          f"download {'(resumed from byte ' + str(resumed) + ') ' if resumed else ''}is not the "
-                          f"same; its partial file was removed, run the download again", permanent=True)
+        how = f"the download resumed from byte {resumed}" if resumed else "the download"
+        raise UploadError(f"{name} did not verify: {source} is {size} bytes with ETag {head['ETag']}, {how} is "
+                          "not the same; its partial file was removed, run the download again", permanent=True)
     os.replace(partial, target)
     return Downloaded(name, size, fetched, resumed)
 
