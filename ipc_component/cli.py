@@ -26,8 +26,8 @@ import sys
 import time
 from typing import Sequence
 
-from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_upload, bag_play, create, record_fleet,
-                           record_status, top)
+from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_play, bag_remote, bag_upload, create,
+                           record_fleet, record_status, top)
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.verb_arguments import (LOG_LEVEL_HELP, add_verb, parameter_msgs, parse_log_level,
                                           parse_unique_id, remap_rules)
@@ -166,6 +166,9 @@ def run_bag_info(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     if args.topic_name and args.verbose:
         print("Warning! You have set both the '-t' and '-v' parameters. The '-t' parameter will be ignored.",
               flush=True)
+    if bag_remote.is_remote(args.bag_path):
+        print(bag_remote.remote_info(args), flush=True)
+        return 0
     try:
         print(format_bag_info(args.bag_path, args.sort, args.verbose, args.topic_name), flush=True)
     except BagInfoError as exc:
@@ -275,7 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     bag_verbs = p.add_subparsers(dest="bag_verb", title="commands")
     bag_verbs.required = True
     p = add_verb(bag_verbs, "info", "Print information about a bag (like ros2 bag info)")
-    p.add_argument("bag_path", help="Bag directory (with metadata.yaml), or a single .mcap / .db3 file")
+    p.add_argument("bag_path", help="Bag directory (with metadata.yaml), or a single .mcap / .db3 file; or "
+                                    "s3://BUCKET/PREFIX/BAG, or s3://.../FILE.mcap, in S3-compatible storage")
+    p.add_argument("--endpoint-url", default="", help=bag_remote.ENDPOINT_HELP)
     p.add_argument("-t", "--topic-name", action="store_true", help="Only display topic names.")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="Display request/response information for services and actions and each topic's size "
@@ -298,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     bag_convert.register(bag_verbs)
     bag_export.register(bag_verbs)
     bag_upload.register(bag_verbs)
+    bag_remote.register(bag_verbs)
     p = add_verb(bag_verbs, "play", "Play back bags (like ros2 bag play)",
                  "Several bags play as one timeline.")
     bag_play.add_arguments(p)

@@ -16,6 +16,7 @@ the only copies are the read from the file and, for compressed chunks, the decom
 from __future__ import annotations
 
 import bisect
+import contextlib
 import heapq
 import io
 import itertools
@@ -25,6 +26,7 @@ import struct
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
@@ -33,7 +35,7 @@ from mcap.stream_reader import StreamReader
 
 from baglib.format.mcap_records import MAGIC, InvalidRecord, Totals, decompress, scan
 from baglib.format.metadata import parse_qos_profiles
-from baglib.read.storage_reader import BagReadError, FileTopic, RawMessage
+from baglib.read.storage_reader import BagReadError, ByteSource, FileTopic, RawMessage
 
 __all__ = ["McapReader"]
 
@@ -65,16 +67,21 @@ class _Unit:
 
 
 class McapReader:
-    """One MCAP file open for reading; safe to read from several threads (positioned reads only)."""
+    """One MCAP file open for reading; safe to read from several threads (positioned reads only). ``source``:
+    the file's bytes come from there (an object in a store) instead of from ``path``, which then only names it."""
 
     storage_id = "mcap"
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, source: ByteSource | None = None) -> None:
         self.path = path
-        try:
-            self._fd = os.open(path, os.O_RDONLY)
-        except OSError as error:
-            raise BagReadError(f"cannot open {path}: {error.strerror}") from error
+        self._source = source
+        self._fd = -1
+        if source is None:
+            try:
+                self._fd = os.open(path, os.O_RDONLY)
+            except OSError as error:
+                raise BagReadError(f"cannot open {path}: {error.strerror}") from error
+        self._closed = False
         try:
             self._open()
         except BaseException:
@@ -82,8 +89,8 @@ class McapReader:
             raise
 
     def _open(self) -> None:
-        size = os.fstat(self._fd).st_size
-        if os.pread(self._fd, len(MAGIC), 0) != MAGIC:
+        size = os.fstat(self._fd).st_size if self._source is None else self._source.seek(0, io.SEEK_END)
+        if self._read(len(MAGIC), 0) != MAGIC:
             raise BagReadError(f"{self.path} is not an MCAP file (no MCAP magic at its start)")
         schemas, channels, metadata = self._read_indexed(size) or self._read_linearly(size)
         self.topics = [_file_topic(channel, schemas.get(channel.schema_id), self.path)
@@ -96,12 +103,12 @@ class McapReader:
                                                  ] | None:
         """Schemas, channels and metadata from the summary; sets the units (from its chunk indexes),
         counts and time range. ``None`` when the file has no usable summary."""
-        with open(self._fd, "rb", closefd=False) as file:
+        with self._stream() as file:
             try:
                 summary = SeekingReader(file).get_summary()
                 metadata: dict[str, dict[str, str]] = {}
                 for index in summary.metadata_indexes if summary is not None else ():
-                    record = next(StreamReader(io.BytesIO(os.pread(self._fd, index.length, index.offset)),
+                    record = next(StreamReader(io.BytesIO(self._read(index.length, index.offset)),
                                                skip_magic=True).records, None)
                     if isinstance(record, Metadata):
                         metadata[record.name] = record.metadata
@@ -131,7 +138,7 @@ class McapReader:
     def _read_linearly(self, size: int) -> tuple[dict[int, Schema], dict[int, Channel], dict[str, dict[str, str]]]:
         """Schemas, channels and metadata of everything complete before the file's first damage, as
         ``bag recover`` keeps it; sets the units, counts and time range of those records."""
-        with open(self._fd, "rb", closefd=False) as file:
+        with self._stream() as file:
             found = scan(file, size, check_chunks=True)
         if found.damage is not None:
             _log.warning("%s has no summary: %s; reading the %d complete records before offset %d",
@@ -159,10 +166,10 @@ class McapReader:
     def _list_top_level_messages(self, size: int) -> list[_Unit]:
         """The units of a file whose summary has no chunk indexes, from the record headers alone."""
         units = []
-        header_length = _RECORD.unpack(os.pread(self._fd, _RECORD.size, len(MAGIC)))[1]
+        header_length = _RECORD.unpack(self._read(_RECORD.size, len(MAGIC)))[1]
         position = len(MAGIC) + _RECORD.size + header_length
         while position + _RECORD.size <= size:
-            head = os.pread(self._fd, _MESSAGE.size, position)
+            head = self._read(_MESSAGE.size, position)
             opcode, length = _RECORD.unpack_from(head)
             end = position + _RECORD.size + length
             if opcode == Opcode.DATA_END or end > size:
@@ -176,9 +183,9 @@ class McapReader:
         return units
 
     def _chunk_from_header(self, position: int, end: int) -> _Unit:
-        head = os.pread(self._fd, _CHUNK_HEAD.size, position)
+        head = self._read(_CHUNK_HEAD.size, position)
         _, _, start_ns, end_ns, uncompressed_size, _, name_length = _CHUNK_HEAD.unpack(head)
-        compression = os.pread(self._fd, name_length, position + _CHUNK_HEAD.size).decode()
+        compression = self._read(name_length, position + _CHUNK_HEAD.size).decode()
         data_offset = position + _CHUNK_HEAD.size + name_length + 8
         index = ChunkIndex(message_start_time=start_ns, message_end_time=end_ns, chunk_start_offset=position,
                            chunk_length=end - position, message_index_offsets={}, message_index_length=0,
@@ -230,6 +237,7 @@ class McapReader:
             yield entry[3], entry[0], entry[4], entry[5]
 
     def close(self) -> None:
+        self._closed = True
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
@@ -280,13 +288,24 @@ class McapReader:
         return content
 
     def _pread(self, length: int, offset: int) -> bytes:
-        if self._fd < 0:
+        if self._closed:
             raise BagReadError(f"{self.path} is closed")
-        data = os.pread(self._fd, length, offset)
+        data = self._read(length, offset)
         if len(data) != length:
             raise BagReadError(f"{self.path} ends at offset {offset + len(data)}, inside a record its index "
                                f"places at {offset} (was the file cut after it was indexed?)")
         return data
+
+    def _read(self, length: int, offset: int) -> bytes:
+        """Up to ``length`` bytes at ``offset``, from the file or the source."""
+        return os.pread(self._fd, length, offset) if self._source is None else self._source.pread(length, offset)
+
+    def _stream(self) -> contextlib.AbstractContextManager[BinaryIO]:
+        """The file (or the source) as a seekable binary stream at its start, for the mcap library's readers."""
+        if self._source is None:
+            return open(self._fd, "rb", closefd=False)
+        self._source.seek(0)
+        return contextlib.nullcontext(self._source)
 
     def _damaged(self, unit: _Unit, what: str) -> BagReadError:
         return BagReadError(f"{self.path}: {what} in the {'chunk' if unit.chunk else 'record'} at offset "

@@ -18,7 +18,8 @@ from baglib.format.metadata import METADATA_FILENAME, SAFE_LOADER, FileInfo, par
 from baglib.format.bag_files import RECOVER_COMMAND, storage_files
 from baglib.read.storage_reader import BagReadError
 
-__all__ = ["SUPPORTED_VERSIONS", "StoredMetadata", "StoredTopic", "load_metadata", "parse_metadata"]
+__all__ = ["SUPPORTED_VERSIONS", "StoredMetadata", "StoredTopic", "load_metadata", "metadata_from_text",
+           "parse_metadata"]
 
 SUPPORTED_VERSIONS = range(4, 10)
 
@@ -85,10 +86,15 @@ def load_metadata(bag_dir: str | Path) -> StoredMetadata:
         raise BagReadError(f"cannot read {path}: {error.strerror or error}") from error
     except UnicodeDecodeError as error:
         raise BagReadError(f"cannot read {path}: not UTF-8 text ({error.reason})") from error
-    document = _load_yaml(text, str(path))
+    return metadata_from_text(text, str(path))
+
+
+def metadata_from_text(text: str, source: str) -> StoredMetadata:
+    """The metadata in ``text``, a ``metadata.yaml`` read from ``source`` (a path, or an object in a store)."""
+    document = _load_yaml(text, source)
     if not isinstance(document, dict) or "rosbag2_bagfile_information" not in document:
-        raise BagReadError(f"{path} has no rosbag2_bagfile_information")
-    return parse_metadata(document["rosbag2_bagfile_information"], str(path))
+        raise BagReadError(f"{source} has no rosbag2_bagfile_information")
+    return parse_metadata(document["rosbag2_bagfile_information"], source)
 
 
 def parse_metadata(document: Any, source: str) -> StoredMetadata:

@@ -28,7 +28,7 @@ from baglib.read.mcap_reader import McapReader
 from baglib.format.metadata import METADATA_FILENAME, normalize_type
 from baglib.read.metadata_read import StoredMetadata, load_metadata, parse_metadata
 from baglib.read.sqlite_reader import SqliteReader
-from baglib.read.storage_reader import BagReadError, StorageReader
+from baglib.read.storage_reader import BagReadError, ByteSource, StorageReader
 
 __all__ = ["BagMessage", "BagReadError", "BagReader", "Connection"]
 
@@ -96,6 +96,8 @@ class BagReader:
     Args:
         uri: the bag directory, or a single storage file (then everything is read from the file).
         storage_id: ``"mcap"`` or ``"sqlite3"`` to override what the metadata or file name says.
+        source: a single MCAP file's bytes, read from elsewhere than ``uri`` (an object in a store, by range
+            requests); ``uri`` then only names the file.
 
     Raises:
         BagReadError: no bag there (a directory with storage files but no ``metadata.yaml`` is named
@@ -108,7 +110,7 @@ class BagReader:
     ``connections`` (``connections[i].id == i``), ``custom_data``.
     """
 
-    def __init__(self, uri: str | os.PathLike[str], storage_id: str = "") -> None:
+    def __init__(self, uri: str | os.PathLike[str], storage_id: str = "", source: ByteSource | None = None) -> None:
         self.path = Path(uri)
         self._storages: list[StorageReader] = []
         self._temporary: Path | None = None
@@ -119,7 +121,9 @@ class BagReader:
             raise BagReadError(f"unknown storage id {storage_id!r} for {self.path} (this reader reads "
                                f"{', '.join(_STORAGES)})")
         try:
-            if self.path.is_dir():
+            if source is not None:
+                self._open_file(storage_id, source)
+            elif self.path.is_dir():
                 self._open_directory(storage_id)
             elif self.path.is_file():
                 self._open_file(storage_id)
@@ -154,7 +158,7 @@ class BagReader:
                   for stored in metadata.topics]
         self._connect(topics, from_metadata=True)
 
-    def _open_file(self, storage_id: str) -> None:
+    def _open_file(self, storage_id: str, source: ByteSource | None = None) -> None:
         name = self.path.name
         file_compression = name.endswith(_FILE_COMPRESSION_SUFFIX)
         if file_compression:
@@ -162,13 +166,21 @@ class BagReader:
         self.storage_id = storage_id or next(
             (storage for storage, (_, extension) in _STORAGES.items() if name.endswith(extension)), "")
         if not self.storage_id and not file_compression:
-            with open(self.path, "rb") as file:
-                start = file.read(16)
+            if source is None:
+                with open(self.path, "rb") as file:
+                    start = file.read(16)
+            else:
+                start = source.pread(16, 0)
             self.storage_id = next((storage for magic, storage in _MAGICS.items() if start.startswith(magic)), "")
         if not self.storage_id:
             raise BagReadError(f"{self.path} is neither an MCAP nor an SQLite3 file (nor a bag directory)")
         self.files = [self.path]
-        self._open_storages(file_compression)
+        if source is None:
+            self._open_storages(file_compression)
+        elif self.storage_id == McapReader.storage_id and not file_compression:
+            self._storages.append(McapReader(self.path, source))
+        else:
+            raise BagReadError(f"{self.path}: only an uncompressed MCAP file is read where it is stored")
         storage = self._storages[0]
         embedded = _embedded_metadata(storage)
         if embedded is not None:

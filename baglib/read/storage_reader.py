@@ -11,7 +11,7 @@ from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-__all__ = ["BagReadError", "FileTopic", "RawMessage", "StorageReader"]
+__all__ = ["BagReadError", "ByteSource", "FileTopic", "RawMessage", "StorageReader"]
 
 
 class BagReadError(Exception):
@@ -35,6 +35,18 @@ class FileTopic:
     offered_qos_profiles: tuple[dict[str, Any], ...]
     type_description_hash: str
     message_definition: tuple[str, str] | None
+
+
+class ByteSource(Protocol):
+    """A storage file's bytes read from elsewhere than a local file (an object in a store, by range requests):
+    a seekable binary stream, which also reads at an offset without moving (``os.pread``'s order of
+    arguments; thread-safe)."""
+
+    def pread(self, length: int, offset: int) -> bytes: ...
+
+    def seek(self, offset: int, whence: int = 0) -> int: ...
+
+    def read(self, size: int = -1) -> bytes: ...
 
 
 #: (topic key, log time, publish time, data); data may be a memoryview into a chunk.

@@ -26,11 +26,11 @@ from __future__ import annotations
 
 import datetime
 from collections import defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from baglib.read.metadata_read import StoredTopic, load_metadata
+from baglib.read.metadata_read import StoredMetadata, StoredTopic, load_metadata
 from baglib.read.reader import BagReader
 from baglib.format.action_topics import SERVICE_INTERFACES, action_interface, action_name, \
     action_type, is_action_topic
@@ -57,7 +57,7 @@ class BagInfoError(BagReadError):
 
 
 @dataclass
-class _Summary:
+class BagSummary:
     """What ``bag info`` prints, from ``metadata.yaml`` or from a storage file itself."""
 
     files: list[str]
@@ -71,30 +71,46 @@ class _Summary:
     custom_data: dict[str, str] = field(default_factory=dict)
 
 
-def _directory_summary(bag_dir: Path) -> _Summary:
+def listed_files(meta: StoredMetadata) -> list[str]:
+    """The storage files ``metadata.yaml`` lists, as ``bag info`` names them."""
+    return [info.path for info in meta.files] or meta.relative_file_paths
+
+
+def directory_summary(meta: StoredMetadata, sizes: Mapping[str, int]) -> BagSummary:
+    """A bag directory's summary from its ``metadata.yaml`` and the sizes of its files (name -> bytes; a file
+    missing there is not counted), wherever the bag is: here, or in a store."""
+    files = listed_files(meta)
+    return BagSummary(files, sum(sizes.get(f, 0) for f in files), meta.storage_identifier, meta.ros_distro,
+                      meta.starting_time_ns, meta.duration_ns, meta.message_count, meta.topics, meta.custom_data)
+
+
+def file_summary(reader: BagReader, size: int) -> BagSummary:
+    """A single storage file's summary from what the open ``reader`` of it found; ``size`` in bytes."""
+    topics = [StoredTopic(c.topic, c.msgtype, c.serialization_format, c.offered_qos_profiles,
+                          c.type_description_hash, c.message_count)
+              for c in reader.connections]
+    return BagSummary([reader.path.name], size, reader.storage_id, reader.ros_distro, reader.starting_time_ns,
+                      reader.duration_ns, reader.message_count, topics)
+
+
+def _directory_summary(bag_dir: Path) -> BagSummary:
     try:
         meta = load_metadata(bag_dir)
     except BagReadError as error:
         raise BagInfoError(str(error)) from error
-    files = [info.path for info in meta.files] or meta.relative_file_paths
-    size = sum((bag_dir / f).stat().st_size for f in files if (bag_dir / f).exists())
-    return _Summary(files, size, meta.storage_identifier, meta.ros_distro, meta.starting_time_ns, meta.duration_ns,
-                    meta.message_count, meta.topics, meta.custom_data)
+    return directory_summary(meta, {f: (bag_dir / f).stat().st_size for f in listed_files(meta)
+                                    if (bag_dir / f).exists()})
 
 
-def _file_summary(path: Path) -> _Summary:
+def _file_summary(path: Path) -> BagSummary:
     try:
         with BagReader(path) as reader:
-            topics = [StoredTopic(c.topic, c.msgtype, c.serialization_format, c.offered_qos_profiles,
-                                  c.type_description_hash, c.message_count)
-                      for c in reader.connections]
-            return _Summary([path.name], path.stat().st_size, reader.storage_id, reader.ros_distro,
-                            reader.starting_time_ns, reader.duration_ns, reader.message_count, topics)
+            return file_summary(reader, path.stat().st_size)
     except BagReadError as error:
         raise BagInfoError(str(error)) from error
 
 
-def _summary(path: Path) -> _Summary:
+def _summary(path: Path) -> BagSummary:
     if path.is_file():
         return _file_summary(path)
     if not path.exists():
@@ -253,12 +269,14 @@ def _frame_accounts(custom_data: dict[str, str]) -> list[str]:
 
 
 def format_bag_info(bag: str | Path, sort: str = "name", verbose: bool = False,
-                    topic_names_only: bool = False) -> str:
+                    topic_names_only: bool = False, summary: BagSummary | None = None) -> str:
     """The ``ros2 bag info`` text for ``bag``: a bag directory (``metadata.yaml`` of any version from 4 to 9) or
     one storage file; ``sort``, ``verbose`` and ``topic_names_only`` as ``--sort``, ``--verbose`` and
-    ``--topic-name`` (``verbose`` wins over ``topic_names_only``, as in rosbag2)."""
+    ``--topic-name`` (``verbose`` wins over ``topic_names_only``, as in rosbag2). ``summary``: what to print,
+    read elsewhere (a bag in a store, :func:`directory_summary`, :func:`file_summary`); ``verbose`` then reads
+    no messages, the caller refuses it."""
     bag = Path(bag)
-    summary = _summary(bag)
+    summary = summary or _summary(bag)
     actions: dict[str, _Action] = {}
     for topic in summary.topics:
         if is_action_topic(topic.name, topic.type):

@@ -55,6 +55,11 @@ def make_client(endpoint_url: str = "", read_timeout: float = READ_TIMEOUT) -> A
                           region_name=session.region_name or "us-east-1", config=config)
 
 
+def is_not_found(error: botocore.exceptions.ClientError) -> bool:
+    """The request failed because the key (or the multipart upload) is not there."""
+    return str(error.response.get("Error", {}).get("Code")) in ("404", "NoSuchKey", "NotFound", "NoSuchUpload")
+
+
 def describe(error: BaseException, what: str) -> UploadError:
     """An UploadError saying, in words, why ``what`` failed (wrong credentials, a missing bucket, an
     unreachable or stalled endpoint, a server error)."""

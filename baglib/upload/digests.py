@@ -9,9 +9,10 @@ the whole content instead; both are computed, and either verifies. The part size
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 MiB = 1 << 20
 #: The part size of a multipart upload (S3's minimum is 5 MiB for all but the last part); doubled for a file that
@@ -77,3 +78,13 @@ def file_digests(path: Path, part_size: int, chunk: int = PART_SIZE) -> Digests:
             digests.part_md5s.append(part.digest())
             if left:
                 return digests
+
+
+def matches_object(path: Path, head: Mapping[str, Any]) -> bool:
+    """Whether the local file at ``path`` holds the object a HeadObject answer ``head`` describes: the same size,
+    and an ETag its bytes give with the part size the object records (the default one if it records none)."""
+    size = int(head["ContentLength"])
+    if path.stat().st_size != size:
+        return False
+    part_size = int(head.get("Metadata", {}).get(PART_SIZE_KEY) or 0) or part_size_for(size)
+    return str(head["ETag"]).strip('"') in file_digests(path, part_size).etags(multipart=size > part_size)

@@ -22,8 +22,8 @@ from typing import Any
 
 import botocore.exceptions
 
-from baglib.upload.client import UploadError
-from baglib.upload.digests import PART_SIZE_KEY, Digests, file_digests, part_size_for, parts_of
+from baglib.upload.client import UploadError, is_not_found
+from baglib.upload.digests import PART_SIZE_KEY, Digests, matches_object, part_size_for, parts_of
 from baglib.upload.journal import Entry, UploadJournal
 from baglib.upload.throttle import Throttle
 
@@ -44,10 +44,6 @@ class Transferred:
 
 def _md5_header(hex_digest: str) -> str:
     return base64.b64encode(bytes.fromhex(hex_digest)).decode()
-
-
-def _not_found(error: botocore.exceptions.ClientError) -> bool:
-    return str(error.response.get("Error", {}).get("Code")) in ("404", "NoSuchKey", "NotFound", "NoSuchUpload")
 
 
 def _etag(value: str) -> str:
@@ -74,7 +70,7 @@ class FileUpload:
         if entry.upload_id is None and not entry.mismatches:
             existing = self._head()
             if existing is not None:
-                return self._existing(existing, size)
+                return self._existing(existing)
         part_size = entry.part_size or part_size_for(size)
         if size <= part_size:
             return self._single(size, part_size)
@@ -90,17 +86,14 @@ class FileUpload:
         try:
             return self.client.head_object(Bucket=self.entry.bucket, Key=self.entry.key)
         except botocore.exceptions.ClientError as error:
-            if _not_found(error):
+            if is_not_found(error):
                 return None
             raise
 
-    def _existing(self, head: dict[str, Any], size: int) -> Transferred:
+    def _existing(self, head: dict[str, Any]) -> Transferred:
         """An object is at the key already: done if it is this file, an error otherwise."""
-        stored = int(head.get("Metadata", {}).get(PART_SIZE_KEY) or 0) or part_size_for(size)
-        if head["ContentLength"] == size:
-            digests = file_digests(self.entry.local, stored)
-            if _etag(head["ETag"]) in digests.etags(multipart=size > stored):
-                return Transferred(already_there=True)
+        if matches_object(self.entry.local, head):
+            return Transferred(already_there=True)
         raise UploadError(f"{self.target} exists and holds other content ({head['ContentLength']} bytes, "
                           f"ETag {head['ETag']}) than {self.entry.local}: not overwritten", permanent=True)
 
@@ -148,7 +141,7 @@ class FileUpload:
                     return parts
                 marker = page["NextPartNumberMarker"]
         except botocore.exceptions.ClientError as error:
-            if _not_found(error):
+            if is_not_found(error):
                 return None
             raise
 
@@ -161,7 +154,7 @@ class FileUpload:
                 self.journal.start_multipart(entry.id, None, None)
                 existing = self._head()
                 if existing is not None and not entry.mismatches:
-                    return self._existing(existing, size)
+                    return self._existing(existing)
                 upload_id = None
         if upload_id is None:
             upload_id = self.client.create_multipart_upload(
