@@ -3,7 +3,7 @@
 The same journal and uploader as the recorder's upload process, so a ``bag upload`` cut short, or a container
 that exited with uploads pending, is resumed from the last confirmed part (``resume``), and a bag that is
 already in the store costs a read of the local files and no transfer. Before anything is queued the bucket is
-asked for (``HeadBucket``), so wrong credentials, a missing bucket or an unreachable endpoint are an error
+listed, so wrong credentials, a missing bucket or an unreachable endpoint are an error
 that leaves every local file as it was.
 """
 from __future__ import annotations
@@ -64,8 +64,8 @@ def _bag_files(bag: Path) -> list[Path]:
 
 def check_access(location: S3Location, endpoint_url: str) -> None:
     """UploadError, worded, unless the bucket can be reached with the configured credentials."""
-    try:
-        make_client(endpoint_url).head_bucket(Bucket=location.bucket)
+    try:  # a listing, not HeadBucket: a HEAD answer has no body, so its errors come without a code
+        make_client(endpoint_url).list_objects_v2(Bucket=location.bucket, Prefix=location.prefix, MaxKeys=1)
     except Exception as error:  # noqa: BLE001 - worded by describe
         raise describe(error, f"reaching {location.uri}") from None
 
