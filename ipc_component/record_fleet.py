@@ -54,6 +54,17 @@ def bag_directory(session: str, link: ContainerLink) -> str:
     return f"{session}/{link.host}_{link.name.strip('/').replace('/', '_')}"
 
 
+def upload_uri(uri: str, session: str) -> str:
+    """``--upload``: each recorder uploads under ``PREFIX/<session>``, so its bag's keys are
+    ``PREFIX/<session>/<host>_<container>/<file>``: two robots, or two sessions, never share a key."""
+    from baglib.upload.location import parse_s3_uri
+
+    try:
+        return parse_s3_uri(uri, "--upload").child(session).uri
+    except ValueError as error:
+        raise CliError(str(error)) from None
+
+
 def instant_ns(args: argparse.Namespace, default_in: float) -> int:
     """The scheduled instant on this computer's clock: ``--at``, else now + ``--in``."""
     if args.at is not None:
@@ -78,8 +89,10 @@ FLAG_PARAMETERS: list[tuple[str, str, Callable[[Any], Any]]] = [
 
 def _options_given(args: argparse.Namespace) -> dict[str, str]:
     """The recorder parameters this ``record start`` set from its options, by option (for the recorders' errors)."""
-    return {parameter: f"--{option.replace('_', '-')}" for option, parameter, _ in FLAG_PARAMETERS
-            if getattr(args, option)}
+    given = {parameter: f"--{option.replace('_', '-')}" for option, parameter, _ in FLAG_PARAMETERS
+             if getattr(args, option)}
+    uploads = {"upload.uri": "--upload", "upload.endpoint_url": "--upload-endpoint-url"}
+    return given | {parameter: option for parameter, option in uploads.items() if args.upload}
 
 
 def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse.Namespace) -> list[Any]:
@@ -100,6 +113,10 @@ def _parameters(session: str, link: ContainerLink, start_ns: int, args: argparse
         value = getattr(args, option)
         if value:
             ours[parameter] = convert(value)
+    if args.upload:
+        ours["upload.uri"] = upload_uri(args.upload, session)
+        if args.upload_endpoint_url:
+            ours["upload.endpoint_url"] = args.upload_endpoint_url
     if not names & set(SELECTION) and not (args.actions or args.all_actions):
         ours["record.all_topics"] = True
     clash = names & set(ours)
@@ -145,6 +162,8 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     if not SESSION_NAME.match(session):
         raise CliError(f"Invalid --session '{session}': use letters, digits and '_'")
     parameter_msgs(args.parameters, "parameter")  # a malformed -p is refused before any ROS traffic
+    if args.upload:
+        upload_uri(args.upload, session)  # so is a bad --upload
     with RosSession(ros_args) as ros:
         found = _discover(ros, args.spin_time)
         containers, missing = _select(sorted(found), args.containers)
@@ -403,6 +422,11 @@ def add_record_parser(verbs: Any) -> Any:
     p.add_argument("--all-actions", action="store_true", help="record every action (record.all_actions)")
     p.add_argument("--exclude-actions", nargs="+", metavar="ACTION",
                    help="do not record these actions (record.exclude_actions)")
+    p.add_argument("--upload", metavar="s3://BUCKET/PREFIX",
+                   help="upload every finished file to S3-compatible storage, under PREFIX/<session>/<host>_"
+                        "<container>/ (upload.uri; credentials from each container's AWS environment)")
+    p.add_argument("--upload-endpoint-url", metavar="URL",
+                   help="the S3-compatible store to upload to (upload.endpoint_url; default: the AWS configuration)")
     p.add_argument("-p", "--parameter", action="append", dest="parameters",
                    help="a recorder parameter, in the 'name:=value' form")
     p.add_argument("--spin-time", type=float, default=DISCOVERY, help="seconds to discover containers")

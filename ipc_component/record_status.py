@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Sequence
 
 from baglib.format import fleet_keys
+from baglib.upload.journal import summary_text
 from ipc_component.recorder_lookup import find_recorders
 from ipc_component.ros_session import BUDGET, CliError, RosSession
 from ipc_component.text_table import format_table
@@ -22,7 +23,7 @@ from ipc_component.verb_arguments import add_verb
 if TYPE_CHECKING:
     from ipc_component.fleet_link import ContainerLink
 
-HEADER = ("HOST", "CONTAINER", "SESSION", "BAG", "ELAPSED", "MB/S", "MESSAGES", "DROPS", "FREE", "TO FULL")
+HEADER = ("HOST", "CONTAINER", "SESSION", "BAG", "ELAPSED", "MB/S", "MESSAGES", "DROPS", "FREE", "TO FULL", "UPLOAD")
 
 
 @dataclass
@@ -55,7 +56,7 @@ def _row(link: ContainerLink, node_name: str, sample: Sample, previous: Sample |
     return (link.host, link.name, custom.get(fleet_keys.SESSION, "-"), current.get("bag", node_name), elapsed,
             f"{rate / 1e6:.1f}", str(sum(t["written"] for t in topics)), str(sum(t["dropped"] for t in topics)),
             f"{current['free_bytes'] / 1e9:.1f} GB" if "free_bytes" in current else "-",
-            "-" if left is None else f"{left / 60:.0f} min")
+            "-" if left is None else f"{left / 60:.0f} min", summary_text(stats.get("upload")))
 
 
 def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
@@ -78,7 +79,7 @@ def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
             for (c, n) in placed:
                 reply = replies.get(f"{c}\n{n}")
                 if reply is None:
-                    rows.append((links[c].host or "?", c, "-", n, "no reply", "-", "-", "-", "-", "-"))
+                    rows.append((links[c].host or "?", c, "-", n, "no reply", "-", "-", "-", "-", "-", "-"))
                     continue
                 sample = Sample(time.monotonic(), json.loads(reply.message))
                 rows.append(_row(links[c], n, sample, previous.get((c, n))))

@@ -17,7 +17,7 @@ import contextlib
 import sqlite3
 import threading
 import time
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -192,3 +192,15 @@ class UploadJournal:
             "last_error": error if pending[0] else "",
             "complete": pending[0] == 0,
         }
+
+
+def summary_text(stats: Mapping[str, Any] | None) -> str:
+    """A :meth:`UploadJournal.summary` in a few words (``-``: no upload), for ``top`` and ``record status``."""
+    if not stats:
+        return "-"
+    if stats["last_error"]:
+        return f"failing ({stats['files_pending']} files pending): {stats['last_error']}"
+    if stats["complete"]:
+        return f"complete ({stats['files_uploaded']} files)"
+    return (f"{stats['files_pending']} files, {stats['bytes_pending'] / 1e6:.1f} MB pending, "
+            f"{stats['rate'] / 1e6:.1f} MB/s")

@@ -45,6 +45,7 @@ from std_srvs.srv import Trigger
 
 from component_container.component_node import ComponentNode
 from component_container.health import OK, WARN, Health
+from baglib.upload.journal import summary_text
 from baglib.write.writer import BagWriter
 from baglib.format.action_topics import INTERFACES, SERVICE_INTERFACES, actions_of
 from baglib.format.message_definitions import message_definition
@@ -434,7 +435,9 @@ class Recorder(ComponentNode):
             upload = self._uploads.stats()
             health.values.update(upload_values(upload))
             if upload["last_error"] and health.level == OK:
-                health = Health(WARN, f"upload failing: {upload['last_error']}", health.values)
+                health = Health(WARN, f"upload {summary_text(upload)}", health.values)
+            else:
+                health.message += f"; upload {summary_text(upload)}"
         return health
 
     def work_left(self) -> Health | None:
@@ -444,9 +447,7 @@ class Recorder(ComponentNode):
         upload = self._uploads.stats()
         if upload["complete"] or not upload["running"]:
             return None
-        return Health(WARN if upload["last_error"] else OK,
-                      f"uploading: {upload['files_pending']} files pending"
-                      + (f" ({upload['last_error']})" if upload["last_error"] else ""), upload_values(upload))
+        return Health(WARN if upload["last_error"] else OK, f"upload {summary_text(upload)}", upload_values(upload))
 
     # --- services -----------------------------------------------------------------------------------------
     def _set_paused(self, paused: bool) -> None:
