@@ -110,5 +110,5 @@ def test_a_failing_server_is_named_and_the_uploads_complete_once_it_recovers(
             assert unloaded_uploads_done(manager, 60.0), upload_summary(tmp_path, "s3://bags/robot")
             summary = upload_summary(tmp_path, "s3://bags/robot")
             assert summary["complete"] and summary["files_uploaded"] >= 3 and not summary["last_error"], summary
-            assert not (tmp_path / "run").exists()  # verified, then deleted
+            assert not (tmp_path / "run").exists(), sorted(p.name for p in (tmp_path / "run").iterdir())  # deleted
             assert "robot/run/metadata.yaml" in stored(server, "bags", "robot/")

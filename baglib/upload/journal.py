@@ -175,6 +175,8 @@ class UploadJournal:
                           "WHERE uri = ? GROUP BY state", uri)
         by_state = {state: (count, size or 0, sent or 0, reused or 0, mismatches or 0)
                     for state, count, size, sent, reused, mismatches in rows}
+        deleting = self._rows("SELECT COUNT(*) FROM files WHERE uri = ? AND state = 'verified' AND delete_after",
+                              uri)[0][0]  # verified, about to be deleted here: not complete until they are
         reporter = self._rows("SELECT rate, error FROM uploader WHERE uri = ?", uri)
         rate, error = reporter[0] if reporter else (0.0, "")
         pending = by_state.get("pending", (0, 0, 0, 0, 0))
@@ -190,7 +192,7 @@ class UploadJournal:
             "deleted_before_upload": by_state.get("lost", (0,))[0],
             "rate": rate if pending[0] else 0.0,
             "last_error": error if pending[0] else "",
-            "complete": pending[0] == 0,
+            "complete": pending[0] == 0 and deleting == 0,
         }
 
 

@@ -76,9 +76,9 @@ class Uploader:
         self.journal.finish(entry.id, "verified")
         if entry.delete_after:
             entry.local.unlink(missing_ok=True)
-            self.journal.mark_deleted(entry.local)
             if entry.local.name == METADATA_FILENAME:
                 _remove_if_empty(entry.local.parent)
+            self.journal.mark_deleted(entry.local)
         self.journal.report(entry.uri, self._rate(), "")
         self.on_file(entry, done)
 
