@@ -146,3 +146,48 @@ def test_bad_upload_parameters_are_load_errors_that_name_them(
     assert "secret" not in str(refused.value)
     assert not (tmp_path / "bag").exists()
     assert [c.full_name for c in manager.components()] == ["/imu", "/cam"]
+
+
+def test_the_disk_guard_takes_back_verified_files_first_and_circular_recording_counts_what_it_deletes(
+        manager: ComponentManager, s3: S3Server, bucket: str, tmp_path: Path) -> None:
+    """On a 24 MiB tmpfs a recording of more than the disk holds goes on: the free-space guard deletes files
+    verified in the store, oldest first, instead of stopping; none was lost. Then circular recording
+    (``storage.max_bag_files``) with the store down: each file it deletes unverified is counted as
+    ``deleted_before_upload``, and what it kept is uploaded once the store is back."""
+    with small_filesystem(tmp_path / "small", 24 * MIB) as mounted:
+        assert mounted, "needs root to mount a small tmpfs (the tests run as root in CI)"
+        root = tmp_path / "small"
+        uri = f"s3://{bucket}/guard"
+        recorder = load(manager, "Recorder", "recorder", **{
+            "storage.uri": str(root / "run"), "record.topics": ["/cam/image_raw"],
+            "storage.max_bagfile_size": 2 * MIB, "storage.min_free_space": 8 * MIB, "upload.uri": uri,
+            "upload.endpoint_url": s3.endpoint_url})
+        assert wait_until(lambda: recorder.node.stats()["current"]["bytes_written"] > 40 * MIB, 30.0), \
+            recorder.node.stats()["current"]
+        assert not recorder.node.stats()["current"]["error"]
+        manager.unload(recorder.unique_id)
+        assert unloaded_uploads_done(manager, 60.0)
+        summary = upload_summary(root, uri)
+        assert summary["complete"] and summary["deleted_before_upload"] == 0, summary
+        remote = stored(s3, bucket, "guard/run/")
+        here = {path.name for path in (root / "run").iterdir()}
+        assert len(remote) > len(here) and here <= {key.rpartition("/")[2] for key in remote}
+
+    root = tmp_path  # the ordinary disk
+    uri = f"s3://{bucket}/circular"
+    s3.kill()
+    try:
+        recorder = load(manager, "Recorder", "recorder", **{
+            "storage.uri": str(root / "circular"), "record.topics": ["/imu/imu"],
+            "storage.max_bagfile_duration": 1.0, "storage.max_bag_files": 2, "upload.uri": uri,
+            "upload.endpoint_url": s3.endpoint_url})
+        assert wait_until(lambda: recorder.node.stats()["upload"]["deleted_before_upload"] >= 2, 20.0), \
+            recorder.node.stats()["upload"]
+    finally:
+        s3.start()
+    manager.unload(recorder.unique_id)
+    assert unloaded_uploads_done(manager, 60.0)
+    summary = upload_summary(root, uri)
+    kept = sorted(path.name for path in (root / "circular").iterdir())
+    assert summary["complete"] and summary["deleted_before_upload"] >= 2, summary
+    assert sorted(key.rpartition("/")[2] for key in stored(s3, bucket, "circular/circular/")) == kept

@@ -92,11 +92,15 @@ class UploadJournal:
     # --- the queue --------------------------------------------------------------------------------------
     def enqueue(self, local: Path, uri: str, endpoint: str, bucket: str, key: str, delete_after: bool) -> int:
         """Queue ``local`` (a closed file) for ``bucket``/``key``; its entry's id (the existing one if it is
-        queued or done already)."""
+        queued or done already). A file already gone (circular recording took it at once) is entered as lost."""
+        try:
+            size, state = local.stat().st_size, "pending"
+        except FileNotFoundError:
+            size, state = 0, "lost"
         with self._transaction() as db:
-            db.execute("INSERT OR IGNORE INTO files(local, uri, endpoint, bucket, key, size, delete_after) "
-                       "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                       (str(local), uri, endpoint, bucket, key, local.stat().st_size, int(delete_after)))
+            db.execute("INSERT OR IGNORE INTO files(local, uri, endpoint, bucket, key, size, delete_after, state) "
+                       "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                       (str(local), uri, endpoint, bucket, key, size, int(delete_after), state))
             return db.execute("SELECT id FROM files WHERE local = ? AND bucket = ? AND key = ?",
                               (str(local), bucket, key)).fetchone()[0]
 

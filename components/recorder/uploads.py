@@ -89,9 +89,8 @@ class BagUploads:
             journal = self._journal(bag.parent)
             location = self.options.location.child(bag.name)
             for path in files:
-                if path.exists():
-                    journal.enqueue(path, self.options.location.uri, self.options.endpoint_url,
-                                    location.bucket, location.key(path.name), self.options.delete_after)
+                journal.enqueue(path, self.options.location.uri, self.options.endpoint_url, location.bucket,
+                                location.key(path.name), self.options.delete_after)
             upload_process.wake(journal.path)
 
     def _journal(self, directory: Path) -> UploadJournal:
