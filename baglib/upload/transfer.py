@@ -15,7 +15,6 @@ attempt put it there.
 from __future__ import annotations
 
 import base64
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -54,12 +53,12 @@ class FileUpload:
     """Uploads one journal entry with ``client``; ``progress(bytes)`` is called after each request."""
 
     def __init__(self, client: Any, journal: UploadJournal, entry: Entry, throttle: Throttle,
-                 stop: threading.Event, progress: Callable[[int], None] = lambda sent: None) -> None:
+                 progress: Callable[[int], None] = lambda sent: None) -> None:
+        """``throttle`` also carries the stop: a request not yet started is not started once it is set."""
         self.client = client
         self.journal = journal
         self.entry = entry
         self.throttle = throttle
-        self.stop = stop
         self.progress = progress
         self.target = f"s3://{entry.bucket}/{entry.key}"
 

@@ -51,7 +51,7 @@ class Uploader:
             if entry is None:
                 return None
             try:
-                done = FileUpload(self._client(entry.endpoint), self.journal, entry, self.throttle, self.stop,
+                done = FileUpload(self._client(entry.endpoint), self.journal, entry, self.throttle,
                                   lambda sent, entry=entry: self._progress(entry, sent)).run()
             except Interrupted:
                 return None

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from baglib.format.metadata import METADATA_FILENAME
 from baglib.read.metadata_read import load_metadata
