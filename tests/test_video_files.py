@@ -7,6 +7,8 @@ program on its own: it must give one picture per recorded message, from the file
 """
 from __future__ import annotations
 
+import os
+import random
 import subprocess
 import sys
 import time
@@ -301,3 +303,32 @@ def test_an_overloaded_encoder_is_in_the_bags_accounting(manager: ComponentManag
     info = subprocess.run([sys.executable, "-m", "ipc_component.cli", "bag", "info", str(bag)], capture_output=True,
                           text=True, timeout=30)
     assert f"Frames: {outputs[0]} | Received: {frames.sent}" in info.stdout, info.stdout
+
+
+@pytest.mark.parametrize("cycles", [15, pytest.param(400, marks=pytest.mark.sweep)])
+def test_pauses_of_any_length_leave_nothing_awaiting_a_keyframe(manager: ComponentManager, tmp_path: Path,
+                                                                cycles: int) -> None:
+    """Two cameras recorded compressed, paused and resumed ``cycles`` times for seeded random moments of 0 to 40
+    ms: each resume begins every camera at a keyframe, nothing is left out as awaiting_keyframe. Before, a delta
+    frame the encoder published between the resume and its keyframe request began a camera and was dropped."""
+    seed = int(os.environ.get("IPC_PAUSE_SEED") or 7)
+    print(f"IPC_PAUSE_SEED={seed}")
+    generator = random.Random(seed)
+    cameras = ["/pause/cam0", "/pause/cam1"]
+    bag = tmp_path / "pauses"
+    recorder = load(manager, "Recorder", "rec_pause", **{
+        "storage.uri": str(bag), "record.compress": "h264", "record.compress_topics": cameras,
+        "record.topics": cameras})
+    assert wait_until(lambda: all(f"{c}/video" in recorder.node._topics for c in cameras), 20.0)
+    for i, camera in enumerate(cameras):
+        load(manager, "CameraDriver", f"pause{i}", width=WIDTH, height=HEIGHT, fps=60.0, topic=camera)
+    for _ in range(cycles):
+        time.sleep(generator.uniform(0.0, 0.04))
+        recorder.node._set_paused(True)
+        time.sleep(generator.uniform(0.0, 0.04))
+        recorder.node._set_paused(False)
+    time.sleep(0.2)
+    final = recorder.node.stop_recording()
+    assert {t: r for t, r in final["drop_reasons"].items() if "awaiting_keyframe" in r} == {}, final["drop_reasons"]
+    for camera in cameras:
+        assert_every_file_decodes_whole(bag, f"{camera}/video")

@@ -137,6 +137,12 @@ class EncodeStream:
     def is_video(self) -> bool:
         return self._choice.is_video
 
+    @property
+    def publication(self) -> threading.RLock:
+        """Held while an access unit is published: a reader that holds it knows nothing is published meanwhile
+        (a recorder resumes and asks for a keyframe as one step)."""
+        return self._publish_lock
+
     def published_keyframe(self, stamp: Any) -> bool:
         """Whether the video access unit stamped ``stamp`` (a ``builtin_interfaces/Time``) that this stream
         published is a keyframe: an in-process reader's question, since CompressedVideo has no flag for it."""

@@ -16,9 +16,10 @@ keyframe (components/image_encoder/stream.py). The gate asks for one whenever a 
 Rules:
 
 * **A video topic begins at a keyframe.** At the start of a recording, and after a pause (:meth:`KeyframeGate.paused`:
-  every message received from then on begins each video topic anew), the gate asks for keyframes; a delta frame
-  that would still begin a topic in a file (one published between the resume and the request) is dropped and
-  counted as ``awaiting_keyframe``.
+  every message received from then on begins each video topic anew), the gate asks for keyframes; the recorder
+  resumes and asks as one step, with the encoders' publication held (:meth:`VideoTopics.publication_held`), so no
+  delta frame comes between. A delta frame that would still begin a topic in a file is dropped and counted as
+  ``awaiting_keyframe``.
 * **Each video topic splits at its own keyframe.** When a file is full (``storage.max_bagfile_size`` /
   ``_duration``) or a split is asked for (``~/split_bagfile``, ``record.split_at``), the encoders are asked for
   keyframes. Until a video topic's keyframe comes, its delta frames still go to the old file; its keyframe and
@@ -33,8 +34,10 @@ Rules:
 """
 from __future__ import annotations
 
+import contextlib
 import enum
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from components.image_encoder import outputs
@@ -77,6 +80,16 @@ class VideoTopics:
         encoder published."""
         stream = outputs.stream_for(self._container, topic)
         return stream is not None and stream.published_keyframe(message.timestamp)
+
+    @contextlib.contextmanager
+    def publication_held(self) -> Iterator[None]:
+        """No encoder of a video topic publishes while inside (their publication locks, in topic order)."""
+        with contextlib.ExitStack() as held:
+            for topic in sorted(self._topics):
+                stream = outputs.stream_for(self._container, topic)
+                if stream is not None:
+                    held.enter_context(stream.publication)
+            yield
 
     def request_keyframes(self, at_ns: int | None = None) -> None:
         """Ask the encoder of every video topic for a keyframe: the next access unit each publishes is one (with

@@ -456,9 +456,11 @@ class Recorder(ComponentNode):
             gate = session.gate if session is not None else None
             if paused and gate is not None:
                 gate.paused()  # frames are left out: after the resume, each video topic begins anew
-            self._paused = paused
             if not paused and gate is not None:
-                gate.begin()  # ... at the keyframe asked for now
+                with gate.video.publication_held():  # no delta frame between the resume and the request
+                    self._paused = paused
+                    gate.begin()  # ... at the keyframe asked for now
+            self._paused = paused
             self.get_logger().info("Recording paused" if paused else "Recording resumed")
 
     def _on_pause(self, request: Pause.Request, response: Pause.Response) -> Pause.Response:
