@@ -544,14 +544,15 @@ def upload_table(upload: dict[str, Any]) -> list[str]:
         for mode in ("upload_off", "upload_on"):
             e = s1[mode]
             if not measured(e):
-                rows.append([mode.replace("_", " "), f"failed: {e['error'][:80]}"] + [""] * 6)
+                rows.append([mode.replace("_", " "), f"failed: {e['error'][:80]}"] + [""] * 7)
                 continue
             up = e.get("upload", {})
-            rows.append([mode.replace("_", " "), str(e["published"]), lost_text(e), fmt(e["mb_per_s"]),
+            rows.append([mode.replace("_", " "), f"{e['published']} ({e['min_pub_ratio']:.1%})", lost_text(e),
+                         fmt(e["mb_per_s"]),
                          fmt(e.get("total_cpu_s_per_gb"), ".2f"), fmt(e.get("recorder_cpu_s_per_gb"), ".2f"),
                          fmt(up.get("cpu_s_per_gb"), ".2f"), fmt(up.get("server_cpu_s_per_gb"), ".2f"),
                          fmt(up.get("mb_per_s"), ".0f")])
-        lines += [*markdown(["S1", "published", "lost", "recorded MB/s", "container CPU s per GB",
+        lines += [*markdown(["S1", "published (lowest topic's share of nominal)", "lost", "recorded MB/s", "container CPU s per GB",
                              "recorder's own CPU s per GB", "upload process CPU s per GB uploaded",
                              "server CPU s per GB", "upload MB/s"], rows), "",
                   f"{s1['scenario']['describe']}; files of {s1['split_mb']:g} MiB, each uploaded as it is closed "
