@@ -548,13 +548,13 @@ def upload_table(upload: dict[str, Any]) -> list[str]:
                 continue
             up = e.get("upload", {})
             rows.append([mode.replace("_", " "), f"{e['published']} ({e['min_pub_ratio']:.1%})", lost_text(e),
-                         fmt(e["mb_per_s"]),
-                         fmt(e.get("total_cpu_s_per_gb"), ".2f"), fmt(e.get("recorder_cpu_s_per_gb"), ".2f"),
+                         fmt(e["mb_per_s"]), fmt(e.get("total_cpu_s_per_gb"), ".2f"),
+                         fmt(e.get("recorder_cpu_s_per_gb"), ".2f"),
                          fmt(up.get("cpu_s_per_gb"), ".2f"), fmt(up.get("server_cpu_s_per_gb"), ".2f"),
                          fmt(up.get("mb_per_s"), ".0f")])
-        lines += [*markdown(["S1", "published (lowest topic's share of nominal)", "lost", "recorded MB/s", "container CPU s per GB",
-                             "recorder's own CPU s per GB", "upload process CPU s per GB uploaded",
-                             "server CPU s per GB", "upload MB/s"], rows), "",
+        lines += [*markdown(["S1", "published (lowest topic's share of nominal)", "lost", "recorded MB/s",
+                             "container CPU s per GB", "recorder's own CPU s per GB",
+                             "upload process CPU s per GB uploaded", "server CPU s per GB", "upload MB/s"], rows), "",
                   f"{s1['scenario']['describe']}; files of {s1['split_mb']:g} MiB, each uploaded as it is closed "
                   f"(upload.max_rate 0). Target ({s1['target']['target']}): {s1['target']['result']}; "
                   f"{s1['target']['detail']}."]

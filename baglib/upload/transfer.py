@@ -1,12 +1,12 @@
 """Uploading one file, resumably, and verifying the remote copy against the local bytes.
 
 A file of up to one part goes in a single PUT with its Content-MD5; a larger one as a multipart upload whose id
-and confirmed parts the journal keeps, PARTS_IN_FLIGHT parts under way at a time (in order: a part is confirmed
-in the journal once the store answered it and every part before it). Resuming asks the server which parts it holds (``ListParts``) and reuses
-each whose ETag is the MD5 of the local part, so a cut costs at most the part in flight. Every part carries its
-Content-MD5 and the ETag the server answers must be that MD5. After completion the object's size and ETag must
-match what the local bytes give (:mod:`~baglib.upload.digests`) before the file counts as verified; a mismatch
-is counted and the file uploaded again, never deleted.
+and confirmed parts the journal keeps, PARTS_IN_FLIGHT parts under way at a time (a part is confirmed in the
+journal once the store answered it and every part before it). Resuming asks the server which parts it holds
+(``ListParts``) and reuses each whose ETag is the MD5 of the local part, so a cut costs at most the parts in
+flight. Every part carries its Content-MD5 and the ETag the server answers must be that MD5. After completion the
+object's size and ETag must match what the local bytes give (:mod:`~baglib.upload.digests`) before the file
+counts as verified; a mismatch is counted and the file uploaded again, never deleted.
 
 An object already at the key is never overwritten blindly: if it verifies against the local file, nothing is
 transferred (uploading a bag twice costs a read of it, no bytes); if it holds something else, the upload stops
@@ -18,8 +18,8 @@ from __future__ import annotations
 import base64
 import collections
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
