@@ -48,7 +48,17 @@ ffmpeg:
 test: $(STAMP) ffmpeg bytecode
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 tests
 
-sweep: $(STAMP) ffmpeg bytecode
+# The sweep also checks that Ray Data reads uploaded bags (tests/test_cluster_read.py): the `cluster` extra, which
+# `make test` does not install.
+CLUSTER_STAMP := $(VENV)/.cluster-installed
+
+$(CLUSTER_STAMP): $(STAMP)
+	$(BIN)/python -c 'import tomllib; \
+		print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["cluster"]))' \
+		| $(BIN)/python -m pip install -q -r /dev/stdin
+	touch $(CLUSTER_STAMP)
+
+sweep: $(STAMP) $(CLUSTER_STAMP) ffmpeg bytecode
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --durations=25 -m sweep tests
 
 bench: $(STAMP)

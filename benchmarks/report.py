@@ -524,6 +524,45 @@ def pixel_formats_table(run: dict[str, Any]) -> list[str]:
             f" at the start, {environment['loadavg_end'][0]:.1f} at the end)."]
 
 
+def upload_table(upload: dict[str, Any]) -> list[str]:
+    """Ours against boto3's upload_file (medians over the rounds), then S1 with upload on and off."""
+    lines: list[str] = []
+    if "throughput" in upload:
+        t = upload["throughput"]
+        rows = [[client, f"{m['mb_per_s']:.0f}", f"{m['mb_per_s'] / t['median']['boto3']['mb_per_s']:.0%}",
+                 f"{m['cpu_s_per_gb']:.2f}", f"{m['server_cpu_s_per_gb']:.2f}", f"{m['other_cpus']:.2f}"]
+                for client, m in t["median"].items()]
+        lines += [*markdown(["client", "MB/s", "of boto3", "client CPU s per GB", "server CPU s per GB",
+                             "other processes, CPUs"], rows), "",
+                  f"{len(t['bag']['files'])} files, {t['bag']['bytes'] / 1e6:.0f} MB, uploaded "
+                  f"{len(t['runs']) // 2} times by each client in alternation to nanio on loopback; medians. Ours "
+                  f"/ boto3 per round: {', '.join(f'{r:.0%}' for r in t['round_ratios'])}. Target "
+                  f"({t['target']['target']}): {t['target']['result']}; {t['target']['detail']}.", ""]
+    if "S1" in upload:
+        s1 = upload["S1"]
+        rows = []
+        for mode in ("upload_off", "upload_on"):
+            e = s1[mode]
+            if not measured(e):
+                rows.append([mode.replace("_", " "), f"failed: {e['error'][:80]}"] + [""] * 7)
+                continue
+            up = e.get("upload", {})
+            rows.append([mode.replace("_", " "), f"{e['published']} ({e['min_pub_ratio']:.1%})", lost_text(e),
+                         fmt(e["mb_per_s"]), fmt(e.get("total_cpu_s_per_gb"), ".2f"),
+                         fmt(e.get("recorder_cpu_s_per_gb"), ".2f"),
+                         fmt(up.get("cpu_s_per_gb"), ".2f"), fmt(up.get("server_cpu_s_per_gb"), ".2f"),
+                         fmt(up.get("mb_per_s"), ".0f")])
+        lines += [*markdown(["S1", "published (lowest topic's share of nominal)", "lost", "recorded MB/s",
+                             "container CPU s per GB", "recorder's own CPU s per GB",
+                             "upload process CPU s per GB uploaded", "server CPU s per GB", "upload MB/s"], rows), "",
+                  f"{s1['scenario']['describe']}; files of {s1['split_mb']:g} MiB, each uploaded as it is closed "
+                  f"(upload.max_rate 0). Target ({s1['target']['target']}): {s1['target']['result']}; "
+                  f"{s1['target']['detail']}."]
+    if not lines:
+        raise Missing("no upload run measured")
+    return lines
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -561,6 +600,7 @@ TABLES: dict[str, Table] = {
     "soak": Table("soak", "verdicts", "python benchmarks/soak.py", soak_table, "Soak"),
     "pixel_formats": Table("pixel_formats", "pairs", "python benchmarks/pixel_formats.py", pixel_formats_table,
                            "Pixel formats"),
+    "upload": Table("upload", "throughput or S1", "python benchmarks/upload_bench.py", upload_table, "Upload"),
 }
 
 

@@ -48,7 +48,7 @@ class UploadReport:
         return "\n".join(lines)
 
 
-def _bag_files(bag: Path) -> list[Path]:
+def bag_files(bag: Path) -> list[Path]:
     """A finalized bag's files, ``metadata.yaml`` last; UploadError for anything else."""
     if not (bag / METADATA_FILENAME).is_file():
         raise UploadError(f"{bag} is not a bag directory with a {METADATA_FILENAME}")
@@ -84,7 +84,7 @@ def upload_bags(paths: Sequence[Path], location: S3Location, endpoint_url: str =
         if resume and (path / JOURNAL_NAME).is_file() and not (path / METADATA_FILENAME).exists():
             queued.setdefault(path / JOURNAL_NAME, [])
             continue
-        files = _bag_files(path)
+        files = bag_files(path)
         queued.setdefault(path.parent / JOURNAL_NAME, []).extend((file, location.child(path.name)) for file in files)
     report = UploadReport()
     for journal_path, files in queued.items():

@@ -2,8 +2,9 @@
 
 An S3 ETag is the MD5 of the content for a single PUT, and for a multipart object the MD5 of the concatenated
 binary MD5s of its parts followed by ``-N``: not a hash of the whole file, so the local side computes the same
-thing with the same part size. Some stores (localbucket among them) give a completed multipart object the MD5 of
-the whole content instead; both are computed, and either verifies. The part size is stored with the object
+thing with the same part size, from the MD5 each part's Content-MD5 needs anyway. Some stores (localbucket among
+them) give a completed multipart object the MD5 of the whole content instead; that one is computed, by reading
+the file once more, only when a store answers such an ETag. The part size is stored with the object
 (user metadata ``part-size``), so a later check or a download can compute it too.
 """
 from __future__ import annotations
@@ -38,25 +39,35 @@ def parts_of(size: int, part_size: int) -> Iterator[tuple[int, int, int]]:
 
 @dataclass
 class Digests:
-    """The MD5 of each part and of the whole content, filled as the parts are read in order."""
+    """The MD5 of each part, filled as the parts are read in order: one hash of the bytes, the one the parts'
+    Content-MD5 needs anyway."""
 
     part_md5s: list[bytes] = field(default_factory=list)
-    whole: "hashlib._Hash" = field(default_factory=hashlib.md5)
 
     def add(self, data: bytes | memoryview) -> str:
         """Add the next part; its MD5 in hex (an ETag without quotes)."""
         digest = hashlib.md5(data)
         self.part_md5s.append(digest.digest())
-        self.whole.update(data)
         return digest.hexdigest()
 
-    def etags(self, multipart: bool) -> set[str]:
-        """The ETags (without quotes) a store may give the content: the multipart form and the whole MD5."""
-        whole = self.whole.hexdigest()
+    def etag(self, multipart: bool) -> str:
+        """The ETag (without quotes) S3 gives the content: its MD5 for a single PUT; for a multipart upload the
+        MD5 of the parts' binary MD5s, then ``-`` and the number of parts."""
         if not multipart:
-            return {whole}
-        combined = hashlib.md5(b"".join(self.part_md5s)).hexdigest()
-        return {f"{combined}-{len(self.part_md5s)}", whole}
+            return self.part_md5s[0].hex() if self.part_md5s else hashlib.md5().hexdigest()
+        return f"{hashlib.md5(b''.join(self.part_md5s)).hexdigest()}-{len(self.part_md5s)}"
+
+    def matches(self, etag: str, multipart: bool, path: Path) -> bool:
+        """Whether a store's ``etag`` (without quotes) is what the local file at ``path`` gives: :meth:`etag`, or
+        for a multipart object the MD5 of the whole content, which some stores give instead. That one is computed
+        only for such an ETag (no ``-N``), reading the file again: hashing every upload twice would cost all
+        stores the CPU time that one needs."""
+        if etag == self.etag(multipart):
+            return True
+        if not multipart or "-" in etag:
+            return False
+        with open(path, "rb") as stream:
+            return etag == hashlib.file_digest(stream, "md5").hexdigest()
 
 
 def file_digests(path: Path, part_size: int, chunk: int = PART_SIZE) -> Digests:
@@ -71,7 +82,6 @@ def file_digests(path: Path, part_size: int, chunk: int = PART_SIZE) -> Digests:
                 if not data:
                     break
                 part.update(data)
-                digests.whole.update(data)
                 left -= len(data)
             if left == part_size:
                 return digests
@@ -87,4 +97,4 @@ def matches_object(path: Path, head: Mapping[str, Any]) -> bool:
     if path.stat().st_size != size:
         return False
     part_size = int(head.get("Metadata", {}).get(PART_SIZE_KEY) or 0) or part_size_for(size)
-    return str(head["ETag"]).strip('"') in file_digests(path, part_size).etags(multipart=size > part_size)
+    return file_digests(path, part_size).matches(str(head["ETag"]).strip('"'), size > part_size, path)

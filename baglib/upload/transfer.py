@@ -1,11 +1,12 @@
 """Uploading one file, resumably, and verifying the remote copy against the local bytes.
 
 A file of up to one part goes in a single PUT with its Content-MD5; a larger one as a multipart upload whose id
-and confirmed parts the journal keeps. Resuming asks the server which parts it holds (``ListParts``) and reuses
-each whose ETag is the MD5 of the local part, so a cut costs at most the part in flight. Every part carries its
-Content-MD5 and the ETag the server answers must be that MD5. After completion the object's size and ETag must
-match what the local bytes give (:mod:`~baglib.upload.digests`) before the file counts as verified; a mismatch
-is counted and the file uploaded again, never deleted.
+and confirmed parts the journal keeps, PARTS_IN_FLIGHT parts under way at a time (a part is confirmed in the
+journal once the store answered it and every part before it). Resuming asks the server which parts it holds
+(``ListParts``) and reuses each whose ETag is the MD5 of the local part, so a cut costs at most the parts in
+flight. Every part carries its Content-MD5 and the ETag the server answers must be that MD5. After completion the
+object's size and ETag must match what the local bytes give (:mod:`~baglib.upload.digests`) before the file
+counts as verified; a mismatch is counted and the file uploaded again, never deleted.
 
 An object already at the key is never overwritten blindly: if it verifies against the local file, nothing is
 transferred (uploading a bag twice costs a read of it, no bytes); if it holds something else, the upload stops
@@ -15,7 +16,9 @@ attempt put it there.
 from __future__ import annotations
 
 import base64
+import collections
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,8 +30,24 @@ from baglib.upload.journal import Entry, UploadJournal
 from baglib.upload.throttle import Throttle
 
 
+#: Parts of a multipart upload sent at once (each on a connection of its own): while the store takes one part in,
+#: the next is read, hashed and sent, so the client's CPU time (MD5, SigV4's SHA-256 of the payload) and the
+#: store's overlap instead of taking turns. The memory the upload holds is at most this many parts.
+PARTS_IN_FLIGHT = 4
+
+
 class Interrupted(Exception):
     """The uploader was asked to stop between two requests."""
+
+
+@dataclass(frozen=True)
+class _PartSent:
+    """A part whose request is under way."""
+
+    number: int
+    md5: str
+    length: int
+    request: Future[dict[str, Any]]
 
 
 @dataclass
@@ -98,10 +117,11 @@ class FileUpload:
 
     def _verify(self, size: int, digests: Digests, multipart: bool) -> None:
         head = self._head()
-        if head is None or head["ContentLength"] != size or _etag(head["ETag"]) not in digests.etags(multipart):
+        if head is None or head["ContentLength"] != size or \
+                not digests.matches(_etag(head["ETag"]), multipart, self.entry.local):
             found = "nothing" if head is None else f"{head['ContentLength']} bytes, ETag {head['ETag']}"
             error = (f"{self.target} did not verify: the store holds {found}, the local file {size} bytes, "
-                     f"ETag one of {sorted(digests.etags(multipart))}; uploading it again")
+                     f"ETag {digests.etag(multipart)}; uploading it again")
             self.journal.mismatch(self.entry.id, error)
             raise UploadError(error)
 
@@ -144,6 +164,17 @@ class FileUpload:
                 return None
             raise
 
+    def _confirm(self, part: _PartSent) -> int:
+        """Wait for ``part``'s request; check the ETag the store answered and confirm it in the journal; the
+        bytes sent."""
+        answer = part.request.result()
+        if _etag(answer["ETag"]) != part.md5:
+            raise UploadError(f"{self.target}: the store answered ETag {answer['ETag']} for part {part.number}, "
+                              f"whose MD5 is {part.md5}: sending it again")
+        self.journal.confirm_part(self.entry.id, part.number, part.md5, part.length)
+        self.progress(part.length)
+        return part.length
+
     def _multipart(self, size: int, part_size: int) -> Transferred:
         entry = self.entry
         upload_id, held = entry.upload_id, None
@@ -163,7 +194,8 @@ class FileUpload:
         done = Transferred()
         digests = Digests()
         completed: list[dict[str, Any]] = []
-        with open(entry.local, "rb") as stream:
+        in_flight: collections.deque[_PartSent] = collections.deque()
+        with open(entry.local, "rb") as stream, ThreadPoolExecutor(PARTS_IN_FLIGHT, "upload_part") as senders:
             for number, offset, length in parts_of(size, part_size):
                 data = stream.read(length)
                 if len(data) != length:
@@ -174,15 +206,15 @@ class FileUpload:
                 else:
                     if not self.throttle.wait(length):
                         raise Interrupted()
-                    answer = self.client.upload_part(Bucket=entry.bucket, Key=entry.key, UploadId=upload_id,
-                                                     PartNumber=number, Body=data, ContentMD5=_md5_header(md5))
-                    if _etag(answer["ETag"]) != md5:
-                        raise UploadError(f"{self.target}: the store answered ETag {answer['ETag']} for part "
-                                          f"{number}, whose MD5 is {md5}: sending it again")
-                    self.journal.confirm_part(entry.id, number, md5, length)
-                    done.sent += length
-                    self.progress(length)
+                    in_flight.append(_PartSent(number, md5, length, senders.submit(
+                        self.client.upload_part, Bucket=entry.bucket, Key=entry.key, UploadId=upload_id,
+                        PartNumber=number, Body=data, ContentMD5=_md5_header(md5))))
+                    del data  # the request holds the part until it is sent: PARTS_IN_FLIGHT parts at most
+                    if len(in_flight) == PARTS_IN_FLIGHT:
+                        done.sent += self._confirm(in_flight.popleft())
                 completed.append({"PartNumber": number, "ETag": f'"{md5}"'})
+            while in_flight:
+                done.sent += self._confirm(in_flight.popleft())
         self.journal.count_sent(entry.id, 0, done.reused)
         self.client.complete_multipart_upload(Bucket=entry.bucket, Key=entry.key, UploadId=upload_id,
                                               MultipartUpload={"Parts": completed})

@@ -2,8 +2,8 @@
 
 A recorder's container starts one per journal (per directory of bags; see
 components/recorder/upload_process.py): the uploads then never take the recorder's CPU time or GIL, and they go
-on after the recorder is unloaded. It runs at a lower CPU priority (``nice`` +10) and holds at most one part in
-memory. What it is told:
+on after the recorder is unloaded. It runs at a lower CPU priority (``nice`` +10) and holds at most
+``transfer.PARTS_IN_FLIGHT`` parts in memory. What it is told:
 
 * a byte on its standard input: the journal has something new;
 * end of its input: nothing more will be queued: it finishes the queue, then exits;

@@ -109,12 +109,15 @@ class RecorderServices:
 
 
 def recorder_component(name: str, topics: list[str], uri: Path, args: argparse.Namespace,
-                       intra_process: bool, split_bytes: int = 0) -> dict[str, Any]:
+                       intra_process: bool, split_bytes: int = 0,
+                       parameters: Optional[dict[str, Any]] = None) -> dict[str, Any]:
+    """The recorder's entry of a ``--load`` file; ``parameters``: more of its parameters (``upload``: {...})."""
     return {"package": "components", "plugin": "components::Recorder", "name": name,
             "parameters": {"record": {"topics": topics},
                            "storage": {"uri": str(uri), "storage_id": args.storage,
                                        "max_cache_size": int(args.cache_mb * 1024 * 1024),
-                                       "max_bagfile_size": split_bytes}},
+                                       "max_bagfile_size": split_bytes},
+                           **(parameters or {})},
             "extra_arguments": {"use_intra_process_comms": intra_process}}
 
 
@@ -234,18 +237,32 @@ def backlog_result(window: Window) -> dict[str, Any]:
             "within_cache": None if end is None or cache is None else end <= cache}
 
 
-def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, Any]:
-    """``ipc``, ``split`` or ``dds`` on one scenario; see the module docstring for the protocol."""
+def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str,
+                      recorder_parameters: Optional[dict[str, Any]] = None,
+                      started_recording: Optional[Callable[[Processes, RecorderServices], None]] = None,
+                      before_stop: Optional[Callable[[Processes, RecorderServices], dict[str, Any]]] = None
+                      ) -> dict[str, Any]:
+    """``ipc``, ``split`` or ``dds`` on one scenario; see the module docstring for the protocol.
+
+    For a benchmark of something the recorder does beside recording (benchmarks/upload_bench.py):
+    ``recorder_parameters`` are added to the recorder's; ``started_recording`` is called as the measured bag
+    begins, ``before_stop`` once it is finalized, before the containers stop; what it returns goes into the
+    result."""
     args = bench.args
     tag = bench.next_tag(scenario, mode)
     topics = scenario.topics()
     uri = bench.workdir / tag
     recorder = recorder_component(f"rec_{tag}", list(topics), uri, args, intra_process=mode in IPC_MODES,
-                                  split_bytes=int(args.split_mb * 1024 * 1024) if mode == "split" else 0)
+                                  split_bytes=int(args.split_mb * 1024 * 1024) if mode == "split" else 0,
+                                  parameters=recorder_parameters)
     processes = start_mode(bench, tag, scenario, mode, recorder)
     services = RecorderServices(bench.node, f"rec_{tag}")
+    extra: dict[str, Any] = {}
     try:
-        window = record_window(bench, processes, services, topics, scenario.seconds)
+        window = record_window(bench, processes, services, topics, scenario.seconds,
+                               started_recording and (lambda: started_recording(processes, services)))
+        if before_stop is not None:
+            extra = before_stop(processes, services)
     finally:
         services.destroy()
         processes.stop()
@@ -268,6 +285,7 @@ def run_recorder_mode(bench: Bench, scenario: Scenario, mode: str) -> dict[str, 
                                           if result["recorded_bytes"] else None),
                    "lossless": (result["lost"] == 0 and result["min_pub_ratio"] >= PUBLISH_RATE_OK
                                 and not result["recorder_error"])})
+    result.update(extra)
     return result
 
 
