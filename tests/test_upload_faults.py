@@ -30,6 +30,15 @@ def manager() -> Any:
         yield manager
 
 
+@pytest.fixture(autouse=True)
+def only_the_driver_after(manager: ComponentManager) -> Iterator[None]:
+    """A test that failed half-way leaves no recorder behind for the next one."""
+    yield
+    for component in manager.components():
+        if component.full_name != "/imu":
+            manager.unload(component.unique_id)
+
+
 def record(manager: ComponentManager, root: Path, uri: str, endpoint: str) -> Any:
     return load(manager, "Recorder", "recorder", **{
         "storage.uri": str(root / "run"), "record.topics": ["/imu/imu"], "storage.max_bagfile_duration": 1.0,

@@ -84,4 +84,6 @@ def describe(error: BaseException, what: str) -> UploadError:
     if isinstance(error, (botocore.exceptions.EndpointConnectionError, botocore.exceptions.ConnectionError,
                           ConnectionError)):
         return UploadError(f"{what}: the endpoint cannot be reached ({type(error).__name__})")
+    if isinstance(error, botocore.exceptions.HTTPClientError):  # the connection broke in the middle of a request
+        return UploadError(f"{what}: the endpoint closed the connection ({type(error).__name__})")
     return UploadError(f"{what}: {type(error).__name__}: {error}")
