@@ -251,9 +251,11 @@ class SupervisedEventsExecutor(_rclpy.EventsExecutor):
     def supervise_timer(self, node: Node, timer: Any) -> None:
         original = timer.callback
 
+        # rclpy 9's C++ calls a timer callback that has any parameter with a TimerInfo (rclpy 7 never passes
+        # one): functools.wraps shows it the original's signature, and the wrapper forwards what it is given.
         @functools.wraps(original)
-        def supervised() -> None:
-            self.call(node, original)  # a coroutine becomes a supervised task: the C++ gets None, not it
+        def supervised(*args: Any) -> None:
+            self.call(node, original, *args)  # a coroutine becomes a supervised task: the C++ gets None, not it
 
         timer.callback = supervised
 
