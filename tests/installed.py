@@ -19,8 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.append(str(REPO / "srv"))  # the build's own module, as setup.py imports it
-from ros_distribution import built_for, interfaces_build_dir  # noqa: E402
 #: What never belongs in a clean copy even when git is not there to say so.
 _NOT_SOURCE = {".git", ".venv", "build", "dist", "__pycache__", ".pytest_cache"}
 
@@ -43,13 +41,13 @@ def clean_copy(source: Path, destination: Path) -> Path:
 
 
 def seed_interfaces(source: Path, copy: Path) -> None:
-    """Give ``copy`` the interfaces ``source`` has already compiled for this venv's ROS distribution
-    (``build/interfaces/<distribution>`` of its editable install, without the intermediate files). The wheel build reuses them only if they were built from the same
-    inputs (srv/build_interfaces.py compares a digest of the definitions, the build script and the toolchain),
-    and compiles them again otherwise: the wheel still holds what a clean build makes, without a second
-    compilation per test run."""
-    folder = interfaces_build_dir(built_for())
-    if (source / folder / "inputs.sha256").is_file():
+    """Give ``copy`` the interfaces ``source`` has already compiled (``build/interfaces/<distribution>`` of
+    the editable installs, one per ROS distribution, without the intermediate files). The wheel build reuses
+    them only if they were built from the same inputs (srv/build_interfaces.py compares a digest of the
+    definitions, the build script and the toolchain), and compiles them again otherwise: the wheel still holds
+    what a clean build makes, without a second compilation per test run."""
+    for stamp in (source / "build" / "interfaces").glob("*/inputs.sha256"):
+        folder = stamp.parent.relative_to(source)
         shutil.copytree(source / folder, copy / folder, ignore=shutil.ignore_patterns("work"))
 
 
