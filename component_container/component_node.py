@@ -17,13 +17,12 @@ import sys
 import time
 from typing import Any, Callable
 
-from rclpy.action import ActionClient, ActionServer
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.subscription import Subscription
 
-from component_container.action_introspection import action_client, action_server
+from component_container.action_introspection import IntrospectedActionClient, IntrospectedActionServer
 from component_container.bag_root import confine
 from component_container.health import Health
 from component_container.intra_process import (
@@ -133,13 +132,13 @@ class ComponentNode(Node):
             self.__counted.append(publisher)
 
     def create_action_server(self, action_type: Any, action_name: str, execute_callback: Callable[..., Any],
-                             **kwargs: Any) -> ActionServer:
+                             **kwargs: Any) -> IntrospectedActionServer:
         """rclpy's ``ActionServer(self, ...)`` (same arguments) with Kilted's ``configure_introspection``."""
-        return action_server(self, action_type, action_name, execute_callback, **kwargs)
+        return IntrospectedActionServer(self, action_type, action_name, execute_callback, **kwargs)
 
-    def create_action_client(self, action_type: Any, action_name: str, **kwargs: Any) -> ActionClient:
+    def create_action_client(self, action_type: Any, action_name: str, **kwargs: Any) -> IntrospectedActionClient:
         """rclpy's ``ActionClient(self, ...)`` (same arguments) with Kilted's ``configure_introspection``."""
-        return action_client(self, action_type, action_name, **kwargs)
+        return IntrospectedActionClient(self, action_type, action_name, **kwargs)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
                             qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,
