@@ -4,8 +4,15 @@
 # one pip run (one resolution), then the project is built there without an isolated build environment: the ROS
 # wheels are installed once, and the wheel the tests build from a clean copy reuses the interfaces compiled here
 # (srv/build_interfaces.py compares their inputs.sha256).
+#
+# ROS_DISTRO picks the ROS 2 distribution (pyproject.toml, tool.ros-distributions): Jazzy by default, in .venv;
+# `make test ROS_DISTRO=kilted` sets up and tests Kilted's wheels in .venv-kilted. The interfaces of each are
+# built into build/interfaces/<distribution>, so both venvs can hold the same tree.
 PYTHON ?= python3
-VENV := .venv
+DEFAULT_DISTRO := $(shell $(PYTHON) srv/ros_distribution.py default)
+ROS_DISTRO ?= $(DEFAULT_DISTRO)
+export ROS_DISTRO
+VENV := $(if $(filter $(DEFAULT_DISTRO),$(ROS_DISTRO)),.venv,.venv-$(ROS_DISTRO))
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
@@ -15,15 +22,13 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 # pip compiles what it installs, but an editable install leaves the tree's modules (and the interfaces built into
 # build/) as source: where PYTHONDONTWRITEBYTECODE is set, every container and CLI process the tests start would
 # compile them again. compileall writes the bytecode once; it skips what is up to date.
-SOURCES := component_container components baglib ipc_component ipc_testing build/interfaces tests examples
+SOURCES := component_container components baglib ipc_component ipc_testing build/interfaces/$(ROS_DISTRO) tests examples
 
-$(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py
+$(STAMP): pyproject.toml setup.py $(wildcard srv/*/*/*) srv/build_interfaces.py srv/ros_distribution.py
+	$(PYTHON) srv/ros_distribution.py requirements >/dev/null  # a ROS_DISTRO without pins stops here
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -c 'import tomllib; p = tomllib.load(open("pyproject.toml", "rb")); \
-		print("\n".join(p["build-system"]["requires"] + p["project"]["dependencies"] \
-		                 + p["project"]["optional-dependencies"]["test"]))' \
-		| $(BIN)/python -m pip install -q -r /dev/stdin
+	$(BIN)/python srv/ros_distribution.py requirements | $(BIN)/python -m pip install -q -r /dev/stdin
 	$(BIN)/python -m pip install -q --no-build-isolation --no-deps -e .
 	touch $(STAMP)
 
@@ -53,9 +58,7 @@ test: $(STAMP) ffmpeg bytecode
 CLUSTER_STAMP := $(VENV)/.cluster-installed
 
 $(CLUSTER_STAMP): $(STAMP)
-	$(BIN)/python -c 'import tomllib; \
-		print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["cluster"]))' \
-		| $(BIN)/python -m pip install -q -r /dev/stdin
+	$(BIN)/python srv/ros_distribution.py extra cluster | $(BIN)/python -m pip install -q -r /dev/stdin
 	touch $(CLUSTER_STAMP)
 
 sweep: $(STAMP) $(CLUSTER_STAMP) ffmpeg bytecode
@@ -65,4 +68,4 @@ bench: $(STAMP)
 	ROS_DOMAIN_ID=$$(shuf -i 1-100 -n 1) $(BIN)/python benchmarks/record_bench.py $(BENCH_ARGS)
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf .venv .venv-* build *.egg-info

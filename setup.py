@@ -1,7 +1,9 @@
 """Build hook: compile the interface packages in srv/ into real ROS 2 typesupport during ``pip install``.
 
-Everything else about the project is declared in pyproject.toml. The generated Python packages are built
-into ``build/interfaces/python`` and the shared libraries into ``build/interfaces/lib``, then installed as the
+Everything else about the project is declared in pyproject.toml; the dependencies are those of
+``tool.rclpy-ipc-container`` with the pins of the ROS 2 distribution built for (srv/ros_distribution.py). The
+generated Python packages are built into ``build/interfaces/<distribution>/python`` and the shared libraries
+into ``build/interfaces/<distribution>/lib``, then installed as the
 ``composition_interfaces`` / ``rosbag2_interfaces`` / ``foxglove_msgs`` packages (libraries inside) and ``<prefix>/share`` data
 files (definitions, type descriptions, ament index markers), the layout the ROS wheels themselves use.
 """
@@ -16,8 +18,10 @@ from setuptools.command.build_py import build_py
 ROOT = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT / "srv"))
 from build_interfaces import build_all, interface_packages  # noqa: E402
+from ros_distribution import built_for, dependencies, extras, interfaces_build_dir  # noqa: E402
 
-BUILD_DIR = pathlib.Path("build") / "interfaces"
+ROS_DISTRIBUTION = built_for()
+BUILD_DIR = interfaces_build_dir(ROS_DISTRIBUTION)
 INTERFACES = interface_packages()
 # Every package of the source tree, found rather than listed (a hand list drifts: it once left out the player).
 # tests/test_packaging.py checks this against the folders on disk and installs the built wheel.
@@ -60,6 +64,8 @@ setup(
     packages=[*SOURCE_PACKAGES, *INTERFACE_PACKAGES],
     package_dir={name: str(BUILD_DIR / "python" / name.replace(".", "/")) for name in INTERFACE_PACKAGES},
     package_data={**{name: ["*.so"] for name in INTERFACES}, "component_container": ["*.xml"]},
+    install_requires=dependencies(ROS_DISTRIBUTION),
+    extras_require=extras(ROS_DISTRIBUTION),
     cmdclass={"build_py": BuildPyWithInterfaces},
     distclass=BinaryDistribution,
 )

@@ -17,24 +17,43 @@ Fast DDS prints its own warnings and errors on stdout by default, where they lan
 when many participants start at once). The profile sends them to stderr, where ROS logging goes too.
 
 The profile is used only if nobody configured Fast DDS otherwise: no profiles file in the environment, no
-``DEFAULT_FASTRTPS_PROFILES.xml`` in the working directory, and no other RMW selected.
+``DEFAULT_FASTRTPS_PROFILES.xml`` / ``DEFAULT_FASTDDS_PROFILES.xml`` in the working directory, and no other RMW
+selected. It goes through the variable the installed Fast DDS reads: ``FASTRTPS_DEFAULT_PROFILES_FILE`` on Fast
+DDS 2 (Jazzy), which knows no other; ``FASTDDS_DEFAULT_PROFILES_FILE`` on Fast DDS 3 (Kilted), which still reads
+the old name but prints a deprecation warning on stdout for every participant, before the profile could send it
+to stderr, so into every command's output.
 """
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import pathlib
 from typing import MutableMapping
 
 PROFILE = pathlib.Path(__file__).with_name("fastdds_container.xml")
-PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+#: The profiles file variable of Fast DDS 2 and of Fast DDS 3.
+FASTDDS2_VARIABLE, FASTDDS3_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"
+#: The profiles files Fast DDS 2 and 3 load from the working directory.
+WORKING_DIRECTORY_PROFILES = ("DEFAULT_FASTRTPS_PROFILES.xml", "DEFAULT_FASTDDS_PROFILES.xml")
+#: The distribution of Fast DDS 3 among the ROS wheels (Fast DDS 2's is ``ros-fastrtps``).
+FASTDDS3_DISTRIBUTION = "ros-fastdds"
+
+
+def profile_variable() -> str:
+    """The profiles file variable of the installed Fast DDS: Fast DDS 3 (Kilted on) ships as ``ros-fastdds``."""
+    try:
+        importlib.metadata.distribution(FASTDDS3_DISTRIBUTION)
+    except importlib.metadata.PackageNotFoundError:
+        return FASTDDS2_VARIABLE
+    return FASTDDS3_VARIABLE
 
 
 def use_fastdds_profile(environ: MutableMapping[str, str] = os.environ) -> bool:
     """Select the project's participant profile (before ``rclpy.init``) unless Fast DDS is configured."""
     rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-    if not rmw.startswith("rmw_fastrtps") or any(environ.get(name) for name in PROFILE_VARIABLES):
+    if not rmw.startswith("rmw_fastrtps") or environ.get(FASTDDS2_VARIABLE) or environ.get(FASTDDS3_VARIABLE):
         return False
-    if pathlib.Path("DEFAULT_FASTRTPS_PROFILES.xml").exists():
+    if any(pathlib.Path(name).exists() for name in WORKING_DIRECTORY_PROFILES):
         return False
-    environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(PROFILE)
+    environ[profile_variable()] = str(PROFILE)
     return True

@@ -15,6 +15,8 @@ also reproduced against the installed wheel) needs these changes to run componen
   learns a node's entities only from the node's ``subscriptions``/``timers``/``clients``/``services``/
   ``waitables``/``guards`` properties; it is given a :class:`NodeView` instead of the node, whose properties
   wrap every entity before the C++ can see it, so no entity, however late it is created, runs unsupervised.
+* **Timer info.** rclpy 9 (Kilted) calls a timer callback that has any parameter with a ``TimerInfo`` (rclpy 7
+  never passes one): the wrapper keeps the original's signature (``functools.wraps``) and forwards it.
 * **Message info.** A subscription callback that takes ``(message, info)`` is called with ONE argument, the
   tuple; rclpy then fails with ``SystemError: null argument to internal routine``, out of ``spin()``. The
   wrapper unpacks it (and would accept two arguments from a fixed rclpy).
@@ -251,9 +253,11 @@ class SupervisedEventsExecutor(_rclpy.EventsExecutor):
     def supervise_timer(self, node: Node, timer: Any) -> None:
         original = timer.callback
 
+        # rclpy 9's C++ calls a timer callback that has any parameter with a TimerInfo (rclpy 7 never passes
+        # one): functools.wraps shows it the original's signature, and the wrapper forwards what it is given.
         @functools.wraps(original)
-        def supervised() -> None:
-            self.call(node, original)  # a coroutine becomes a supervised task: the C++ gets None, not it
+        def supervised(*args: Any) -> None:
+            self.call(node, original, *args)  # a coroutine becomes a supervised task: the C++ gets None, not it
 
         timer.callback = supervised
 

@@ -89,7 +89,7 @@ class ImuDriver(SensorDriver):
         self.publisher = self.create_publisher(Imu, self.topic, self.qos_profile)
         self.frame_bytes = len(serialize_message(self.construct_imu(0, 0)))
         if not self.assembly_matches():
-            self.get_logger().warn("sensor_msgs/Imu is not laid out as make_imu expects; building each message "
+            self.get_logger().warning("sensor_msgs/Imu is not laid out as make_imu expects; building each message "
                                    "with the constructors instead (about 12 us more per message)")
             self.make_imu = self.construct_imu
 

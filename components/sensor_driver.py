@@ -296,7 +296,7 @@ class SensorDriver(ComponentNode):
             return
         since = ("" if self._skip_warned_ns is None
                  else f" in the last {(now_ns - self._skip_warned_ns) / 1e9:.1f} s")
-        self.get_logger().warn(f"cannot keep up with {self.rate:g} Hz: skipped {self._skipped_unreported} frame(s)"
+        self.get_logger().warning(f"cannot keep up with {self.rate:g} Hz: skipped {self._skipped_unreported} frame(s)"
                                f"{since}, {self._skipped_count} in total")
         self._skip_warned_ns, self._skipped_unreported = now_ns, 0
 

@@ -1,4 +1,4 @@
-"""Build the interface packages in srv/ into real ROS 2 typesupport, with the PyPI Jazzy wheels only.
+"""Build the interface packages in srv/ into real ROS 2 typesupport, with the ROS 2 wheels from PyPI only.
 
 This is what ``rosidl_generate_interfaces()`` does in a colcon build, done from ``setup.py`` so that
 ``pip install .`` needs nothing but a C compiler: translate .srv/.msg to .idl, compute the RIHS01 type hashes,
@@ -23,7 +23,6 @@ import inspect
 import logging
 import os
 import pathlib
-import re
 import shutil
 import subprocess
 import sys
@@ -31,6 +30,8 @@ import sysconfig
 import tomllib
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
+
+from ros_distribution import built_for, distributions, interfaces_build_dir, requirement_name
 
 SRV_ROOT = pathlib.Path(__file__).resolve().parent
 PYPROJECT = SRV_ROOT.parent / "pyproject.toml"
@@ -74,7 +75,8 @@ def _ros_prefix() -> pathlib.Path:
     for prefix in (pathlib.Path(sys.prefix), pathlib.Path(rosidl_generator_c.__file__).parents[4]):
         if (prefix / "share" / "rcl_interfaces").is_dir():
             return prefix
-    raise RuntimeError("cannot find the ROS 2 Jazzy wheels' share/ folder; install ros-jazzy-rclpy first")
+    raise RuntimeError("cannot find the ROS 2 wheels' share/ folder; install the distribution's rclpy first "
+                       "(pyproject.toml, tool.ros-distributions)")
 
 
 def _load_extensions(loader_name: str, specs: list[str]) -> list:
@@ -312,13 +314,12 @@ def inputs_digest() -> str:
 
 
 def _build_distributions() -> list[importlib.metadata.Distribution]:
-    """The installed distributions named by pyproject.toml's build requirements, and everything they require."""
-    def name(requirement: str) -> str:
-        return re.match(r"[A-Za-z0-9._-]+", requirement).group(0).lower().replace("_", "-")
-
-    requires = tomllib.loads(PYPROJECT.read_text())["build-system"]["requires"]
+    """The installed distributions named by the build requirements (pyproject.toml's, and the ROS wheels of the
+    distribution built for), and everything they require."""
+    requires = [*tomllib.loads(PYPROJECT.read_text())["build-system"]["requires"],
+                *distributions()[built_for()]["requires"]]
     found: dict[str, importlib.metadata.Distribution] = {}
-    pending = [name(r) for r in requires]
+    pending = [requirement_name(r) for r in requires]
     while pending:
         wanted = pending.pop()
         if wanted in found:
@@ -328,7 +329,7 @@ def _build_distributions() -> list[importlib.metadata.Distribution]:
         except importlib.metadata.PackageNotFoundError:
             continue
         found[wanted] = distribution
-        pending += [name(r) for r in distribution.requires or []]  # every marker: more, never fewer
+        pending += [requirement_name(r) for r in distribution.requires or []]  # every marker: more, never fewer
     return list(found.values())
 
 
@@ -349,7 +350,7 @@ def _already_built(build_dir: pathlib.Path, digest: str) -> list[BuiltPackage] |
 def build_all(build_dir: pathlib.Path) -> list[BuiltPackage]:
     """Build every interface package under srv/ into ``build_dir``, unless a completed build of the same inputs
     (:func:`inputs_digest`) is already there: an editable install followed by a wheel build, or a clean copy
-    given the tree's finished ``build/interfaces``, then compiles once."""
+    given the tree's finished ``build/interfaces/<distribution>``, then compiles once."""
     digest = inputs_digest()
     built = _already_built(build_dir, digest)
     if built is not None:
@@ -361,5 +362,6 @@ def build_all(build_dir: pathlib.Path) -> list[BuiltPackage]:
 
 
 if __name__ == "__main__":
-    for built in build_all(pathlib.Path(sys.argv[1] if len(sys.argv) > 1 else "build/interfaces").resolve()):
+    default_dir = SRV_ROOT.parent / interfaces_build_dir(built_for())
+    for built in build_all(pathlib.Path(sys.argv[1]).resolve() if len(sys.argv) > 1 else default_dir):
         print(built.name, built.python_package, *(p.name for p in built.libraries))

@@ -41,14 +41,14 @@ def clean_copy(source: Path, destination: Path) -> Path:
 
 
 def seed_interfaces(source: Path, copy: Path) -> None:
-    """Give ``copy`` the interfaces ``source`` has already compiled (``build/interfaces`` of its editable
-    install, without the intermediate files). The wheel build reuses them only if they were built from the same
-    inputs (srv/build_interfaces.py compares a digest of the definitions, the build script and the toolchain),
-    and compiles them again otherwise: the wheel still holds what a clean build makes, without a second
-    compilation per test run."""
-    built = source / "build" / "interfaces"
-    if (built / "inputs.sha256").is_file():
-        shutil.copytree(built, copy / "build" / "interfaces", ignore=shutil.ignore_patterns("work"))
+    """Give ``copy`` the interfaces ``source`` has already compiled (``build/interfaces/<distribution>`` of
+    the editable installs, one per ROS distribution, without the intermediate files). The wheel build reuses
+    them only if they were built from the same inputs (srv/build_interfaces.py compares a digest of the
+    definitions, the build script and the toolchain), and compiles them again otherwise: the wheel still holds
+    what a clean build makes, without a second compilation per test run."""
+    for stamp in (source / "build" / "interfaces").glob("*/inputs.sha256"):
+        folder = stamp.parent.relative_to(source)
+        shutil.copytree(source / folder, copy / folder, ignore=shutil.ignore_patterns("work"))
 
 
 def build_wheel(project: Path, wheel_dir: Path) -> Path:

@@ -237,6 +237,12 @@ def test_fast_dds_diagnostics_go_to_stderr_not_into_the_output(clients: dict[str
     assert "Topic NO_SUCH_TOPIC is not a valid statistics topic name/alias" in result.stderr, result
 
 
+def test_the_fast_dds_profile_goes_through_the_variable_fast_dds_reads() -> None:
+    # Fast DDS 3 (Kilted) reads FASTRTPS_DEFAULT_PROFILES_FILE too, but warns on stdout that it is deprecated.
+    result = cli("list", "--spin-time", "0.3", env={"ROS_DOMAIN_ID": "230"})
+    assert "deprecated" not in (result.stdout + result.stderr).lower(), result
+
+
 @pytest.mark.parametrize("env, message", [
     ({"ROS_DOMAIN_ID": "233"}, "ROS_DOMAIN_ID 233 is out of range: Fast DDS accepts 0 to 232"),
     ({"ROS_STATIC_PEERS": "no-such-host.invalid"},

@@ -367,7 +367,7 @@ def test_imu_falls_back_to_the_constructors_when_the_assembly_differs(ros, monke
         return msg
     monkeypatch.setattr(ImuDriver, "make_imu", assemble_without_orientation)
     warnings: list[str] = []
-    monkeypatch.setattr(ImuDriver, "get_logger", lambda self: types.SimpleNamespace(warn=warnings.append))
+    monkeypatch.setattr(ImuDriver, "get_logger", lambda self: types.SimpleNamespace(warning=warnings.append))
     imu = ros.driver(ImuDriver, "imu", rate=100.0)
     assert len(warnings) == 1 and "building each message with the constructors" in warnings[0]
     assert imu.make_imu == imu.construct_imu
@@ -572,7 +572,7 @@ def test_skipped_frames_are_warned_about_every_five_seconds_with_every_one_count
     clock = FakeClock.install(monkeypatch)
     imu = ros.driver(ImuDriver, "imu", rate=100.0)
     warnings: list[str] = []
-    monkeypatch.setattr(imu, "get_logger", lambda: types.SimpleNamespace(warn=warnings.append))
+    monkeypatch.setattr(imu, "get_logger", lambda: types.SimpleNamespace(warning=warnings.append))
     imu._on_tick()
     for _ in range(30):  # a stall of 0.5 s before each tick: 50 due, 10 published, 40 skipped each time
         clock.advance(0.5)

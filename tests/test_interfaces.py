@@ -59,7 +59,7 @@ def _hashes_in(description_file: pathlib.Path) -> dict[str, str]:
 
 def _installed_share_dirs() -> list[pathlib.Path]:
     """Where an install puts share/composition_interfaces: the prefix (wheel install) or, for an editable
-    install, the build tree the Python package is imported from (build/interfaces/{python,share})."""
+    install, the build tree the Python package is imported from (build/interfaces/<distribution>/{python,share})."""
     candidates = [pathlib.Path(sys.prefix) / "share",
                   pathlib.Path(composition_interfaces.__file__).resolve().parents[2] / "share"]
     return [c for c in candidates if (c / "composition_interfaces" / "srv").is_dir()]
@@ -70,7 +70,8 @@ def test_a_build_is_reused_only_for_the_same_inputs(tmp_path: pathlib.Path, monk
     tests do with a clean copy) only while the definitions, the build script and the toolchain are the same."""
     monkeypatch.syspath_prepend(str(REPO / "srv"))  # as setup.py imports it
     script = importlib.import_module("build_interfaces")
-    built = REPO / "build" / "interfaces"
+    distribution = importlib.import_module("ros_distribution")
+    built = REPO / distribution.interfaces_build_dir(distribution.built_for())
     if not (built / script.STAMP).is_file():
         pytest.skip("this venv's interfaces were not built from this tree (no editable install)")
     copy = tmp_path / "interfaces"

@@ -98,7 +98,7 @@ def _share_directories(package: str) -> tuple[Path, ...]:
 
 def _built_share_directory(package: str) -> Path | None:
     """The share folder beside an interface package that this project builds (srv/build_interfaces.py writes
-    ``build/interfaces/python/<pkg>`` and ``build/interfaces/share/<pkg>``): an editable install (``make setup``,
+    ``build/interfaces/<distribution>/python/<pkg>`` and ``.../share/<pkg>``): an editable install (``make setup``,
     ``pip install -e``) imports the package from there and installs no ``share`` data."""
     try:
         spec = importlib.util.find_spec(package)
