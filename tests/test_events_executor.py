@@ -17,6 +17,8 @@ from typing import Any, Callable, Iterator
 
 import pytest
 import rclpy
+import rclpy.executors
+import rclpy.experimental
 from rclpy.context import Context
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.guard_condition import GuardCondition
@@ -35,6 +37,7 @@ class Harness:
     """One executor model in its own context, recording what it reports."""
 
     def __init__(self, kind: str) -> None:
+        self.kind = kind
         self.context = Context()
         rclpy.init(context=self.context)
         self.errors: list[tuple[str, BaseException]] = []
@@ -188,6 +191,36 @@ def test_services_clients_and_message_info_work(harness: Harness) -> None:
     publisher.publish(String(data="x"))
     assert wait_for(lambda: infos), "the subscription taking message info got nothing"
     assert infos[0]["publication_sequence_number"] >= 1
+    assert not harness.errors and not harness.fatal, (harness.errors, harness.fatal)
+
+
+def timer_argument(spin_once: Callable[[], None], node: Node) -> list[Any]:
+    """What a timer callback that takes one parameter is called with, once."""
+    given: list[Any] = []
+    node.create_timer(0.01, lambda info=None: given.append(info) if not given else None)
+    deadline = time.monotonic() + 10.0
+    while not given and time.monotonic() < deadline:
+        spin_once()
+    return given
+
+
+@pytest.mark.parametrize("harness", EXECUTOR_KINDS, indirect=True)
+def test_a_timer_callback_with_a_parameter_gets_what_rclpys_executor_gives_it(harness: Harness) -> None:
+    """rclpy 9's EventsExecutor calls a timer callback that has a parameter with a TimerInfo (its other executors,
+    and rclpy 7's, with nothing): the container's executors, which supervise every callback through a wrapper,
+    pass on exactly what the rclpy executor they are built on passes."""
+    reference_node = harness.node("reference")
+    reference = (rclpy.experimental.EventsExecutor(context=harness.context) if harness.kind == "events"
+                 else rclpy.executors.SingleThreadedExecutor(context=harness.context))
+    reference.add_node(reference_node)
+    expected = timer_argument(lambda: reference.spin_once(timeout_sec=0.05), reference_node)
+    reference.remove_node(reference_node)
+    reference.shutdown()
+    assert expected, "rclpy's own executor never called the timer"
+    node = harness.node("timed")
+    harness.executor.add(node)
+    given = timer_argument(lambda: time.sleep(0.02), node)
+    assert [type(value) for value in given] == [type(value) for value in expected]
     assert not harness.errors and not harness.fatal, (harness.errors, harness.fatal)
 
 
