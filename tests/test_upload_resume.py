@@ -45,7 +45,7 @@ def test_a_killed_containers_upload_resumes_from_its_last_confirmed_part(
     assert camera.success, camera
     recorder = client.load("components::Recorder", parameters={
         "storage.uri": str(tmp_path / "first"), "record.topics": ["/camera/image_raw"], "upload.uri": uri,
-        "upload.endpoint_url": s3.endpoint_url, "upload.max_rate": 12 * MB})
+        "upload.endpoint_url": s3.endpoint_url, "upload.max_rate": 24 * MB})
     assert recorder.success, recorder
     assert wait_until(lambda: recorder_stats(probe, "/recorder")["current"]["bytes_written"] > 60 * MB, 20.0)
     assert client.unload(recorder.unique_id).success  # finalized; its upload goes on in the container
