@@ -40,7 +40,7 @@ def localbucket(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[S3S
 def test_an_uploaded_bag_is_byte_identical_and_uploading_it_again_transfers_nothing(
         tmp_path: Path, store: str, request: pytest.FixtureRequest) -> None:
     running: S3Server = request.getfixturevalue(store)
-    bag = write_bag(tmp_path / "robot" / "run", 20 * MiB, max_bagfile_size=12 * MiB)  # one multipart file or more
+    bag = write_bag(tmp_path / "robot" / "run", 10 * MiB, max_bagfile_size=9 * MiB)  # a multipart file and more
     local = digest_tree(bag)
     uri = f"s3://{BUCKET}/fleet"
     first = cli("bag", "upload", str(bag), uri, "--endpoint-url", running.endpoint_url)

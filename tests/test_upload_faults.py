@@ -103,7 +103,7 @@ def fault(kind: str, server: S3Server, filler: Path) -> Iterator[str]:
             server.resume()
 
 
-@pytest.mark.parametrize("kind", ["500", "stall"])
+@pytest.mark.parametrize("kind", ["500", pytest.param("stall", marks=pytest.mark.sweep)])  # stall: 10 s timeout
 def test_a_failing_server_is_named_and_the_uploads_complete_once_it_recovers(
         manager: ComponentManager, s3: S3Server, tmp_path: Path, kind: str) -> None:
     with small_filesystem(tmp_path / "store", 16 * MIB) as mounted:

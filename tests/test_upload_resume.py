@@ -36,7 +36,7 @@ def upload_processes(root: Path) -> list[str]:
     return [line for line in listing.splitlines() if "pgrep" not in line]
 
 
-@pytest.mark.parametrize("resumer", ["recorder", "bag upload --resume"])
+@pytest.mark.parametrize("resumer", ["recorder", pytest.param("bag upload --resume", marks=pytest.mark.sweep)])
 def test_a_killed_containers_upload_resumes_from_its_last_confirmed_part(
         containers: Containers, probe: Node, s3: S3Server, bucket: str, tmp_path: Path, resumer: str) -> None:
     uri = f"s3://{bucket}/fleet"
