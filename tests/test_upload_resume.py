@@ -55,7 +55,7 @@ def test_a_killed_containers_upload_resumes_from_its_last_confirmed_part(
     process.process.wait()
     before = journal_rows(tmp_path)[big]
     assert before["state"] == "pending" and before["sent"] < before["size"], before
-    # it notices its parent is gone within 0.5 s and ends within 2 s more, at nice +10 on a loaded machine later
+    # it sees its parent gone within 0.5 s and ends 2 s later at most: longer at nice +10 on a loaded machine
     assert wait_until(lambda: not upload_processes(tmp_path), 15.0), upload_processes(tmp_path)
 
     if resumer == "recorder":
