@@ -1,5 +1,6 @@
 """Action introspection on Jazzy: the service events Kilted's rcl_action publishes, from rclpy action servers and
-clients.
+clients. On Kilted, :func:`action_server` and :func:`action_client` return rclpy's own, whose
+``configure_introspection`` has rcl_action publish the same events.
 
 Kilted's ``ActionServer.configure_introspection(clock, qos, state)`` (and the client's) make the action's three
 services publish their requests and responses as service events, on ``<action>/_action/send_goal/_service_event``,
@@ -36,7 +37,11 @@ from service_msgs.msg import ServiceEventInfo
 
 from baglib.format.action_topics import INTERFACES
 
-__all__ = ["IntrospectedActionClient", "IntrospectedActionServer", "ServiceIntrospectionState"]
+__all__ = ["IntrospectedActionClient", "IntrospectedActionServer", "ServiceIntrospectionState", "action_client",
+           "action_server"]
+
+#: rclpy 9 (Kilted) on: rcl_action publishes the events itself and rclpy's own server and client configure it.
+NATIVE_INTROSPECTION = hasattr(ActionServer, "configure_introspection")
 
 # the Impl service of each interface and the keys rclpy's take_data uses for it
 _SERVICES = {"send_goal": ("SendGoalService", "goal"), "cancel_goal": ("CancelGoalService", "cancel"),
@@ -209,3 +214,17 @@ class IntrospectedActionClient(_Introspectable, ActionClient):
                 self._events.publish(interface, ServiceEventInfo.RESPONSE_RECEIVED, sequence_number,
                                      response=response)
         return data
+
+
+def action_server(node: Node, action_type: Any, action_name: str, execute_callback: Callable[..., Any],
+                  **kwargs: Any) -> ActionServer:
+    """An action server with ``configure_introspection``: rclpy's own where rcl_action introspects (Kilted on),
+    else :class:`IntrospectedActionServer`; the same topics, types and events either way."""
+    kind = ActionServer if NATIVE_INTROSPECTION else IntrospectedActionServer
+    return kind(node, action_type, action_name, execute_callback, **kwargs)
+
+
+def action_client(node: Node, action_type: Any, action_name: str, **kwargs: Any) -> ActionClient:
+    """An action client with ``configure_introspection``, chosen as :func:`action_server`."""
+    kind = ActionClient if NATIVE_INTROSPECTION else IntrospectedActionClient
+    return kind(node, action_type, action_name, **kwargs)

@@ -17,12 +17,13 @@ import sys
 import time
 from typing import Any, Callable
 
+from rclpy.action import ActionClient, ActionServer
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.subscription import Subscription
 
-from component_container.action_introspection import IntrospectedActionClient, IntrospectedActionServer
+from component_container.action_introspection import action_client, action_server
 from component_container.bag_root import confine
 from component_container.health import Health
 from component_container.intra_process import (
@@ -138,13 +139,13 @@ class ComponentNode(Node):
             self.__counted.append(publisher)
 
     def create_action_server(self, action_type: Any, action_name: str, execute_callback: Callable[..., Any],
-                             **kwargs: Any) -> IntrospectedActionServer:
+                             **kwargs: Any) -> ActionServer:
         """rclpy's ``ActionServer(self, ...)`` (same arguments) with Kilted's ``configure_introspection``."""
-        return IntrospectedActionServer(self, action_type, action_name, execute_callback, **kwargs)
+        return action_server(self, action_type, action_name, execute_callback, **kwargs)
 
-    def create_action_client(self, action_type: Any, action_name: str, **kwargs: Any) -> IntrospectedActionClient:
+    def create_action_client(self, action_type: Any, action_name: str, **kwargs: Any) -> ActionClient:
         """rclpy's ``ActionClient(self, ...)`` (same arguments) with Kilted's ``configure_introspection``."""
-        return IntrospectedActionClient(self, action_type, action_name, **kwargs)
+        return action_client(self, action_type, action_name, **kwargs)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[..., None],
                             qos_profile: QoSProfile | int, *, intra_process_inline: bool = False,
@@ -190,8 +191,14 @@ class ComponentNode(Node):
 
     def destroy_node(self) -> None:
         """Leave the intra-process manager first (no publisher can deliver here any more), then destroy the
-        node; the rcl node is destroyed even if unregistering fails."""
+        node; the rcl node is destroyed even if unregistering fails.
+
+        The node's action servers and clients go too: rclpy's ``destroy_node`` leaves them (they are waitables),
+        and each keeps the rcl node, and so its services and topics, alive on the graph after the unload, with
+        rcl_action's introspection publishers (Kilted) still offering their transient-local history."""
         try:
+            for endpoint in [w for w in self.waitables if isinstance(w, (ActionServer, ActionClient))]:
+                endpoint.destroy()
             for subscription in list(self._ipc_subscriptions):
                 self.destroy_subscription(subscription)
             for publisher in list(self._ipc_publishers):

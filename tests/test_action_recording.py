@@ -376,3 +376,22 @@ def test_the_player_sends_recorded_goals_to_the_running_action_server(tmp_path: 
         assert player.stats()["published"] == {SEND_GOAL: 2, CANCEL_GOAL: 1}
     assert sorted(fibonacci.executed) == [(first, 4), (second, 6)]
     assert fibonacci.cancel_requests == [second]
+
+
+def test_an_unloaded_components_action_server_and_client_leave_the_graph(ros: None) -> None:
+    """A ComponentNode destroyed (a component unloaded) takes its action server and client with it: rclpy's
+    destroy_node leaves them alive (and their services on the graph), and on Kilted their rcl_action
+    introspection publishers then served old goals' events to the next recorder."""
+    component = ComponentNode("fib_component")
+    component.create_action_server(Fibonacci, "/leaving", lambda handle: Fibonacci.Result())
+    component.create_action_client(Fibonacci, "/leaving")
+    probe = rclpy.create_node("fib_probe")
+    try:
+        def services() -> set[str]:
+            return {name for name, _ in probe.get_service_names_and_types() if name.startswith("/leaving/_action/")}
+
+        assert wait_until(lambda: len(services()) == 3, 20.0), services()
+        component.destroy_node()
+        assert wait_until(lambda: not services(), 20.0), f"still on the graph: {sorted(services())}"
+    finally:
+        probe.destroy_node()
