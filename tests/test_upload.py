@@ -161,19 +161,21 @@ def test_bad_upload_parameters_are_load_errors_that_name_them(
 
 def test_the_disk_guard_takes_back_verified_files_first_and_circular_recording_counts_what_it_deletes(
         manager: ComponentManager, s3: S3Server, bucket: str, tmp_path: Path) -> None:
-    """On a 24 MiB tmpfs a recording of more than the disk holds goes on: the free-space guard deletes files
+    """On a 16 MiB tmpfs a recording of more than the disk holds (20 MiB) goes on: the free-space guard deletes files
     verified in the store, oldest first, instead of stopping; none was lost. Then circular recording
     (``storage.max_bag_files``) with the store down: each file it deletes unverified is counted as
     ``deleted_before_upload``, and what it kept is uploaded once the store is back."""
-    with small_filesystem(tmp_path / "small", 24 * MIB) as mounted:
+    with small_filesystem(tmp_path / "small", 16 * MIB) as mounted:
         assert mounted, "needs root to mount a small tmpfs (the tests run as root in CI)"
         root = tmp_path / "small"
         uri = f"s3://{bucket}/guard"
+        # 10 of the camera's 30 frames a second (2.3 MB/s): the uploads keep up on a loaded machine too, so there
+        # are verified files to take back when the disk runs low (with none, stopping is right)
         recorder = load(manager, "Recorder", "recorder", **{
             "storage.uri": str(root / "run"), "record.topics": ["/cam/image_raw"],
-            "storage.max_bagfile_size": 2 * MIB, "storage.min_free_space": 8 * MIB, "upload.uri": uri,
-            "upload.endpoint_url": s3.endpoint_url})
-        assert wait_until(lambda: recorder.node.stats()["current"]["bytes_written"] > 40 * MIB, 30.0), \
+            "record.max_rates": ["/cam/image_raw:10"], "storage.max_bagfile_size": MIB,
+            "storage.min_free_space": 6 * MIB, "upload.uri": uri, "upload.endpoint_url": s3.endpoint_url})
+        assert wait_until(lambda: recorder.node.stats()["current"]["bytes_written"] > 20 * MIB, 40.0), \
             recorder.node.stats()["current"]
         assert not recorder.node.stats()["current"]["error"]
         manager.unload(recorder.unique_id)
