@@ -159,12 +159,10 @@ def test_bad_upload_parameters_are_load_errors_that_name_them(
     assert tuple(c.full_name for c in manager.components()) == DRIVERS
 
 
-def test_the_disk_guard_takes_back_verified_files_first_and_circular_recording_counts_what_it_deletes(
+def test_the_disk_guard_takes_back_verified_files_first(
         manager: ComponentManager, s3: S3Server, bucket: str, tmp_path: Path) -> None:
-    """On a 16 MiB tmpfs a recording of more than the disk holds (20 MiB) goes on: the free-space guard deletes files
-    verified in the store, oldest first, instead of stopping; none was lost. Then circular recording
-    (``storage.max_bag_files``) with the store down: each file it deletes unverified is counted as
-    ``deleted_before_upload``, and what it kept is uploaded once the store is back."""
+    """On a 16 MiB tmpfs a recording of more than the disk holds (20 MiB) goes on: the free-space guard deletes
+    files verified in the store, oldest first, instead of stopping; none was lost."""
     with small_filesystem(tmp_path / "small", 16 * MIB) as mounted:
         assert mounted, "needs root to mount a small tmpfs (the tests run as root in CI)"
         root = tmp_path / "small"
@@ -186,6 +184,11 @@ def test_the_disk_guard_takes_back_verified_files_first_and_circular_recording_c
         here = {path.name for path in (root / "run").iterdir()}
         assert len(remote) > len(here) and here <= {key.rpartition("/")[2] for key in remote}
 
+
+def test_circular_recording_counts_the_files_it_deletes_before_they_are_uploaded(
+        manager: ComponentManager, s3: S3Server, bucket: str, tmp_path: Path) -> None:
+    """Circular recording (``storage.max_bag_files``) with the store down: each file it deletes unverified is
+    counted as ``deleted_before_upload``, and what it kept is uploaded once the store is back."""
     root = tmp_path  # the ordinary disk
     uri = f"s3://{bucket}/circular"
     s3.kill()
