@@ -10,6 +10,7 @@ in-process manager beside inline probes (they see every message without an execu
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -35,7 +36,7 @@ from component_container.component_node import ComponentNode
 from component_container.startup_file import load_request
 from components.image_encoder import codecs
 from components.image_encoder.frame_times import frame_times
-from components.player.decode_worker import Job, StreamWorker
+from components.player.decode_worker import NICE, Job, StreamWorker
 from components.player.decoded_topics import DecodedStream, Decoding, decoded_name
 from components.player.playback import HEAD_START_NS
 from components.player.read_ahead import ReadAhead
@@ -351,6 +352,35 @@ def test_a_stream_decodes_ahead_of_playback_with_a_bounded_number_of_frames_in_f
         gate.release(len(messages))
         worker.close()
     assert not reader_thread.is_alive() and decode_threads() == []
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a nice value per thread is Linux's")
+def test_a_stream_decodes_at_a_lower_priority_than_the_reader_and_so_do_the_threads_its_codec_starts(
+        bag: CompressedBag) -> None:
+    seen: list[int] = []
+
+    def priority() -> None:
+        seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    def decode(job: Job) -> tuple[Any, Any]:  # its own priority, and that of a thread it starts (as FFmpeg does)
+        priority()
+        codec_thread = threading.Thread(target=priority)
+        codec_thread.start()
+        codec_thread.join()
+        return job.message, None
+
+    with BagReader(bag.path) as reader:
+        message = next(iter(reader.messages([VIDEO])))
+    worker = StreamWorker("decode:priority", decode, 1)
+    reader_priority = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    try:
+        job = Job(message._replace(data=bytes(message.data)), 0, True)
+        worker.submit(job)
+        job.wait()
+    finally:
+        worker.close()
+    assert seen == [min(reader_priority + NICE, 19)] * 2
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == reader_priority  # the reader's is unchanged
 
 
 def test_a_decoding_thread_per_stream_that_stop_and_unload_end(manager: ComponentManager, tmp_path: Path) -> None:

@@ -11,12 +11,22 @@ Bounds: at most ``depth`` messages of a stream are submitted and not yet decoded
 place), so a stream whose decoder falls behind holds the reader back instead of piling up work; the pictures
 decoded and not yet played are in the read-ahead queue, under its byte bound.
 
+Priority: the threads run :data:`NICE` steps below the thread that starts them (Linux's nice value, which is per
+thread; the threads FFmpeg starts from a decoder inherit it). Their work is done ahead of time, the playback thread's
+is due at a given moment. At the same priority, a few streams' decoders (and FFmpeg's threads) held every core just
+when the playback thread woke for a due message or published the next ones, and it waited for a core instead of
+for its schedule; a little lower, the scheduler hands it a core at once, and the decoders still get most of the
+CPU, since playback uses a fraction of one core. Two streams together weigh about as much as one thread of normal
+priority: the share the single decoding thread had before against other busy processes.
+
 A thread lives from the first message of a pass to the end of that pass's work (:meth:`end_pass`: it leaves once
 its jobs are done), and :meth:`close` cancels what is left and joins it: a player that stops or unloads leaves no
 decoding thread behind.
 """
 from __future__ import annotations
 
+import os
+import sys
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -26,6 +36,8 @@ from baglib.read.reader import BagMessage
 
 #: How long close() waits for a decode that is under way.
 JOIN_TIMEOUT_S = 5.0
+#: How many nice steps below the thread that starts it a decoding thread runs (see the module docstring).
+NICE = 3
 
 
 class Job:
@@ -123,6 +135,7 @@ class StreamWorker:
             thread.join(JOIN_TIMEOUT_S)
 
     def _work(self) -> None:
+        lower_priority(NICE)
         while True:
             with self._changed:
                 self._changed.wait_for(lambda: self._jobs or self._finishing or self._closed)
@@ -141,3 +154,15 @@ class StreamWorker:
                 with self._changed:
                     self._running = 0
                     self._changed.notify_all()
+
+
+def lower_priority(steps: int) -> None:
+    """Run the calling thread ``steps`` nice values lower than it runs now (at most 19). Only on Linux, where the
+    value is the thread's own (elsewhere it would be the whole process's); a system that refuses leaves it as it is."""
+    if sys.platform != "linux":
+        return
+    thread = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, thread, min(os.getpriority(os.PRIO_PROCESS, thread) + steps, 19))
+    except OSError:
+        pass  # the stream still decodes, at the priority of the rest
