@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import resource
 import shutil
 import sqlite3
 import subprocess
@@ -200,7 +199,7 @@ def record_fleet_bag(probe: Node, session: Path, host: str, count: int) -> Path:
     heard: list[String] = []
     subscription = probe.create_subscription(String, f"/{host}/chatter", heard.append, 100)
     with ContainerProcess("--use-intra-process-comms", name=f"fleet_{host}", cwd=REPO,
-                          log_path=session.parent / f"{host}.log") as container:
+                          log_path=session.parent / f"{host}.log"):
         client = ContainerClient(probe, f"/fleet_{host}")
         try:
             client.wait()

@@ -11,7 +11,6 @@ the recording; its bag must not show it.
 """
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys

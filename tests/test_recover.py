@@ -13,7 +13,6 @@ import functools
 import os
 import random
 import shutil
-import sqlite3
 import struct
 import subprocess
 import sys
