@@ -351,9 +351,12 @@ def test_a_recorder_with_compress_depth_records_the_depth_camera_bit_exact(manag
     encoder = next(c.node for c in manager.components() if isinstance(c.node, ImageEncoder))
     assert wait_until(lambda: encoder.stats()["topics"][topic]["waiting"] == 0, 20.0)
     published = encoder.stats()["topics"][topic]["published"]  # all but what a loaded machine made it skip
-    assert wait_until(lambda: recorder.stats()["current"]["topics"][output]["received"] == published, 20.0)
+    # the recorder counts the camera's frames as received, the encoder's skips among its drops (encoder_behind)
+    assert wait_until(lambda: (counts := recorder.stats()["current"]["topics"][output])["received"]
+                      - counts["dropped"] == published, 20.0), recorder.stats()["current"]["topics"][output]
     stats = recorder.stop_recording()
-    assert topic not in stats["topics"] and stats["topics"][output]["dropped"] == 0
+    assert topic not in stats["topics"] and set(stats["drop_reasons"].get(output, {})) <= {"encoder_behind"}
+    assert stats["topics"][output]["written"] == published
     recorded = bag_messages(tmp_path / "depth")[output]
     sent = {stamp_of(message): bytes(message.data) for message in raw.messages}
     assert len(recorded) == published >= 5
