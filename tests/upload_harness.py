@@ -43,11 +43,18 @@ def sha256(data: bytes) -> str:
 
 
 def stored(server: S3Server, bucket: str, prefix: str = "") -> dict[str, bytes]:
-    """Every object under ``prefix``: key -> content."""
+    """Every object under ``prefix``: key -> content. A key gone between the listing and the read is left out:
+    nanio lists the temporary file of a PUT in progress (``.tmp.<id>``) until it renames it."""
     client = server.client()
     keys = [item["Key"] for page in client.get_paginator("list_objects_v2").paginate(Bucket=bucket, Prefix=prefix)
             for item in page.get("Contents", [])]
-    return {key: client.get_object(Bucket=bucket, Key=key)["Body"].read() for key in keys}
+    objects: dict[str, bytes] = {}
+    for key in keys:
+        try:
+            objects[key] = client.get_object(Bucket=bucket, Key=key)["Body"].read()
+        except client.exceptions.NoSuchKey:
+            continue
+    return objects
 
 
 def download(server: S3Server, bucket: str, prefix: str, directory: Path) -> Path:
