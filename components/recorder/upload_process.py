@@ -22,6 +22,7 @@ STOP_TIMEOUT = 5.0
 @dataclass
 class _Worker:
     process: subprocess.Popen[bytes]
+    max_rate: float
     users: int = 0
 
 
@@ -32,7 +33,7 @@ _workers: dict[Path, _Worker] = {}
 def _start(journal: Path, max_rate: float) -> _Worker:
     process = subprocess.Popen([sys.executable, "-m", "baglib.upload.worker", str(journal),
                                 "--max-rate", str(max_rate)], stdin=subprocess.PIPE, close_fds=True)
-    return _Worker(process)
+    return _Worker(process, max_rate)
 
 
 def acquire(journal: Path, max_rate: float) -> None:
@@ -53,7 +54,7 @@ def wake(journal: Path) -> None:
             return
         if worker.process.poll() is not None:
             users = worker.users
-            worker = _workers[journal] = _start(journal, 0.0)
+            worker = _workers[journal] = _start(journal, worker.max_rate)
             worker.users = users
         try:
             assert worker.process.stdin is not None
