@@ -18,7 +18,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+import rclpy
 import yaml
+from foxglove_msgs.msg import CompressedVideo
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.qos import QoSProfile
@@ -28,6 +30,7 @@ from sensor_msgs.msg import Image
 from component_container.component_manager import ComponentManager
 from component_container.component_node import ComponentNode
 from component_container.startup_file import load_request
+from components.image_encoder.codecs import VideoCodec, choose
 from components.image_encoder.image_encoder import ImageEncoder
 from components.sensor_driver import stamp_from_ns
 from ffmpeg_tools import ffmpeg
@@ -332,3 +335,42 @@ def test_pauses_of_any_length_leave_nothing_awaiting_a_keyframe(manager: Compone
     assert {t: r for t, r in final["drop_reasons"].items() if "awaiting_keyframe" in r} == {}, final["drop_reasons"]
     for camera in cameras:
         assert_every_file_decodes_whole(bag, f"{camera}/video")
+
+
+def test_video_of_another_publisher_begins_every_file_at_its_own_keyframes(manager: ComponentManager,
+                                                                           tmp_path: Path) -> None:
+    """A CompressedVideo topic that no encoder of the container publishes (a plain rclpy publisher: over DDS, as
+    serialized bytes), joined in the middle of a keyframe interval and split twice: FFmpeg's parser finds its
+    keyframes, so the bag begins at the first one (the delta frames before it dropped as awaiting_keyframe), each
+    split file begins at one, and every other access unit is recorded exactly once. Before, it was recorded as it
+    came: its first file began with delta frames that ffmpeg cannot decode, and so could every split file."""
+    topic, interval, first = "/foreign/video", 10, 3
+    codec = VideoCodec(choose("h264", "", -1, 0, interval), WIDTH, HEIGHT)
+    units = [(keyframe, data) for index in range(60)
+             for _, keyframe, data in codec.encode(picture(index), "rgb8", False)]
+    assert [k for k, _ in units[:interval + 1]] == [True] + [False] * (interval - 1) + [True]
+    bag = tmp_path / "foreign"
+    recorder = load(manager, "Recorder", "rec_foreign", **{"storage.uri": str(bag), "record.topics": [topic]})
+    node = rclpy.create_node("foreign_video", context=manager.context)  # not the container's: DDS only
+    try:
+        publisher = node.create_publisher(CompressedVideo, topic, QoSProfile(depth=100))
+        assert wait_until(lambda: topic in recorder.node._topics and publisher.get_subscription_count() >= 1, 20.0)
+
+        def received() -> int:
+            return recorder.node.stats()["current"]["topics"].get(topic, {}).get("received", 0)
+
+        for sent, (_, data) in enumerate(units[first:], start=1):
+            message = CompressedVideo(frame_id="foreign", format="h264", data=data)
+            message.timestamp = stamp_from_ns(1_000_000_000 + first + sent)
+            publisher.publish(message)
+            assert wait_until(lambda: received() == sent, 10.0), (sent, received())
+            if first + sent in (25, 45):  # mid-interval: the split waits for the next keyframe
+                assert recorder.node._session.split()
+        final = recorder.node.stop_recording()
+    finally:
+        node.destroy_node()
+    assert final["drop_reasons"] == {topic: {"awaiting_keyframe": interval - first}}, final["drop_reasons"]
+    files = assert_every_file_decodes_whole(bag, topic)
+    assert [len(messages) for messages in files] == [20, 20, 10], [len(messages) for messages in files]
+    stamps = [stamp_ns(m.timestamp) - 1_000_000_000 for messages in files for m in messages]
+    assert stamps == list(range(interval + 1, len(units) + 1))  # each unit once, in order, from the keyframe on

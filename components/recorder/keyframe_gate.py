@@ -4,14 +4,20 @@ A ``foxglove_msgs/CompressedVideo`` delta frame cannot be decoded without the fr
 and each split file of it, must begin each video topic at a keyframe, or a player, ``ipc-component bag export``
 or Foxglove opening that file shows nothing (or garbage) until the next keyframe.
 
-**Which topics, which keyframes.** A video topic is gated when an ImageEncoder of this container publishes it
-(the recorder's own, ``record.compress``, or any other): :class:`VideoTopics` learns it when the recorder
-subscribes, before the first message can arrive, from :mod:`components.image_encoder.outputs`; the encoder's
-stream says which of its messages (by stamp) were keyframes. No bitstream is parsed here. A CompressedVideo topic
-from another process is recorded as it comes (the recorder warns): its keyframes are not known here.
+**Which topics, which keyframes.** Every recorded CompressedVideo topic is gated; :class:`VideoTopics` learns it
+when the recorder subscribes, before the first message can arrive. Where an ImageEncoder of this container
+publishes it (the recorder's own, ``record.compress``, or any other; :mod:`components.image_encoder.outputs`), the
+encoder's stream says which of its messages (by stamp) were keyframes, and can be asked for one. Any other
+publisher's topic (another process, a user's component) is a *parsed* topic: FFmpeg's parser of its ``format``
+says whether each access unit is a keyframe (components/image_encoder/access_units.py); its encoder cannot be asked
+for one. A format FFmpeg has no parser for (or an access unit it cannot read) is recorded as it comes, with a
+warning.
 
 **The encoder's promise.** After a keyframe request returns, the next access unit the encoder publishes is a
-keyframe (components/image_encoder/stream.py). The gate asks for one whenever a file or a topic begins.
+keyframe (components/image_encoder/stream.py). The gate asks for one whenever a file or a topic begins. A parsed
+topic has its keyframes when its publisher sends them (its keyframe interval): the delta frames before its first
+one are dropped as ``awaiting_keyframe``, and a split waits for its keyframe as for the others, up to
+:data:`SPLIT_HOLD`.
 
 Rules:
 
@@ -37,10 +43,13 @@ from __future__ import annotations
 import contextlib
 import enum
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
-from components.image_encoder import outputs
+from foxglove_msgs.msg import CompressedVideo
+from rclpy.serialization import deserialize_message
+
+from components.image_encoder import access_units, outputs
 
 #: The message type of compressed video topics.
 VIDEO_TYPE = "foxglove_msgs/msg/CompressedVideo"
@@ -51,22 +60,27 @@ SPLIT_HOLD = 2.0
 
 
 class VideoTopics:
-    """The recorded topics an ImageEncoder of this container publishes as video (thread-safe reads)."""
+    """The recorded video topics and how each one's keyframes are known (module docstring); thread-safe reads."""
 
-    def __init__(self, container: Any) -> None:
-        """``container``: the recorder's intra-process manager (None: not in-process, no topic is gated)."""
+    def __init__(self, container: Any, warn: Callable[[str], None] = lambda text: None) -> None:
+        """``container``: the recorder's intra-process manager (None: not in-process, every topic is parsed);
+        ``warn``: where a topic recorded as it comes is told, once per topic."""
         self._container = container
+        self._warn = warn
         self._topics: frozenset[str] = frozenset()
+        self._parsed: frozenset[str] = frozenset()  # topics of other publishers: keyframes read by FFmpeg's parser
+        self._unread: set[str] = set()  # parsed topics already warned about (recorded as they come)
         self._due_ns: int | None = None  # a keyframe asked for from then on (record.start_at), also of later topics
 
     def add(self, topic: str) -> bool:
-        """The recorder is about to subscribe to ``topic``: True if its files are begun at keyframes (an encoder
-        of this container publishes it as video). The encoder makes a new in-process reader's first message a
-        keyframe (components/image_encoder/stream.py)."""
+        """The recorder is about to subscribe to ``topic``: its files are begun at keyframes. True if an encoder
+        of this container publishes it as video (it makes a new in-process reader's first message a keyframe:
+        components/image_encoder/stream.py); False if another publisher does (a parsed topic)."""
         stream = outputs.stream_for(self._container, topic)
-        if stream is None or not stream.is_video:
-            return False
         self._topics = self._topics | {topic}
+        if stream is None or not stream.is_video:
+            self._parsed = self._parsed | {topic}
+            return False
         due = self._due_ns
         if due is not None and due > time.time_ns():
             stream.request_keyframe(at_ns=due)
@@ -76,10 +90,25 @@ class VideoTopics:
         return topic in self._topics
 
     def is_keyframe(self, topic: str, message: Any) -> bool:
-        """Whether ``message`` (a CompressedVideo object of the video topic ``topic``) is a keyframe its
-        encoder published."""
+        """Whether ``message`` (of the video topic ``topic``: a CompressedVideo object, or its serialized bytes as
+        a subscription from another process gives them) is a keyframe: as its encoder published it, or as FFmpeg's
+        parser reads it (True where it cannot: recorded as it comes)."""
+        if topic in self._parsed:
+            return self._parsed_keyframe(topic, message)
         stream = outputs.stream_for(self._container, topic)
         return stream is not None and stream.published_keyframe(message.timestamp)
+
+    def _parsed_keyframe(self, topic: str, message: Any) -> bool:
+        if isinstance(message, (bytes, bytearray, memoryview)):
+            message = deserialize_message(bytes(message), CompressedVideo)
+        try:
+            return access_units.is_keyframe(message.format, message.data)
+        except Exception as exc:  # noqa: BLE001 - an unknown format, or FFmpeg cannot read the unit
+            if topic not in self._unread:
+                self._unread.add(topic)
+                self._warn(f"{topic}: which access units are keyframes cannot be read ({exc}): recorded as it "
+                           "comes, so a file may begin with a frame that decodes only from the next keyframe")
+            return True
 
     @contextlib.contextmanager
     def publication_held(self) -> Iterator[None]:

@@ -57,7 +57,7 @@ from components.qos_profiles import absolute_topic
 from components.recorder.bag_names import BagNames
 from components.recorder.compression import Compression
 from components.recorder.finished_bags import FinishedBags
-from components.recorder.keyframe_gate import VIDEO_TYPE, VideoTopics
+from components.recorder.keyframe_gate import SPLIT_HOLD, VIDEO_TYPE, VideoTopics
 from components.recorder.recorder_health import HealthMonitor
 from components.recorder.recorder_options import custom_data_pairs, declare_options
 from components.recorder.loss_events import MESSAGES_LOST_TOPIC, LossEvents
@@ -105,8 +105,8 @@ class Recorder(ComponentNode):
                                  "load the recorder with use_intra_process_comms:=true")
             options = self._options
             self._compression = Compression(self, options) if options.compress else None
-            # The video topics of this container's encoders: their files begin at keyframes (keyframe_gate).
-            self._video = VideoTopics(self._ipm) if self.uses_intra_process else None
+            # The recorded video topics: their files begin at keyframes (keyframe_gate).
+            self._video = VideoTopics(self._ipm if self.uses_intra_process else None, self.get_logger().warning)
             self._schedule = Schedule(options.start_ns or time.time_ns(), options.stop_ns, options.max_duration_ns,
                                       options.split_ns)
             self._finalizer: threading.Thread | None = None
@@ -294,11 +294,13 @@ class Recorder(ComponentNode):
             self.get_logger().warning(
                 f"record.compress:={self._options.compress} does not encode {topic} (record.compress_topics / "
                 "record.compress_regex do not name it): recording it raw")
-        if type_name == VIDEO_TYPE and not (self._video is not None and self._video.add(topic)):
-            self.get_logger().warning(
-                f"{topic} carries video from outside this container: recorded as it comes, so a file may begin "
-                "with a delta frame that decodes only from the next keyframe (load its encoder into the "
-                "recorder's container, or use record.compress, to have every file begin at a keyframe)")
+        if type_name == VIDEO_TYPE and not self._video.add(topic):
+            self.get_logger().info(
+                f"{topic} carries video from outside this container: its files begin at its keyframes as FFmpeg's "
+                "parser reads them; its encoder cannot be asked for one, so its delta frames before its first "
+                "keyframe, and at a split that waits for one longer than "
+                f"{SPLIT_HOLD:g} s, are dropped as awaiting_keyframe (load its encoder into the recorder's "
+                "container, or use record.compress, to have no frame dropped)")
         try:
             with self._lock:  # declared in the bag before the first message can reach the writer
                 if self._session is not None:

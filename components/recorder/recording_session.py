@@ -107,7 +107,7 @@ class RecordingSession:
                  serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None,
                  writer_class: type[BagWriter] = BagWriter, video: VideoTopics | None = None) -> None:
         self._logger = logger
-        # Video topics of this container's encoders: each file begins each of them at a keyframe (keyframe_gate);
+        # Video topics: each file begins each of them at a keyframe (keyframe_gate);
         # the messages held for the file a pending split opens (the writer thread's).
         self.gate = KeyframeGate(video) if video is not None else None
         self._held: list[CachedMessage] = []
