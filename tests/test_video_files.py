@@ -337,20 +337,25 @@ def test_pauses_of_any_length_leave_nothing_awaiting_a_keyframe(manager: Compone
         assert_every_file_decodes_whole(bag, f"{camera}/video")
 
 
+@pytest.mark.parametrize("intra_process", [True, False])
 def test_video_of_another_publisher_begins_every_file_at_its_own_keyframes(manager: ComponentManager,
-                                                                           tmp_path: Path) -> None:
+                                                                           tmp_path: Path, intra_process: bool) -> None:
     """A CompressedVideo topic that no encoder of the container publishes (a plain rclpy publisher: over DDS, as
-    serialized bytes), joined in the middle of a keyframe interval and split twice: FFmpeg's parser finds its
-    keyframes, so the bag begins at the first one (the delta frames before it dropped as awaiting_keyframe), each
-    split file begins at one, and every other access unit is recorded exactly once. Before, it was recorded as it
-    came: its first file began with delta frames that ffmpeg cannot decode, and so could every split file."""
+    serialized bytes), joined in the middle of a keyframe interval and split twice, by a recorder with and without
+    intra-process comms: FFmpeg's parser finds its keyframes, so the bag begins at the first one (the delta frames
+    before it dropped as awaiting_keyframe), each split file begins at one, and every other access unit is
+    recorded exactly once. Before, it was recorded as it came: its first file began with delta frames that ffmpeg
+    cannot decode, and so could every split file."""
     topic, interval, first = "/foreign/video", 10, 3
     codec = VideoCodec(choose("h264", "", -1, 0, interval), WIDTH, HEIGHT)
     units = [(keyframe, data) for index in range(60)
              for _, keyframe, data in codec.encode(picture(index), "rgb8", False)]
     assert [k for k, _ in units[:interval + 1]] == [True] + [False] * (interval - 1) + [True]
     bag = tmp_path / "foreign"
-    recorder = load(manager, "Recorder", "rec_foreign", **{"storage.uri": str(bag), "record.topics": [topic]})
+    recorder = manager.load(load_request({
+        "package": "components", "plugin": "components::Recorder", "name": "rec_foreign",
+        "parameters": {"storage.uri": str(bag), "record.topics": [topic]},
+        "extra_arguments": IPC if intra_process else {}}, 1))
     node = rclpy.create_node("foreign_video", context=manager.context)  # not the container's: DDS only
     try:
         publisher = node.create_publisher(CompressedVideo, topic, QoSProfile(depth=100))

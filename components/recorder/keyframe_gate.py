@@ -86,6 +86,11 @@ class VideoTopics:
             stream.request_keyframe(at_ns=due)
         return True
 
+    @property
+    def in_process(self) -> bool:
+        """Whether this container's encoders can publish recorded topics (the recorder is intra-process)."""
+        return self._container is not None
+
     def __contains__(self, topic: str) -> bool:
         return topic in self._topics
 

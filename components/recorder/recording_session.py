@@ -107,9 +107,11 @@ class RecordingSession:
                  serialize: Serializer = cdr_fast.serialize, queue_drops: QueueDrops | None = None,
                  writer_class: type[BagWriter] = BagWriter, video: VideoTopics | None = None) -> None:
         self._logger = logger
-        # Video topics: each file begins each of them at a keyframe (keyframe_gate);
-        # the messages held for the file a pending split opens (the writer thread's).
-        self.gate = KeyframeGate(video) if video is not None else None
+        # Video topics: each file begins each of them at a keyframe (keyframe_gate); the messages held for the file
+        # a pending split opens (the writer thread's). With encoders in the container (intra-process) from the
+        # start; otherwise from the first video topic, so that a bag without video splits as the writer says.
+        self._video = video
+        self.gate = KeyframeGate(video) if video is not None and video.in_process else None
         self._held: list[CachedMessage] = []
         self._split_next = False
         self._serialize = serialize
@@ -209,6 +211,8 @@ class RecordingSession:
             self._fail(exc)
         if repeat_depth and self._snapshot_mode:
             self._latched[info.name] = deque(self._latched.get(info.name, ()), maxlen=repeat_depth)
+        if self.gate is None and self._video is not None and info.name in self._video:
+            self.gate = KeyframeGate(self._video)  # before the topic's first message can reach the writer
         self._topics.add(info.name)
 
     def account_encoder(self, topic: str, stream: Any, owned: bool) -> str | None:
