@@ -8,6 +8,12 @@ publish (components/photo_content.py at the scenario's size, the sequence number
 Everything else a camera costs (its driver, the encoder's messages, the recorder, the executor) keeps the
 lossless count below the limit; S4's target bounds that share (benchmarks/record/targets.py).
 
+**Cold frames.** Each measured frame is written just before it is encoded, so the codec reads it from the caches;
+in the rig, a frame waits in memory beside the other cameras' frames and the encoders' reference pictures (more
+than the L3 cache holds at a few 1080p cameras). The cost is also measured with each frame pushed out of the
+caches first (:data:`EVICT_BYTES` written between the frame and its encoding, outside the timed window): the
+difference is what reading the frame from memory adds to the codec, reported beside the limit, never in it.
+
 The cost is CPU time, not wall time: ``time.thread_time`` of the calling thread over ``frames`` frames after
 :data:`WARMUP_FRAMES` (the encoder's start and first keyframe), keyframes included at the encoder's interval.
 On a machine shared with other processes it grows far less than wall time: waiting for a core is not counted,
@@ -22,6 +28,7 @@ import time
 from array import array
 from typing import Any
 
+import numpy as np
 from sensor_msgs.msg import Image
 
 from components.image_encoder.codecs import StillCodec, VideoCodec, choose, pixels_of
@@ -32,6 +39,8 @@ from components.photo_content import PhotoContent
 WARMUP_FRAMES = 5
 #: Process CPU time beyond the thread's by more than this share: the codec works on threads of its own.
 OWN_THREADS_SHARE = 0.1
+#: Bytes written between a frame and its encoding to push it out of the caches (twice a 32 MiB L3).
+EVICT_BYTES = 64 << 20
 
 
 def codec_limit(ms_per_frame: float, fps: float, cores: int) -> float:
@@ -49,18 +58,22 @@ def photo_frame(photo: PhotoContent, data: array, sequence: int) -> Image:
     return image
 
 
-def frame_cost(codec: str, preset: str, width: int, height: int, frames: int) -> dict[str, Any]:
+def frame_cost(codec: str, preset: str, width: int, height: int, frames: int, cold: bool = False) -> dict[str, Any]:
     """CPU time per frame of ``codec`` (``preset``; "" the encoder's default) at the encoder's defaults over
-    ``frames`` photo frames: the calling thread's, the process's, and the one that counts (module docstring)."""
+    ``frames`` photo frames: the calling thread's, the process's, and the one that counts (module docstring).
+    ``cold``: each frame pushed out of the caches before it is encoded."""
     choice = choose(codec, preset, -1, 0, ENCODER_DEFAULTS["keyframe_interval"])
     photo = PhotoContent(width, height, "rgb8")
     data = array("B", bytes(width * height * 3))  # codecs copy what they keep: one buffer serves every frame
     still = None if choice.is_video else StillCodec(choice, 0)
     video = VideoCodec(choice, width, height) if choice.is_video else None
+    scratch = np.empty(EVICT_BYTES, np.uint8) if cold else None
     thread_ns = process_ns = 0
     try:
         for sequence in range(WARMUP_FRAMES + frames):
             image = photo_frame(photo, data, sequence)
+            if scratch is not None:
+                scratch.fill(sequence & 0xFF)
             # the process's window encloses the thread's: its CPU time is never less than the thread's
             process0 = time.process_time_ns()
             thread0 = time.thread_time_ns()
@@ -89,5 +102,7 @@ def measure_limits(codecs: dict[str, tuple[str, str]], width: int, height: int, 
     out: dict[str, Any] = {"cores": cores, "frame_interval_ms": 1000.0 / fps, "frames": frames, "codecs": {}}
     for label, (codec, preset) in codecs.items():
         cost = frame_cost(codec, preset, width, height, frames)
-        out["codecs"][label] = {**cost, "cameras": codec_limit(cost["ms_per_frame"], fps, cores)}
+        cold = frame_cost(codec, preset, width, height, frames, cold=True)["ms_per_frame"]
+        out["codecs"][label] = {**cost, "cameras": codec_limit(cost["ms_per_frame"], fps, cores),
+                                "cold_ms_per_frame": cold}
     return out
