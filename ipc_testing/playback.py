@@ -25,8 +25,14 @@ def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/c
     """Run ``command`` (a ``bag play`` command line) with ``--start-paused``, resume it once ``probe``'s
     ``std_msgs/String`` subscription of ``topic`` has matched the player's publisher, and wait for its end.
 
+    The player must be the topic's only publisher: an earlier player that has exited can stay on the graph for a
+    while, and a new subscription matches it at once, so the wait for a match would end before the new player is
+    matched (its first messages then go to nobody). So it waits first for the earlier ones to leave the graph.
+
     Returns the strings received and the command's stdout; AssertionError if it never matched or failed.
     """
+    assert wait_until(lambda: probe.count_publishers(topic) == 0, 30.0, probe), (
+        f"{topic} still has a publisher before the player starts: {probe.get_publishers_info_by_topic(topic)}")
     got: list[String] = []
     subscription = probe.create_subscription(String, topic, got.append, RELIABLE)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
