@@ -28,5 +28,5 @@ def is_keyframe(video_format: str, data: Any) -> bool:
     if name is None:
         raise UnknownFormat(f"format {video_format!r} is none of {', '.join(PARSERS)}")
     parser = av().CodecContext.create(name, "r")  # one per access unit: a parser keeps the unit's end back
-    packets = parser.parse(bytes(data)) + parser.parse(None)  # None: the unit is complete
+    packets = parser.parse(data) + parser.parse(None)  # read in place (buffer protocol); None: the unit is complete
     return any(packet.is_keyframe for packet in packets)

@@ -191,22 +191,22 @@ class KeyframeGate:
             not self._waiting or time.monotonic() - self._split_since > SPLIT_HOLD)
         if split:
             self._end_split()
+        # Whether a message is a keyframe is asked only where it decides (a parsed topic's costs a parse).
         video = topic in self.video
-        keyframe = video and self.video.is_keyframe(topic, message)
         if self._split_since is not None and video:
-            if topic in self._waiting and not keyframe:
-                return Verdict.WRITE, False  # the old file keeps this topic until its keyframe
-            if topic in self._waiting or topic in self._moved or keyframe:
+            if topic not in self._moved:
+                if not self.video.is_keyframe(topic, message):
+                    # the old file keeps a waiting topic until its keyframe; no other delta frame begins the new one
+                    return (Verdict.WRITE if topic in self._waiting else Verdict.DROP), False
                 self._waiting.discard(topic)
                 self._moved.add(topic)
-                if self._waiting:
-                    return Verdict.HOLD, False
-                self._end_split()  # the last keyframe the split waited for: it begins the new file, held
-                return Verdict.HOLD, True
-            return Verdict.DROP, False
+            if self._waiting:
+                return Verdict.HOLD, False
+            self._end_split()  # the last keyframe the split waited for: it begins the new file, held
+            return Verdict.HOLD, True
         if self._split_since is not None or not video or topic in self._started:
             return Verdict.WRITE, split
-        if keyframe:
+        if self.video.is_keyframe(topic, message):
             self._started.add(topic)
             return Verdict.WRITE, split
         return Verdict.DROP, split
