@@ -8,6 +8,8 @@ rosbag2's ``rosbag2_test_common``).
 * :mod:`~ipc_testing.calls`: one service call (optionally sent again until answered), and waiting on a condition
   while spinning;
 * :func:`~ipc_testing.in_process.in_process_manager`: a container's manager in the test process;
+* :func:`~ipc_testing.process_context.process_context`: the test process's one rclpy context, which no test shuts
+  down (Fast DDS 2.14 can livelock destroying a participant);
 * :mod:`~ipc_testing.foxglove_client`: Foxglove's own WebSocket client (node, from a checkout's
   tests/foxglove_client), driven over its stdin and stdout.
 

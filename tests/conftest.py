@@ -23,10 +23,10 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_STATIC_PEERS", None)
 
 # rclpy and the helpers are imported only now, after the domain is set.
-import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from container_process import Containers, SharedContainer  # noqa: E402
+from ipc_testing.process_context import process_context  # noqa: E402
 from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env, seed_interfaces  # noqa: E402
 
 
@@ -62,15 +62,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: item.get_closest_marker("long") is None)
 
 
-@pytest.fixture(scope="module")
-def ros() -> Iterator[None]:
-    """The default context: ContainerClient and rclpy.spin_once use the global executor."""
-    owned = not rclpy.ok()
-    if owned:
-        rclpy.init()
-    yield
-    if owned:
-        rclpy.shutdown()
+@pytest.fixture(scope="session")
+def ros() -> None:
+    """The default context, the process's one (ipc_testing.process_context): ContainerClient and rclpy.spin_once
+    use the global executor."""
+    process_context()
 
 
 @pytest.fixture()

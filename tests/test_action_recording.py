@@ -21,7 +21,6 @@ from typing import Any, Iterator
 import pytest
 import rclpy
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
@@ -41,6 +40,7 @@ from components.recorder.recorder import Recorder
 from components.recorder.recorder_options import RecordOptions
 from components.recorder.topic_selection import TopicFilter
 from ipc_testing import ContainerProcess, in_process_manager, wait_until
+from ipc_testing.process_context import process_context
 from test_service_recording import rosbags_messages
 
 FIB = "/fibonacci"
@@ -158,8 +158,7 @@ class FibonacciProcess:
     def __init__(self) -> None:
         self.executed: list[tuple[bytes, int]] = []
         self.cancel_requests: list[bytes] = []
-        self.context = Context()
-        rclpy.init(context=self.context)
+        self.context = process_context()
         self.server_node = ComponentNode("fibonacci_server", context=self.context)
         self.client_node = ComponentNode("fibonacci_client", context=self.context)
         self.server = self.server_node.create_action_server(Fibonacci, FIB, self._execute,
@@ -202,7 +201,6 @@ class FibonacciProcess:
         self._thread.join(timeout=10.0)
         self.server_node.destroy_node()
         self.client_node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 def done(future: Any) -> Any:

@@ -23,6 +23,7 @@ import pytest
 import rclpy
 
 from container_process import ContainerClient, ContainerProcess, wait_until
+from ipc_testing.process_context import process_context
 
 IPC_COMPONENT = shutil.which("ipc-component", path=str(pathlib.Path(sys.executable).parent)) \
     or shutil.which("ipc-component")
@@ -146,16 +147,11 @@ def probe_dir(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
 
 @pytest.fixture(scope="module")
 def ros_node() -> Iterator[Any]:
-    owns_context = not rclpy.ok()
-    if owns_context:
-        rclpy.init()
-    node = rclpy.create_node("_test_cli_helper")
+    node = rclpy.create_node("_test_cli_helper", context=process_context())
     try:
         yield node
     finally:
         node.destroy_node()
-        if owns_context:
-            rclpy.try_shutdown()
 
 
 @pytest.fixture(scope="module")

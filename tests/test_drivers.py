@@ -1,6 +1,6 @@
 """Tests of the simulated sensor drivers (components.camera_driver / lidar_driver / imu_driver).
 
-Each DDS test runs a driver and a plain rclpy listener node in one process and one fresh rclpy Context,
+Each DDS test runs a driver and a plain rclpy listener node in the test process's one rclpy context,
 waits until the listener's subscriptions are matched, spins a SingleThreadedExecutor until enough has arrived
 (a count, not a time), takes what is still in flight (reliable: until every published message arrived) and
 checks what arrived. Rates and phases are checked with a fake clock of the rate loop; how evenly real timers
@@ -19,7 +19,6 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -35,17 +34,17 @@ from components.frame_buffers import FRAME_SLOTS
 from components.camera_driver import CameraDriver, camera_info_topic_for
 from components.imu_driver import ImuDriver
 from components.lidar_driver import POINT_DTYPE, LidarDriver
+from ipc_testing.process_context import process_context
 
 #: How long a spin may take before the test fails: a guard against hanging, not a claim about speed.
 PATIENCE_S = 20.0
 
 
 class Ros:
-    """One rclpy Context with an executor, a listener node and the nodes a test creates."""
+    """The process's context with an executor, a listener node and the nodes a test creates."""
 
     def __init__(self) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
+        self.context = process_context()
         self.executor = SingleThreadedExecutor(context=self.context)
         self.nodes: list[Node] = []
         self.listener = self.add(Node("listener", context=self.context))
@@ -96,10 +95,9 @@ class Ros:
     def close(self) -> None:
         try:
             self.executor.shutdown()
+        finally:
             for node in self.nodes:
                 node.destroy_node()
-        finally:
-            rclpy.shutdown(context=self.context)
 
 
 @pytest.fixture

@@ -19,7 +19,6 @@ import pytest
 import rclpy
 import rclpy.executors
 import rclpy.experimental
-from rclpy.context import Context
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
@@ -31,15 +30,15 @@ from component_container.component_executors import EXECUTOR_KINDS, ComponentExe
 from component_container.component_node import ComponentNode
 from component_container.events_executor import UnsupportedByEventsExecutor
 from component_container.intra_process import IntraProcessManager
+from ipc_testing.process_context import process_context
 
 
 class Harness:
-    """One executor model in its own context, recording what it reports."""
+    """One executor model in the process's context, recording what it reports."""
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
-        self.context = Context()
-        rclpy.init(context=self.context)
+        self.context = process_context()
         self.errors: list[tuple[str, BaseException]] = []
         self.fatal: list[tuple[str, BaseException]] = []
         self._lock = threading.Lock()
@@ -78,7 +77,6 @@ class Harness:
             self.executor.remove(node, 1.0)
             node.destroy_node()
         self.executor.shutdown(2.0)
-        rclpy.try_shutdown(context=self.context)
 
 
 @pytest.fixture

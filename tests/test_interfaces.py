@@ -15,13 +15,12 @@ import time
 from typing import Any
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 import composition_interfaces
 from container_process import ContainerClient, ContainerProcess
+from ipc_testing.process_context import process_context
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -157,9 +156,7 @@ def _endpoints(get_info: Any, topic: str, node_name: str, timeout: float = 10.0)
 
 
 def test_wire_type_hashes_of_a_running_container() -> None:
-    context = Context()
-    rclpy.init(context=context)
-    node = Node("wire_hash_probe", context=context)
+    node = Node("wire_hash_probe", context=process_context())
     with ContainerProcess(cwd=str(REPO)) as container:
         try:
             ContainerClient(node).wait()
@@ -177,17 +174,15 @@ def test_wire_type_hashes_of_a_running_container() -> None:
         finally:
             assert container.stop() == 0, container.output
             node.destroy_node()
-            rclpy.shutdown(context=context)
     assert not container.alive()
 
 
 # --- rosbag2_interfaces -------------------------------------------------------------------------------------
 class _Pair:
-    """Two rclpy nodes (server side, client side) in one fresh Context, spun on a background thread."""
+    """Two rclpy nodes (server side, client side) in the process's context, spun on a background thread."""
 
     def __init__(self) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
+        self.context = process_context()
         self.server = Node("rosbag2_interfaces_server", context=self.context)
         self.client = Node("rosbag2_interfaces_client", context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -201,7 +196,6 @@ class _Pair:
         self.thread.join(timeout=5.0)
         self.server.destroy_node()
         self.client.destroy_node()
-        rclpy.shutdown(context=self.context)
 
 
 @pytest.fixture()

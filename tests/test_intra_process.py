@@ -26,16 +26,51 @@ from component_container.component_node import REUSE_WATCH, ComponentNode, Intra
 from component_container.intra_process import IntraProcessManager
 
 from container_process import ContainerClient, ContainerProcess
+from ipc_testing.process_context import process_context
+
+
+class Nodes:
+    """The nodes a test makes in one context, destroyed with it: the process's context ("inside", the container's
+    participant) or one of the test's own ("outside", another participant: a peer over DDS, as another process's
+    would be). A node left to the garbage collector would keep its topics in the graph of later tests, and take
+    its context's participant down at some random moment (ipc_testing/process_context.py)."""
+
+    def __init__(self, own: bool) -> None:
+        self.own = own
+        if own:
+            self.context = Context()
+            rclpy.init(context=self.context)
+        else:
+            self.context = process_context()
+        self.nodes: list[Node] = []
+
+    def component(self, name: str, ipm: IntraProcessManager | None = None) -> ComponentNode:
+        node = ComponentNode(name, context=self.context, intra_process_manager=ipm)
+        self.nodes.append(node)
+        return node
+
+    def node(self, name: str) -> Node:
+        node = Node(name, context=self.context)
+        self.nodes.append(node)
+        return node
+
+    def close(self) -> None:
+        for node in self.nodes:
+            node.destroy_node()
+        if self.own:
+            rclpy.try_shutdown(context=self.context)
 
 
 @pytest.fixture
-def contexts() -> Iterator[tuple[Context, Context]]:
-    inside, outside = Context(), Context()
-    rclpy.init(context=inside)
-    rclpy.init(context=outside)
-    yield inside, outside
-    rclpy.try_shutdown(context=inside)
-    rclpy.try_shutdown(context=outside)
+def contexts() -> Iterator[tuple[Nodes, Nodes]]:
+    """The nodes of the container ("inside") and of a peer over DDS ("outside"); the peer's participant exists
+    only if the test makes a node there."""
+    inside, outside = Nodes(own=False), Nodes(own=True)
+    try:
+        yield inside, outside
+    finally:
+        inside.close()
+        outside.close()
 
 
 @pytest.fixture
@@ -62,13 +97,13 @@ def spin_until(executor: Any, condition: Callable[[], bool], timeout: float = 5.
 
 def test_subscriber_gets_the_very_object_published(contexts, ipm):
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
     received: list[String] = []
     sub_node.create_subscription(String, "chatter", received.append, 10)
     publisher = pub_node.create_publisher(String, "chatter", 10)
     assert isinstance(publisher, IntraProcessPublisher)
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     published = [String(data=f"m{i}") for i in range(5)]
     for msg in published:
@@ -82,23 +117,23 @@ def test_subscriber_gets_the_very_object_published(contexts, ipm):
 
 def test_external_subscriber_gets_everything_and_local_one_no_duplicates(contexts, ipm):
     inside, outside = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
-    external = Node("external", context=outside)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
+    external = outside.node("external")
     local_got: list[String] = []
     external_got: list[str] = []
     local = sub_node.create_subscription(String, "wire_chatter", local_got.append, 100)
     external_sub = external.create_subscription(String, "wire_chatter", lambda m: external_got.append(m.data), 100)
     # A plain DDS reader next to the in-process subscription: what reaches it over DDS reaches the in-process
     # subscription's own DDS reader too (same participant, same writer), which must not deliver it again.
-    witness = Node("dds_witness", context=inside)
+    witness = inside.node("dds_witness")
     witness_got: list[str] = []
     witness_sub = witness.create_subscription(String, "wire_chatter", lambda m: witness_got.append(m.data), 100)
     publisher = pub_node.create_publisher(String, "wire_chatter", 100)
-    inside_exec = SingleThreadedExecutor(context=inside)
+    inside_exec = SingleThreadedExecutor(context=inside.context)
     inside_exec.add_node(sub_node)
     inside_exec.add_node(witness)
-    outside_exec = SingleThreadedExecutor(context=outside)
+    outside_exec = SingleThreadedExecutor(context=outside.context)
     outside_exec.add_node(external)
     # matched on both sides: the local DDS readers, the witness and the external one (a topic of its own: a
     # stale endpoint of an earlier test cannot count)
@@ -121,12 +156,12 @@ def test_external_subscriber_gets_everything_and_local_one_no_duplicates(context
 
 def test_external_publisher_reaches_in_process_subscriber(contexts, ipm):
     inside, outside = contexts
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
-    external = Node("external_pub", context=outside)
+    sub_node = inside.component("sub", ipm)
+    external = outside.node("external_pub")
     got: list[str] = []
     subscription = sub_node.create_subscription(String, "wire_inbound", lambda m: got.append(m.data), 100)
     publisher = external.create_publisher(String, "wire_inbound", 100)
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     # matched on both sides (a topic of its own: a stale endpoint of an earlier test cannot count)
     assert spin_until(executor, lambda: publisher.get_subscription_count() >= 1
@@ -140,15 +175,15 @@ def test_external_publisher_reaches_in_process_subscriber(contexts, ipm):
 
 def test_keep_last_queue_drops_oldest_and_counts(contexts, ipm):
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("slow", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("slow", ipm)
     got: list[String] = []
     subscription = sub_node.create_subscription(String, "chatter", got.append, 5)
     publisher = pub_node.create_publisher(String, "chatter", 10)
     published = [String(data=str(i)) for i in range(20)]
     for msg in published:  # the subscriber is not spinning: publish() must not wait for it
         publisher.publish(msg)
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     assert spin_until(executor, lambda: len(got) == 5)
     assert not subscription.queue.queue  # nothing more to come: only DDS could add, and nobody is outside
@@ -161,20 +196,20 @@ def test_keep_last_queue_drops_oldest_and_counts(contexts, ipm):
 def test_transient_local_late_joiner_gets_last_n(contexts, ipm):
     inside, _ = contexts
     latched = QoSProfile(depth=3, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
     publisher = pub_node.create_publisher(String, "map", latched)
     published = [String(data=str(i)) for i in range(5)]
     for msg in published:
         publisher.publish(msg)
-    sub_node = ComponentNode("late", context=inside, intra_process_manager=ipm)
+    sub_node = inside.component("late", ipm)
     got: list[String] = []
     sub_node.create_subscription(String, "map", got.append, latched)
     # A plain DDS reader joining alike gets the DDS history (transient_local publishers always write to DDS);
     # once it has, the late subscription's own DDS reader has had it too, and must not deliver a second copy.
-    witness = Node("dds_witness", context=inside)
+    witness = inside.node("dds_witness")
     witness_got: list[str] = []
     witness.create_subscription(String, "map", lambda m: witness_got.append(m.data), latched)
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     executor.add_node(witness)
     assert spin_until(executor, lambda: len(got) >= 3 and witness_got == ["2", "3", "4"], timeout=20), witness_got
@@ -186,15 +221,15 @@ def test_transient_local_late_joiner_gets_last_n(contexts, ipm):
 def test_fan_out_and_qos_compatibility(contexts, ipm):
     inside, _ = contexts
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("subs", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("subs", ipm)
     reliable_got: list[list[String]] = [[], [], []]
     for sink in reliable_got:
         sub_node.create_subscription(String, "fan", sink.append, 10)
     best_effort_got: list[String] = []
     sub_node.create_subscription(String, "fan", best_effort_got.append, best_effort)
     reliable_pub = pub_node.create_publisher(String, "fan", 10)
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     msg = String(data="shared")
     reliable_pub.publish(msg)
@@ -217,10 +252,10 @@ def test_fan_out_and_qos_compatibility(contexts, ipm):
 @pytest.mark.parametrize("kind", EXECUTOR_KINDS)
 def test_all_executor_models_deliver_in_process(contexts, kind):
     inside, _ = contexts
-    executor = make_component_executor(kind, inside, thread_num=2)
+    executor = make_component_executor(kind, inside.context, thread_num=2)
     ipm = IntraProcessManager(make_wakeup=executor.make_wakeup)
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
     try:
         got: list[String] = []
         topic = f"chatter_{kind}"  # apart from every other test's chatter, so that only this publisher reaches it
@@ -249,7 +284,7 @@ def test_all_executor_models_deliver_in_process(contexts, kind):
 
 def test_components_that_do_not_opt_in_use_plain_dds(contexts):
     inside, _ = contexts
-    node = ComponentNode("plain", context=inside)
+    node = inside.component("plain")
     publisher = node.create_publisher(String, "chatter", 10)
     assert not isinstance(publisher, IntraProcessPublisher)
     assert not node.uses_intra_process
@@ -274,11 +309,9 @@ print(len(got), len(set(got)), flush=True)
 
 def test_container_process_talker_reaches_other_process_and_unload_under_traffic():
     with ContainerProcess("--use-intra-process-comms", "--executor", "multi") as container:
-        node_context = Context()
-        rclpy.init(context=node_context)
         listener_proc = _external_listener(40)
+        node = Node("ipc_test_client", context=process_context())
         try:
-            node = Node("ipc_test_client", context=node_context)
             client = ContainerClient(node)
             client.wait()
             listener = client.load("components::Listener")
@@ -295,14 +328,14 @@ def test_container_process_talker_reaches_other_process_and_unload_under_traffic
             if listener_proc.poll() is None:
                 listener_proc.kill()
                 listener_proc.wait()
-            rclpy.try_shutdown(context=node_context)
+            node.destroy_node()
         assert container.stop() == 0
 
 
 def test_inline_subscription_runs_in_the_publishers_thread_without_executor(contexts, ipm):
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sink", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sink", ipm)
     got: list[tuple[String, dict, int]] = []
     subscription = sub_node.create_subscription(
         String, "chatter", lambda m, info: got.append((m, info, threading.get_ident())), 10,
@@ -318,8 +351,8 @@ def test_inline_subscription_runs_in_the_publishers_thread_without_executor(cont
 def test_subscriptions_joining_and_leaving_between_publishes_are_served_exactly(contexts, ipm):
     """The publisher's cached list of in-process targets follows every subscription created or destroyed."""
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sink", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sink", ipm)
     publisher = pub_node.create_publisher(String, "joiners", 10)
     first: list[str] = []
     second: list[str] = []
@@ -337,7 +370,7 @@ def test_subscriptions_joining_and_leaving_between_publishes_are_served_exactly(
 def test_the_dds_reader_count_is_read_at_most_every_few_milliseconds(contexts, ipm, monkeypatch):
     """A publish reads the DDS reader count (6 us among the S3 drivers) only once DDS_COUNT_TTL_NS has passed."""
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
     publisher = pub_node.create_publisher(String, "counted", 10)
     now = [10 ** 12]
     monkeypatch.setattr(component_node, "time", types.SimpleNamespace(monotonic_ns=lambda: now[0]))
@@ -355,8 +388,8 @@ def test_unsubscribing_while_a_publisher_delivers_never_raises_into_it(contexts,
     """Destroying an in-process subscription while another thread publishes to it: the publisher must never
     see the subscription's destroyed guard condition (InvalidHandle inside its own publish())."""
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
     publisher = pub_node.create_publisher(String, "race", 10)
     errors: list[BaseException] = []
     stop = threading.Event()
@@ -390,8 +423,8 @@ def test_keep_all_queues_are_bounded_and_count_drops(contexts, ipm):
     from component_container.intra_process import KEEP_ALL_MAX_BYTES, KEEP_ALL_MAX_MESSAGES
 
     keep_all = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1)
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("stalled", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("stalled", ipm)
     small = sub_node.create_subscription(String, "many", lambda m: None, keep_all)
     big = sub_node.create_subscription(Image, "frames", lambda m: None, keep_all)
     strings = pub_node.create_publisher(String, "many", keep_all)
@@ -410,8 +443,8 @@ def test_keep_all_queues_are_bounded_and_count_drops(contexts, ipm):
 
 def test_a_reused_message_object_is_copied_for_in_process_subscribers(contexts, ipm):
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
     got: list[String] = []
     sub_node.create_subscription(String, "reused", got.append, 1000)
     publisher = pub_node.create_publisher(String, "reused", 1000)
@@ -419,7 +452,7 @@ def test_a_reused_message_object_is_copied_for_in_process_subscribers(contexts, 
     for i in range(100):  # one object, refilled and published again while the subscriber still holds it
         message.data = str(i)
         publisher.publish(message)
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     assert spin_until(executor, lambda: len(got) == 100)
     assert [m.data for m in got] == [str(i) for i in range(100)]
@@ -430,8 +463,8 @@ def test_a_reused_message_object_is_copied_for_in_process_subscribers(contexts, 
 
 def test_a_pool_of_reused_objects_is_detected_and_fresh_objects_stay_zero_copy(contexts, ipm):
     inside, _ = contexts
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=ipm)
-    sub_node = ComponentNode("sub", context=inside, intra_process_manager=ipm)
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
     pooled: list[String] = []
     fresh: list[String] = []
     sub_node.create_subscription(String, "pooled", pooled.append, 1000)
@@ -444,7 +477,7 @@ def test_a_pool_of_reused_objects_is_detected_and_fresh_objects_stay_zero_copy(c
         pool[i % REUSE_WATCH].data = str(i)
         pool_publisher.publish(pool[i % REUSE_WATCH])
         fresh_publisher.publish(fresh_sent[i])
-    executor = SingleThreadedExecutor(context=inside)
+    executor = SingleThreadedExecutor(context=inside.context)
     executor.add_node(sub_node)
     assert spin_until(executor, lambda: len(pooled) == 50 and len(fresh) == 50)
     assert [m.data for m in pooled] == [str(i) for i in range(50)]
@@ -457,8 +490,8 @@ def test_a_raising_inline_callback_is_reported_not_raised_into_the_publisher(con
     inside, _ = contexts
     reported: list[tuple[Any, BaseException]] = []
     manager = IntraProcessManager(on_callback_error=lambda node, exc: reported.append((node, exc)))
-    pub_node = ComponentNode("pub", context=inside, intra_process_manager=manager)
-    sub_node = ComponentNode("sink", context=inside, intra_process_manager=manager)
+    pub_node = inside.component("pub", manager)
+    sub_node = inside.component("sink", manager)
 
     def broken(message: String) -> None:
         raise ValueError(f"cannot take {message.data}")

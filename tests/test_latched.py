@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -33,6 +32,7 @@ from component_container.component_manager import ComponentManager
 from component_container.component_node import ComponentNode
 from component_container.intra_process import IntraProcessManager, IntraProcessSubscription
 from component_container.startup_file import load_request
+from ipc_testing.process_context import process_context
 from test_intra_process import spin_until
 
 TOPIC = "/robot_description"
@@ -54,17 +54,39 @@ class RobotStatePublisher(ComponentNode):
         self.publisher.publish(String(data=DESCRIPTION))
 
 
+class Container:
+    """The nodes of one in-process container: the process's context and an intra-process manager; every node
+    made here is destroyed with the container (a latched publisher left to the garbage collector would go on
+    offering its history to the next test's subscribers)."""
+
+    def __init__(self) -> None:
+        self.context = process_context()
+        self.ipm = IntraProcessManager()
+        self.nodes: list[Node] = []
+
+    def node(self, name: str) -> ComponentNode:
+        return self.keep(ComponentNode(name, context=self.context, intra_process_manager=self.ipm))
+
+    def keep(self, node: Node) -> Any:
+        self.nodes.append(node)
+        return node
+
+    def close(self) -> None:
+        for node in self.nodes:
+            node.destroy_node()
+
+
 @pytest.fixture
-def container() -> Iterator[tuple[Context, IntraProcessManager]]:
-    context = Context()
-    rclpy.init(context=context)
-    yield context, IntraProcessManager()
-    rclpy.try_shutdown(context=context)
+def container() -> Iterator[Container]:
+    made = Container()
+    yield made
+    made.close()
 
 
 def dds_witness(context: Context, topic: str, qos: QoSProfile) -> tuple[Node, list[str]]:
     """A plain DDS reader in the container's participant. Once it has a publisher's DDS history, the late
-    in-process subscriptions' own DDS readers have had it too, and must not have delivered it again."""
+    in-process subscriptions' own DDS readers have had it too, and must not have delivered it again. The caller
+    destroys it."""
     node = Node("dds_witness", context=context)
     got: list[str] = []
     node.create_subscription(String, topic, lambda m: got.append(m.data), qos)
@@ -76,8 +98,7 @@ def dds_witness(context: Context, topic: str, qos: QoSProfile) -> tuple[Node, li
 def test_a_recorder_loaded_after_a_latched_publisher_records_its_message(kind: str, tmp_path: Path) -> None:
     """The bag of a recorder loaded after the latched publish holds that message once, logged when the
     recorder got it (inside its window), then the next one published live; nothing twice over DDS."""
-    context = Context()
-    rclpy.init(context=context)
+    context = process_context()
     manager = ComponentManager(kind, use_intra_process_comms=True, allow_module_plugins=True,
                                node_name=f"latched_{kind}", context=context)
     bag = tmp_path / "bag"
@@ -102,7 +123,6 @@ def test_a_recorder_loaded_after_a_latched_publisher_records_its_message(kind: s
             witness.destroy_node()
         manager.shutdown()
         manager.destroy_node()
-        rclpy.try_shutdown(context=context)
     store = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
         messages = [(timestamp, store.deserialize_cdr(raw, connection.msgtype).data)
@@ -112,23 +132,22 @@ def test_a_recorder_loaded_after_a_latched_publisher_records_its_message(kind: s
 
 
 # --- user components ------------------------------------------------------------------------------------------
-def test_a_late_subscriber_gets_the_kept_messages_once_newest_up_to_its_depth(container) -> None:
+def test_a_late_subscriber_gets_the_kept_messages_once_newest_up_to_its_depth(container: Container) -> None:
     """Publisher depth 5, eight published: a late depth-3 subscriber gets the newest 3, a keep_all one all 5
     kept, none counted as dropped; the next message reaches both once, after them; the DDS history that their
     own DDS readers also get is not delivered a second time."""
-    context, ipm = container
-    publisher = ComponentNode("map_server", context=context, intra_process_manager=ipm).create_publisher(
-        String, "map", latched(5))
+    publisher = container.node("map_server").create_publisher(String, "map", latched(5))
     for index in range(8):
         publisher.publish(String(data=str(index)))
-    late = ComponentNode("late", context=context, intra_process_manager=ipm)
+    late = container.node("late")
     shallow: list[str] = []
     everything: list[str] = []
     shallow_sub = late.create_subscription(String, "map", lambda m: shallow.append(m.data), latched(3))
     late.create_subscription(String, "map", lambda m: everything.append(m.data),
                              QoSProfile(history=HistoryPolicy.KEEP_ALL, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    witness, seen = dds_witness(context, "map", latched(5))
-    executor = SingleThreadedExecutor(context=context)
+    witness, seen = dds_witness(container.context, "map", latched(5))
+    container.keep(witness)
+    executor = SingleThreadedExecutor(context=container.context)
     executor.add_node(late)
     executor.add_node(witness)
     assert spin_until(executor, lambda: seen == ["3", "4", "5", "6", "7"], timeout=20), seen
@@ -140,33 +159,30 @@ def test_a_late_subscriber_gets_the_kept_messages_once_newest_up_to_its_depth(co
     executor.shutdown()
 
 
-def test_a_volatile_late_subscriber_gets_nothing_kept(container) -> None:
+def test_a_volatile_late_subscriber_gets_nothing_kept(container: Container) -> None:
     """As over DDS (and in rclcpp's intra-process manager): history is for transient_local subscribers only."""
-    context, ipm = container
-    publisher = ComponentNode("map_server", context=context, intra_process_manager=ipm).create_publisher(
-        String, "map", latched(5))
+    publisher = container.node("map_server").create_publisher(String, "map", latched(5))
     publisher.publish(String(data="kept"))
-    late = ComponentNode("late", context=context, intra_process_manager=ipm)
+    late = container.node("late")
     got: list[str] = []
     late.create_subscription(String, "map", lambda m: got.append(m.data), 10)
     publisher.publish(String(data="live"))
-    executor = SingleThreadedExecutor(context=context)
+    executor = SingleThreadedExecutor(context=container.context)
     executor.add_node(late)
     assert spin_until(executor, lambda: "live" in got)
     assert got == ["live"]
     executor.shutdown()
 
 
-def test_kept_messages_are_received_when_replayed_and_go_with_their_publisher(container) -> None:
+def test_kept_messages_are_received_when_replayed_and_go_with_their_publisher(container: Container) -> None:
     """A late subscriber's message info says what a late DDS reader's says: published then, received now. An
     inline, container-only subscription (the recorder's kind) gets them too; a publisher destroyed takes its
     history with it."""
-    context, ipm = container
-    node = ComponentNode("map_server", context=context, intra_process_manager=ipm)
+    node = container.node("map_server")
     publisher = node.create_publisher(String, "map", latched(1))
     publisher.publish(String(data="kept"))
     joined = time.time_ns()
-    late = ComponentNode("late", context=context, intra_process_manager=ipm)
+    late = container.node("late")
     infos: list[tuple[str, dict[str, Any]]] = []
     late.create_subscription(String, "map", lambda m, info: infos.append((m.data, info)), latched(1),
                              intra_process_inline=True, intra_process_only=True)
@@ -179,16 +195,14 @@ def test_kept_messages_are_received_when_replayed_and_go_with_their_publisher(co
     assert too_late == []
 
 
-def test_a_latched_message_the_player_publishes_with_nobody_listening_is_kept(container) -> None:
+def test_a_latched_message_the_player_publishes_with_nobody_listening_is_kept(container: Container) -> None:
     """The player publishes recorded bytes and makes an object only for in-process subscribers; on a latched
     topic it keeps one for those that join later."""
-    context, ipm = container
-    publisher = ComponentNode("player", context=context, intra_process_manager=ipm).create_publisher(
-        String, TOPIC, latched(1))
+    publisher = container.node("player").create_publisher(String, TOPIC, latched(1))
     recorded = String(data=DESCRIPTION)
     publisher.publish_recorded(serialize_message(recorded), lambda: String(data=recorded.data))
     got: list[str] = []
-    ComponentNode("consumer", context=context, intra_process_manager=ipm).create_subscription(
+    container.node("consumer").create_subscription(
         String, TOPIC, lambda m: got.append(m.data), latched(1), intra_process_inline=True, intra_process_only=True)
     assert got == [DESCRIPTION]
 

@@ -13,7 +13,6 @@ from importlib import resources
 
 import numpy as np
 import pytest
-import rclpy
 from PIL import Image as PilImage
 from rclpy.context import Context
 from rclpy.parameter import Parameter
@@ -21,16 +20,14 @@ from rclpy.parameter import Parameter
 from components import depth_content, photo_content
 from components.camera_driver import CameraDriver
 from ffmpeg_tools import ffmpeg
+from ipc_testing.process_context import process_context
 
 WIDTH, HEIGHT = 1920, 1080
 
 
 @pytest.fixture(scope="module")
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.shutdown(context=ctx)
+def context() -> Context:
+    return process_context()
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ Every container is stopped (by pid) and every tmpfs unmounted by the fixture or 
 from __future__ import annotations
 
 import contextlib
-import gc
 import json
 import os
 import re
@@ -52,6 +51,7 @@ from components.lidar_driver import LidarDriver
 
 from container_process import ContainerClient, small_filesystem
 from ipc_testing import ContainerProcess, call, spin_for, wait_until
+from ipc_testing.process_context import process_context
 
 REPO = Path(__file__).resolve().parents[1]
 IPC = {"use_intra_process_comms": True}
@@ -520,12 +520,9 @@ def check_driver_content(bag: Bag, refs: References, prefix: str = "", camera: d
 # --- fixtures -------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def probe() -> Iterator[Node]:
-    rclpy.init()
-    node = Node("recorder_test_probe")
+    node = Node("recorder_test_probe", context=process_context())
     yield node
     node.destroy_node()
-    gc.collect()  # executors made for service calls go while their context is valid (no noise from __del__)
-    rclpy.shutdown()
 
 
 @pytest.fixture(scope="module")
@@ -837,10 +834,14 @@ def test_get_stats_live_counts(rig: Rig, tmp_path: Path) -> None:
     recorder = rig.record("recorder_stats", uri)
     recorder.wait_written({topic: 1 for topic in RIG_TOPICS})
     first = recorder.stats()
-    # every topic receives more (a condition on the counts, not a time)
-    assert wait_until(lambda: all(now["received"] > first["current"]["topics"][topic]["received"]
-                                  for topic, now in recorder.stats()["current"]["topics"].items()), 15.0,
-                      interval=0.05)
+    def grew(now: dict[str, Any]) -> bool:
+        """Every topic received more, and the writer wrote more (it may lag what was received)."""
+        return now["current"]["bytes_written"] > first["current"]["bytes_written"] and all(
+            counts["received"] > first["current"]["topics"][topic]["received"]
+            for topic, counts in now["current"]["topics"].items())
+
+    # a condition on the counts, not a time
+    assert wait_until(lambda: grew(recorder.stats()), 15.0, interval=0.05)
     second = recorder.stats()
     assert first["recording"] and not first["paused"] and first["current"]["error"] is None
     assert first["current"]["bag"] == str(uri)

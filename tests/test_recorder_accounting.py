@@ -16,8 +16,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosbag2_interfaces.msg import MessagesLostEvent
@@ -35,6 +33,7 @@ from components.recorder import recording_session
 from components.recorder.message_cache import CachedMessage, MessageCache, payload_size
 from components.recorder.recorder import Recorder
 from ipc_testing import in_process_manager, wait_until
+from ipc_testing.process_context import process_context
 
 IMU = "/imu/imu"
 CAMERA = "/camera/image_raw"
@@ -164,11 +163,10 @@ def test_a_writer_given_up_on_at_the_stop_leaves_counts_that_match_the_bag(manag
 
 # --- events/messages_lost -----------------------------------------------------------------------------------
 class Listener:
-    """A plain node (a context of its own, over DDS) collecting events/messages_lost."""
+    """A plain node (not the container's: over DDS) collecting events/messages_lost."""
 
     def __init__(self) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
+        self.context = process_context()
         self.node = Node("loss_listener", context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -192,7 +190,6 @@ class Listener:
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 @pytest.fixture()
@@ -278,9 +275,7 @@ def test_messages_received_inside_the_window_are_written_or_counted(manager: Com
                                                       "record.stop_at": stop_at})
     recorder = loaded.node
     load(manager, "test_recorder_accounting:Hog", "test_recorder_accounting", at=stop_at - 0.4, seconds=1.0)
-    context = Context()
-    rclpy.init(context=context)
-    talker = Node("window_talker", context=context)
+    talker = Node("window_talker", context=process_context())
     publisher = talker.create_publisher(String, "/chatter", 100)
     published: list[float] = []
     try:
@@ -292,7 +287,6 @@ def test_messages_received_inside_the_window_are_written_or_counted(manager: Com
             time.sleep(max(0.0, start + len(published) / 100 - time.time()))
     finally:
         talker.destroy_node()
-        rclpy.try_shutdown(context=context)
     well_inside = sum(1 for t in published if t < stop_at - 0.02)
 
     def received() -> int:

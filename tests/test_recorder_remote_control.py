@@ -11,8 +11,6 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbag2_interfaces.srv import IsDiscoveryRunning, Record, StartDiscovery, Stop, StopDiscovery
@@ -24,6 +22,7 @@ from component_container.component_manager import ComponentManager
 from component_container.startup_file import load_request
 from components.recorder.recorder import Recorder
 from ipc_testing import call, in_process_manager, wait_until
+from ipc_testing.process_context import process_context
 
 RECORDER = "remote_control_recorder"
 CHATTER = "/remote_control/chatter"
@@ -50,15 +49,13 @@ def client(manager: ComponentManager) -> Iterator[Node]:
 
 @pytest.fixture()
 def talker() -> Iterator[Node]:
-    """A publisher in another context: its messages reach the recorder over DDS, as another process's would."""
-    context = Context()
-    rclpy.init(context=context)
-    node = Node("remote_control_talker", context=context)
+    """A plain rclpy node, not the container's: its messages reach the recorder over DDS, as another process's
+    would."""
+    node = Node("remote_control_talker", context=process_context())
     try:
         yield node
     finally:
         node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def load_recorder(manager: ComponentManager, uri: Path, **parameters: Any) -> Recorder:

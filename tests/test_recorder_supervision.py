@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import pytest
-import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -31,6 +30,7 @@ from std_srvs.srv import Trigger
 from stereo_msgs.msg import DisparityImage
 
 from component_container.health import ERROR, OK, WARN
+from ipc_testing.process_context import process_context
 from container_test_plugins import CrashingBagWriter, CrashingWriterRecorder, HangingBagWriter, HangingDiskRecorder
 from test_recorder import (  # noqa: F401 - probe and log_dir are fixtures
     IMU,
@@ -123,9 +123,8 @@ def test_unserializable_message_is_dropped_and_recording_goes_on(supervised: Rig
 
 @pytest.fixture()
 def in_process() -> Iterator[tuple[Context, Node, MultiThreadedExecutor]]:
-    """A context of the test process on the test domain, a talker node, and an executor spinning in a thread."""
-    context = Context()
-    rclpy.init(context=context)
+    """The test process's context, a talker node, and an executor spinning in a thread."""
+    context = process_context()
     talker = Node("supervision_talker", context=context)
     executor = MultiThreadedExecutor(context=context)
     executor.add_node(talker)
@@ -135,9 +134,8 @@ def in_process() -> Iterator[tuple[Context, Node, MultiThreadedExecutor]]:
         yield context, talker, executor
     finally:
         executor.shutdown()
-        talker.destroy_node()
-        rclpy.try_shutdown(context=context)
         thread.join(5.0)
+        talker.destroy_node()
 
 
 def test_writer_bug_is_a_storage_failure_with_a_finalized_bag(

@@ -14,9 +14,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
 from geometry_msgs.msg import TransformStamped
-from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -28,6 +26,7 @@ from component_container.component_manager import ComponentConstructionError
 from component_container.startup_file import load_request
 from components.recorder.message_cache import CachedMessage, MessageCache
 from ipc_testing import in_process_manager, wait_until
+from ipc_testing.process_context import process_context
 
 TF_STATIC = "/tf_static"
 CAMERA_INFO = "/latched_cam/camera_info"
@@ -37,10 +36,9 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 
 @contextlib.contextmanager
 def latched_publications() -> Iterator[tuple[TFMessage, CameraInfo]]:
-    """/tf_static and a camera_info, each published once, transient_local, by a node of another context."""
-    context = Context()
-    rclpy.init(context=context)
-    node = Node("latched_publisher", context=context)
+    """/tf_static and a camera_info, each published once, transient_local, by a plain rclpy node (not the
+    container's: over DDS)."""
+    node = Node("latched_publisher", context=process_context())
     try:
         transform = TransformStamped()
         transform.header.stamp.sec, transform.header.frame_id = 1234, "base_link"
@@ -55,7 +53,6 @@ def latched_publications() -> Iterator[tuple[TFMessage, CameraInfo]]:
         yield tf, info
     finally:
         node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def load(manager: Any, plugin: str, **parameters: Any) -> Any:

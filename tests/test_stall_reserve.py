@@ -14,8 +14,6 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rosbags.rosbag2 import Reader
 
 from baglib.format.cdr_fast import CdrData
@@ -26,6 +24,7 @@ from component_container.startup_file import load_request
 from components.recorder.message_cache import CachedMessage, MessageCache
 from components.recorder.recorder import Recorder
 from ipc_testing import wait_until
+from ipc_testing.process_context import process_context
 
 FRAME = {"width": 320, "height": 240, "fps": 30.0}          # 230 kB frames, ~7 MB/s
 CACHE = 1024 * 1024                                          # a cache that lasts ~0.15 s of this camera
@@ -49,10 +48,9 @@ class StallingRecorder(Recorder):
 @pytest.fixture(params=[10.0])
 def manager(request: pytest.FixtureRequest) -> Iterator[ComponentManager]:
     """An in-process container; its shutdown timeout (the recorder's bound on finishing a bag) is the param."""
-    context = Context()
-    rclpy.init(context=context)
     manager = ComponentManager("single", use_intra_process_comms=True, allow_module_plugins=True,
-                               node_name="stall_reserve_test", context=context, shutdown_timeout=request.param)
+                               node_name="stall_reserve_test", context=process_context(),
+                               shutdown_timeout=request.param)
     StallingBagWriter.DISK_UP.set()
     try:
         yield manager
@@ -60,7 +58,6 @@ def manager(request: pytest.FixtureRequest) -> Iterator[ComponentManager]:
         StallingBagWriter.DISK_UP.set()
         manager.shutdown()
         manager.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def load(manager: ComponentManager, plugin: str, package: str, **parameters: Any) -> Any:

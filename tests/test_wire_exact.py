@@ -34,7 +34,6 @@ from typing import Any
 import pytest
 import rclpy
 from rcl_interfaces.msg import ParameterEvent
-from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -48,6 +47,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from baglib.format import cdr_fast
 from baglib.format.cdr_fast import MIN_BUFFERS_SIZE, serialize
 from baglib.format.cdr_size import serialized_layout, serialized_size
+from ipc_testing.process_context import process_context
 
 SEED = int(os.environ.get("WIRE_EXACT_SEED") or random.randrange(2**32))
 RANDOM_MESSAGES = 4
@@ -231,8 +231,7 @@ def wire() -> Iterator[dict[type, list[tuple[Any, bytes]]]]:
     messages = {cls: corpus(cls, rng) for cls in MESSAGE_CLASSES}
     for msg in big_messages(rng):
         messages[type(msg)].append(msg)
-    context = Context()
-    rclpy.init(context=context)
+    context = process_context()
     node = rclpy.create_node("wire_exact", context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -250,7 +249,6 @@ def wire() -> Iterator[dict[type, list[tuple[Any, bytes]]]]:
     finally:
         executor.shutdown()
         node.destroy_node()
-        rclpy.shutdown(context=context)
 
 
 def test_every_interface_package_is_covered() -> None:
