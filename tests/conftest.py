@@ -25,8 +25,17 @@ os.environ.pop("ROS_STATIC_PEERS", None)
 # rclpy and the helpers are imported only now, after the domain is set.
 from rclpy.node import Node  # noqa: E402
 
+from component_container.discovery_profile import use_fastdds_profile  # noqa: E402
+
+# The tests' own participant lives as long as the worker (ipc_testing.process_context), so it is not the newcomer
+# that announces itself to each container a test starts: the container is, and it may miss the participant's
+# answer (Fast DDS 2.14 drops it before it listens) and then find the tests' client only at the participant's
+# next announcement, 3 s later by Fast DDS's default. The container's profile re-announces every 0.25 s, as the
+# command line's does. Set before the process's first participant; the processes the tests start inherit it.
+use_fastdds_profile()
+
 from container_process import Containers, SharedContainer  # noqa: E402
-from ipc_testing.process_context import process_context  # noqa: E402
+from ipc_testing.process_context import client_context, process_context  # noqa: E402
 from installed import REPO, InstalledEnv, build_wheel, clean_copy, make_env, seed_interfaces  # noqa: E402
 
 
@@ -71,9 +80,12 @@ def ros() -> None:
 
 @pytest.fixture()
 def probe(ros: None) -> Iterator[Node]:
-    node = Node("container_test_probe")
-    yield node
-    node.destroy_node()
+    """A client node of the containers a test starts, in a context of the test's own (client_context); spun by
+    rclpy's global executor (of the default context) where a helper calls rclpy.spin_once."""
+    with client_context() as context:
+        node = Node("container_test_probe", context=context)
+        yield node
+        node.destroy_node()
 
 
 
