@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -12,8 +13,9 @@ from typing import IO, Any
 
 
 def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> bool:
-    """Signal ``process`` and wait; SIGKILL it if it does not exit within ``timeout``. Returns whether it
-    exited by itself (False: it had to be killed)."""
+    """Signal ``process`` and wait; SIGKILL it if it does not exit within ``timeout``, after writing its threads'
+    native stacks to stderr (a test's captured output). Returns whether it exited by itself (False: it had to be
+    killed)."""
     if process.poll() is not None:
         return True
     process.send_signal(sig)
@@ -21,9 +23,25 @@ def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: f
         process.wait(timeout=timeout)
         return True
     except subprocess.TimeoutExpired:
+        print(native_stacks(process.pid), file=sys.stderr)
         process.kill()
         process.wait()
         return False
+
+
+def native_stacks(pid: int) -> str:
+    """Every thread's native stack of process ``pid`` (gdb), or why there are none: a process that ignores its
+    signals is held in native code (Python runs signal handlers between bytecodes), where Python's own
+    tracebacks do not reach."""
+    gdb = shutil.which("gdb")
+    if gdb is None:
+        return f"no native stacks of {pid}: gdb is not installed"
+    try:
+        taken = subprocess.run([gdb, "-p", str(pid), "-batch", "-ex", "thread apply all bt 16"],
+                               capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        return f"no native stacks of {pid}: gdb took over 60 s"
+    return f"--- native stacks of {pid} (gdb):\n{taken.stdout}{taken.stderr}"
 
 
 class ContainerProcess:
