@@ -6,8 +6,8 @@ discovery callbacks in flight by spinning on a condition variable's ``wait_until
 re-taking the listener mutex at once each time; a discovery callback that has begun needs that mutex to finish, so
 it never gets it, and the destroying thread spins on (with the GIL held, the whole process stops). It takes a
 discovery event arriving at the very moment of destruction, so it is rare per participant; a test run that made a
-context per test destroyed about 350 participants in its workers and hung about one run in ten (the worker's
-stacks are in docs/design/test-harness.md). Tests that share this context destroy none: nodes come and go, the
+context per test destroyed about 350 participants in its workers, and two of about twenty runs hung
+(docs/limitations.md, Platform, has the stacks). Tests that share this context destroy none: nodes come and go, the
 participant stays, held by an anchor node, until the process ends (pytest-xdist ends a worker that does not exit
 within 10 s of its last test).
 

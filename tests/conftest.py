@@ -27,7 +27,7 @@ from rclpy.node import Node  # noqa: E402
 
 from component_container.discovery_profile import use_fastdds_profile  # noqa: E402
 
-# The tests' own participant lives as long as the worker (ipc_testing.process_context), so it is not the newcomer
+# The tests' shared participant lives as long as the worker (ipc_testing.process_context), so it is not the newcomer
 # that announces itself to each container a test starts: the container is, and it may miss the participant's
 # answer (Fast DDS 2.14 drops it before it listens) and then find the tests' client only at the participant's
 # next announcement, 3 s later by Fast DDS's default. The container's profile re-announces every 0.25 s, as the
