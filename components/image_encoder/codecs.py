@@ -33,7 +33,7 @@ from components.image_encoder import compressed_depth
 from components.image_encoder._pyav import av
 from components.image_encoder.pixel_formats import (FORMATS, EncodeError, PixelFormat, converted, describe, format_of,
                                                     pixels_of, plane_view, samples_format)
-from components.image_encoder.scheduling import ordinary_scheduling, without_sys_nice
+from components.image_encoder.scheduling import ordinary_scheduling
 
 if TYPE_CHECKING:
     from av.codec.context import CodecContext
@@ -55,7 +55,11 @@ DEFAULT_QUALITY = {"jpeg": 90, "png": 3, DEPTH: 3, "h264": 23, "h265": 28, "av1"
 #: Defaults where ``preset`` is not given (""): fast enough for 1080p30 on one core of a small machine; for x264
 #: the cheapest per frame at the benchmark's quality and size targets (ultrafast: 1.7x fewer CPU ms per 1080p photo
 #: frame than veryfast, at a higher PSNR and 0.2 % of the raw bytes; CHANGELOG.md, S4's codec limits).
-DEFAULT_PRESET = {"libx264": "ultrafast", "libx265": "ultrafast", "libsvtav1": "10"}
+DEFAULT_PRESET = {"libx264": "ultrafast", "libx265": "ultrafast", "libsvtav1": "11"}
+#: SVT-AV1's fastest preset that runs in its real-time mode (``rtc=1``, which the encoder uses) without stopping
+#: for good now and then; faster ones are refused (preset 12 stops like the non-real-time low-delay mode did:
+#: docs/image-encoder.md, "AV1's real-time mode").
+SVT_AV1_FASTEST = 11
 #: x264 encodes pictures up to this size on the calling thread alone (one thread per camera): its own threads cost
 #: 4-10 % more CPU per 1080p frame, and several cameras keep every core busy anyway. Larger pictures (4K) get
 #: x264's threads, without which one camera's frame no longer fits a frame interval at 30 Hz.
@@ -119,8 +123,11 @@ def choose(codec: str, preset: str, quality: int, bitrate: int, keyframe_interva
         quality = DEFAULT_QUALITY[kind]
     if quality != -1 and bitrate:
         raise ValueError(f"parameters '{prefix}quality' and '{prefix}bitrate': give one of them, not both")
-    return CodecChoice(codec, encoder, video_format, preset or DEFAULT_PRESET.get(encoder, ""), quality, bitrate,
-                       keyframe_interval)
+    preset = preset or DEFAULT_PRESET.get(encoder, "")
+    if encoder == "libsvtav1" and preset.isdigit() and int(preset) > SVT_AV1_FASTEST:
+        raise ValueError(f"parameter '{prefix}preset': SVT-AV1's preset {preset} stops for good now and then in its "
+                         f"real-time mode, which the av1 encoder runs: take {SVT_AV1_FASTEST} or a lower one")
+    return CodecChoice(codec, encoder, video_format, preset, quality, bitrate, keyframe_interval)
 
 
 def check_codec(choice: CodecChoice, prefix: str = "") -> None:
@@ -252,8 +259,7 @@ class VideoCodec:
         if keyframe:
             frame.pict_type = av().video.frame.PictureType.I
         assert self._context is not None, "encode after close"
-        with without_sys_nice():  # SVT-AV1 starts threads while encoding too: never real-time ones
-            packets = self._context.encode(frame)
+        packets = self._context.encode(frame)
         return [(p.pts, p.is_keyframe, bytes(p)) for p in packets]
 
     def close(self) -> None:
@@ -270,7 +276,7 @@ def _open_video(choice: CodecChoice, width: int, height: int) -> CodecContext:
     if choice.bitrate:
         context.bit_rate = choice.bitrate
     context.options = _encoder_options(choice, width * height)
-    with ordinary_scheduling():  # SVT-AV1 as root makes threads real-time
+    with ordinary_scheduling():  # SVT-AV1 as root makes threads real-time; it starts them all here
         context.open()
     return context
 
@@ -286,7 +292,9 @@ def _encoder_options(choice: CodecChoice, pixels: int) -> dict[str, str]:
         if choice.encoder == "libx265":
             options["x265-params"] = "log-level=error"
     elif choice.encoder == "libsvtav1":
-        options["svtav1-params"] = "pred-struct=1:lookahead=0:scd=0"  # low delay: one frame in, one out
+        # SVT-AV1's real-time mode: low-delay prediction, one frame in, one out. Its other low-delay path
+        # (pred-struct=1 without rtc) stops for good now and then, every thread waiting on another.
+        options["svtav1-params"] = "rtc=1"
     if choice.encoder == "libx264" and pixels <= ONE_THREAD_PIXELS:
         options["threads"] = "1"
     if choice.quality != -1 and choice.encoder in ("libx264", "libx265", "libsvtav1"):

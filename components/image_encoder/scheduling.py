@@ -3,14 +3,16 @@
 SVT-AV1, run as root, creates every thread it starts with ``SCHED_FIFO`` at priority 99, and switches the thread
 that opens an encoder to it as well ("Failed to set thread priority" is its only word about it). Every thread
 created afterwards by those threads inherits it: a container that loaded an AV1 encoder then had Fast DDS's
-threads spinning at real-time priority, starving every other process on the machine. SVT-AV1 starts threads
-while it opens the codec and again while it encodes, from the calling thread.
+threads spinning at real-time priority, starving every other process on the machine. SVT-AV1 starts all its
+threads while the codec opens (its thread count stays the same while it encodes); undoing their scheduling once
+the open returned was not enough: after the first frame, most were real-time again.
 
 :func:`without_sys_nice` runs a call with ``CAP_SYS_NICE`` taken out of the calling thread's effective
-capabilities (Linux capabilities are per thread): a real-time request then fails with EPERM, on which SVT-AV1
-creates the thread without it, and threads created by such threads lack the capability too; afterwards it puts
-the capability back (two system calls: cheap enough for every frame). :func:`ordinary_scheduling`, for opening a
-codec, also undoes any scheduling change that got through anyway.
+capabilities (Linux capabilities are per thread, and a new thread starts with its creator's): a real-time request
+then fails with EPERM, on which SVT-AV1 creates the thread without it, and the threads created meanwhile lack the
+capability for good, so no later request of theirs succeeds either; afterwards it puts the capability back in the
+calling thread. :func:`ordinary_scheduling`, for opening a codec, also undoes any scheduling change that got
+through anyway.
 """
 from __future__ import annotations
 
