@@ -80,8 +80,9 @@ def ros() -> None:
 
 @pytest.fixture()
 def probe(ros: None) -> Iterator[Node]:
-    """A client node of the containers a test starts, in a context of the test's own (client_context); spun by
-    rclpy's global executor (of the default context) where a helper calls rclpy.spin_once."""
+    """A client node of the containers a test starts, in the clients' context (client_context: kept from test to
+    test until one leaves a ghost); spun by rclpy's global executor (of the default context) where a helper calls
+    rclpy.spin_once."""
     with client_context() as context:
         node = Node("container_test_probe", context=context)
         yield node
