@@ -14,6 +14,7 @@ down while a thread is in it).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -81,9 +82,12 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
 
 
 def force_exit(status: int) -> None:
-    """Leave now, whatever threads are still stuck (a hung disk): what is unfinished is left for repair."""
-    sys.stdout.flush()
-    sys.stderr.flush()
+    """Leave now, whatever threads are still stuck (a hung disk): what is unfinished is left for repair. Called
+    from a signal handler too, which may run while this thread is inside a write to the same stream (the
+    flush then raises RuntimeError): the output is flushed where it can be, and the exit happens regardless."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
     os._exit(status)
 
 
@@ -99,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def on_signal(signum: int, _frame: object) -> None:
         if exit_request.request(0, signal.Signals(signum).name) > 1:
-            print("Second signal: exiting without finishing the shutdown", file=sys.stderr)
+            os.write(sys.stderr.fileno(), b"Second signal: exiting without finishing the shutdown\n")
             force_exit(1)
 
     signal.signal(signal.SIGINT, on_signal)
@@ -128,8 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     manager_executor.add_node(manager)
     service = SpinThread(manager_executor, "component_manager", manager.supervisor.thread_died)
     manager.service_thread = service.thread
-    while not exit_request.wait(0.5):  # a timed wait keeps the main thread responsive to signals
-        pass
+    exit_request.wait_in_main_thread()
     manager.get_logger().info(f"Shutting down ({exit_request.reason}): unloading all components")
     status = [exit_request.status]
 

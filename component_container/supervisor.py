@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 import traceback
 from collections import deque
 from dataclasses import dataclass
@@ -34,11 +35,17 @@ class ComponentFailure:
 
 
 class ExitRequest:
-    """The container's main thread waits on this; signals, the exit policy and dying threads set it."""
+    """The container's main thread waits on this; signals, the exit policy and dying threads set it.
+
+    :meth:`request` runs in signal handlers, which Python runs in the main thread between two bytecodes, wherever
+    that thread is: so the main thread must never hold, outside a handler, a lock that :meth:`request` takes. It
+    polls (:meth:`wait_in_main_thread`) rather than waiting on a ``threading.Event``, whose internal lock it holds
+    while it checks the flag: a signal handled at that moment blocked for good on that lock, and every later
+    signal's handler then blocked on the first one's; the container ignored SIGTERM and SIGINT until SIGKILL.
+    """
 
     def __init__(self) -> None:
-        self._event = threading.Event()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # a second signal's handler may run inside the first one's request()
         self.status = 0
         self.reason = ""
         self.count = 0
@@ -49,15 +56,17 @@ class ExitRequest:
             self.status = max(self.status, status)
             self.reason = self.reason or reason
             self.count += 1
-            self._event.set()
             return self.count
 
-    def wait(self, timeout: float | None = None) -> bool:
-        return self._event.wait(timeout)
+    def wait_in_main_thread(self, poll: float = 0.1) -> None:
+        """Return once an exit was requested, looking every ``poll`` s (a sleep, during which signals are
+        handled at once)."""
+        while not self.count:
+            time.sleep(poll)
 
     @property
     def requested(self) -> bool:
-        return self._event.is_set()
+        return self.count > 0
 
 
 class Supervisor:

@@ -17,6 +17,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
@@ -269,12 +270,14 @@ def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no
     from component_container.discovery_profile import use_fastdds_profile
     from component_container.process_tuning import apply_low_latency
     from component_container.startup_file import load_request
+    from component_container.supervisor import ExitRequest
 
     show = out.isatty() and not no_progress
     if show and sys.stderr.isatty():
         logs_clear_the_progress_line()
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop = ExitRequest()  # polled: a signal handled while waiting on a threading.Event can block for good
+    previous = {sig: signal.signal(sig, lambda signum, _: stop.request(0, signal.Signals(signum).name))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     apply_low_latency()  # this process is a player's own container: tune it for replay timing
     use_fastdds_profile()
     context = Context()
@@ -293,7 +296,10 @@ def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no
             return 1
         if when_loaded is not None:
             threading.Thread(target=when_loaded, args=(player,), name="bag-play-when-loaded", daemon=True).start()
-        while not stop.wait(PROGRESS_PERIOD):
+        while True:
+            time.sleep(PROGRESS_PERIOD)
+            if stop.requested:
+                break
             stats = player.stats()
             if show:
                 out.write("\r" + progress_line(stats) + "\033[K")
