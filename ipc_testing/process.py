@@ -1,6 +1,7 @@
 """A container process started the way a user starts one, and stopped by its pid whatever happens."""
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import signal
@@ -27,6 +28,25 @@ def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: f
         process.kill()
         process.wait()
         return False
+
+
+def child_log(path: Path | None) -> IO[str]:
+    """A file (``path``, or a temporary one) for a child process's output that this process reads while the
+    child writes. Every write to it appends (O_APPEND): the child writes through the same open file description,
+    whose offset :func:`read_log` moves; without it, a line written while this process was reading landed at that
+    offset, over earlier output (a container's "Unloading" line vanished from its log so)."""
+    log: IO[str] = (open(path, "w+", encoding="utf-8") if path is not None  # noqa: SIM115
+                    else tempfile.TemporaryFile(mode="w+", prefix="container_", suffix=".log"))
+    descriptor = log.fileno()
+    fcntl.fcntl(descriptor, fcntl.F_SETFL, fcntl.fcntl(descriptor, fcntl.F_GETFL) | os.O_APPEND)
+    return log
+
+
+def read_log(log: IO[str]) -> str:
+    """Everything written to a :func:`child_log` so far."""
+    log.flush()
+    log.seek(0)
+    return log.read()
 
 
 def native_stacks(pid: int) -> str:
@@ -68,8 +88,7 @@ class ContainerProcess:
         if namespace:
             argv += ["--ros-args", "-r", f"__ns:={namespace}"]
         self.log_path = log_path
-        self._log: IO[str] = (open(log_path, "w+", encoding="utf-8") if log_path is not None  # noqa: SIM115
-                              else tempfile.TemporaryFile(mode="w+", prefix="container_", suffix=".log"))
+        self._log = child_log(log_path)
         environment = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
         if code is not None:
             environment["PYTHONPATH"] = os.pathsep.join(filter(None, (str(code), environment.get("PYTHONPATH"))))
@@ -89,9 +108,7 @@ class ContainerProcess:
         """Everything the container printed so far."""
         if self._log.closed:
             return self.log_path.read_text(errors="replace") if self.log_path is not None else ""
-        self._log.flush()
-        self._log.seek(0)
-        return self._log.read()
+        return read_log(self._log)
 
     def alive(self) -> bool:
         return self.process.poll() is None
