@@ -64,6 +64,32 @@ def native_stacks(pid: int) -> str:
     return f"--- native stacks of {pid} (gdb):\n{taken.stdout}{taken.stderr}"
 
 
+def run_command(argv: Sequence[str], timeout: float, env: Mapping[str, str] | None = None,
+                **popen: Any) -> subprocess.CompletedProcess:
+    """``subprocess.run(argv, capture_output=True, text=True, timeout=timeout)``, except that a command that
+    overruns is not killed blind: the AssertionError names it with what it printed so far, its threads' native
+    stacks (gdb) and their Python stacks (``PYTHONFAULTHANDLER``: SIGABRT makes a Python program print every
+    thread's traceback, even one stuck in native code). ``subprocess.run`` loses all of it: its pipes' partial
+    output is dropped with the process. The output goes through files, which hold whatever was written."""
+    environment = dict(os.environ if env is None else env, PYTHONFAULTHANDLER="1")
+    with child_log(None) as out, child_log(None) as err:
+        process = subprocess.Popen(list(argv), stdout=out, stderr=err, text=True, env=environment, **popen)
+        try:
+            process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            stacks = native_stacks(process.pid)
+            process.send_signal(signal.SIGABRT)
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+            raise AssertionError(f"{' '.join(argv)} did not finish within {timeout:g} s; its output so far (the "
+                                 f"Python stacks at its end):\n--- stdout\n{read_log(out)}--- stderr\n{read_log(err)}"
+                                 f"{stacks}") from None
+        return subprocess.CompletedProcess(process.args, process.returncode, read_log(out), read_log(err))
+
+
 class ContainerProcess:
     """``python -m component_container ARGS`` as a subprocess; a context manager that kills it on exit.
 

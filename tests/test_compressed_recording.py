@@ -29,6 +29,7 @@ from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import ImageEncoder
 from ipc_testing import ContainerProcess, wait_until
 from ipc_testing.foxglove_client import install_client
+from ipc_testing.process import run_command
 from test_cli import cli_parallel
 from test_image_encoder import IPC, Probe, decode, manager, psnr  # noqa: F401 - manager: the fixture
 
@@ -85,8 +86,7 @@ def foxglove_decode(schema: str, data: list[bytes]) -> list[dict[str, Any]]:
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ipc_component.cli", *args], cwd=REPO, capture_output=True,
-                          text=True, timeout=90)
+    return run_command([sys.executable, "-m", "ipc_component.cli", *args], 90, cwd=REPO)
 
 
 def record(manager: ComponentManager, tmp_path: Path, codec: str, **parameters: Any) -> tuple[list[Image], int]:

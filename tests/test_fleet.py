@@ -27,6 +27,7 @@ from rosbags.typesys import Stores, get_typestore
 from baglib.format import fleet_keys
 from ipc_testing import ContainerProcess
 from ipc_testing.netns import Network, unavailable
+from ipc_testing.process import run_command
 
 pytestmark = pytest.mark.skipif(unavailable() is not None, reason=f"no network namespaces: {unavailable()}")
 
@@ -89,8 +90,8 @@ class Fleet:
         return process
 
     def cli(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
-        return subprocess.run([*self.network.prefix("operator"), sys.executable, "-m", "ipc_component.cli", *args],
-                              env=self.env, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+        return run_command([*self.network.prefix("operator"), sys.executable, "-m", "ipc_component.cli", *args],
+                           timeout, env=self.env, cwd=REPO)
 
     def stop_all(self) -> None:
         for process in self.containers.values():

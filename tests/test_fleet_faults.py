@@ -17,6 +17,7 @@ from rosbags.rosbag2 import Reader
 
 from baglib.format import fleet_keys
 from ipc_testing import ContainerProcess
+from ipc_testing.process import run_command
 
 REPO = Path(__file__).resolve().parents[1]
 RIG = [{"package": "components", "plugin": "components::ImuDriver", "name": "imu", "parameters": {"rate": 100.0},
@@ -24,8 +25,7 @@ RIG = [{"package": "components", "plugin": "components::ImuDriver", "name": "imu
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ipc_component.cli", *args], cwd=REPO, capture_output=True,
-                          text=True, timeout=90)
+    return run_command([sys.executable, "-m", "ipc_component.cli", *args], 90, cwd=REPO)
 
 
 @pytest.fixture
