@@ -78,12 +78,7 @@ def run_command(argv: Sequence[str], timeout: float, env: Mapping[str, str] | No
             process.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             stacks = native_stacks(process.pid)
-            process.send_signal(signal.SIGABRT)
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            stop_process(process, signal.SIGABRT, timeout=10)
             raise AssertionError(f"{' '.join(argv)} did not finish within {timeout:g} s; its output so far (the "
                                  f"Python stacks at its end):\n--- stdout\n{read_log(out)}--- stderr\n{read_log(err)}"
                                  f"{stacks}") from None
