@@ -4,7 +4,8 @@ Verbs ``list``, ``load``, ``unload`` and ``types`` behave like their ``ros2 comp
 same output lines, the same failure messages (on stderr) and exit code 1 on failure. Differences, all on
 the side of not hanging and of clearer errors:
 
-* discovery and listing share one 5 s budget; loading and unloading wait at most 60 s for each reply;
+* discovery and listing share one 5 s budget; loading and unloading wait at most 60 s for each reply, then until
+  the graph has been quiet for 0.3 s (at most 3 s) before the command ends (docs/limitations.md, Fast DDS);
 * ``list`` without a container name watches the graph for 0.6 s (``--spin-time``; ros2cli: 0.5 s) from the
   moment its participant exists, then ends as soon as every container found has answered;
 * ``--log-level`` takes a level name (DEBUG, INFO, WARN, ERROR, FATAL; any case) or its number;
@@ -94,6 +95,7 @@ def run_load(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     start = time.monotonic()
     with RosSession(ros_args) as ros:
         client = ros.container_client(LoadNode, container, "load_node", start + BUDGET)
+        ros.graph_changed()
         try:
             response = ros.call(client, request, container)
         except CliError as exc:
@@ -120,6 +122,7 @@ def run_unload(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     failed = 0
     with RosSession(ros_args) as ros:
         client = ros.container_client(UnloadNode, container, "unload_node", start + BUDGET)
+        ros.graph_changed()
         for uid in unique_ids:  # every id is tried: one that fails does not keep the others loaded
             try:
                 response = ros.call(client, UnloadNode.Request(unique_id=uid), container)

@@ -183,6 +183,7 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
             _report_failures(fleet.links)
             raise CliError("Not starting: --all-or-nothing and a container did not answer")
         start_ns = instant_ns(args, default_in=2.0)
+        ros.graph_changed()
         calls = {link.name: (link.load, LoadNode.Request(
             package_name=RECORDER_PLUGIN[0], plugin_name=RECORDER_PLUGIN[1], node_name=recorder_node(session),
             node_namespace=link.name,
@@ -319,6 +320,7 @@ def run_stop(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
         stop_ns = instant_ns(args, default_in=STOP_AHEAD)
         _set_on_all(recorders, "record.stop_at", stop_ns, {fleet_keys.STOP_NS: str(stop_ns)})
         finals = _wait_finalized(recorders, stop_ns)
+        ros.graph_changed()
         _unload(recorders.fleet, [(recorders.link(r), r.unique_id) for r in recorders.placed if r.node in finals])
     rows = []
     for recorder in recorders.placed:

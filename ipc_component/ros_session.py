@@ -15,6 +15,9 @@ if TYPE_CHECKING:
 BUDGET = 5.0             # s: discovery and listing, and waiting for a container's service
 CALL_TIMEOUT = 60.0      # s: waiting for a LoadNode / UnloadNode reply (component constructors may be slow)
 GONE_GRACE = 2.0         # s: a container whose service stays absent this long while we wait has left
+#: s: a command that loaded or unloaded components waits until its graph has not changed for SETTLE_QUIET (at most
+#: SETTLE_LIMIT) before it destroys its participant: see RosSession.graph_changed
+SETTLE_QUIET, SETTLE_LIMIT = 0.3, 3.0
 # Fast DDS's highest domain: its ports (7400 + 250 * domain + offsets) must stay below 65536. Above it, Fast DDS
 # ends the process with status 1 and no message on stderr.
 MAX_FASTDDS_DOMAIN = 232
@@ -50,6 +53,7 @@ class RosSession:
                 parameter_overrides=[Parameter("start_type_description_service", value=False)])
             self.executor = SingleThreadedExecutor(context=self.context)
             self.executor.add_node(self.node)
+            self._settle = False
         except rclpy_implementation.RCLError as exc:  # e.g. ROS_STATIC_PEERS naming a host that does not resolve
             rclpy.try_shutdown(context=self.context)
             raise CliError(f"Could not start ROS: {str(exc).splitlines()[0]}") from exc
@@ -60,10 +64,35 @@ class RosSession:
     def __enter__(self) -> "RosSession":
         return self
 
+    def graph_changed(self) -> None:
+        """This command loaded or unloaded components: let discovery take in what that changed before the
+        participant is destroyed. Fast DDS (2.14 and 3.2) can deadlock destroying a participant while its
+        discovery thread reports an endpoint that went away: the destroying thread waits for the report to end,
+        and the report waits for a lock that thread holds. Seen in ``record stop``, whose unloads make each
+        container remove a recorder's two dozen endpoints just before the command ends: it hung for good in
+        ``destroy_node`` (native and Python stacks in the note of the change)."""
+        self._settle = True
+
+    def _wait_for_quiet_graph(self) -> None:
+        """Spin until the topics and services this participant knows stayed the same for SETTLE_QUIET s, at
+        most SETTLE_LIMIT s."""
+        def graph() -> tuple[list, list]:
+            return self.node.get_topic_names_and_types(), self.node.get_service_names_and_types()
+
+        end = time.monotonic() + SETTLE_LIMIT
+        last, since = graph(), time.monotonic()
+        while time.monotonic() < end and time.monotonic() - since < SETTLE_QUIET:
+            self.executor.spin_once(timeout_sec=0.05)
+            now = graph()
+            if now != last:
+                last, since = now, time.monotonic()
+
     def __exit__(self, *exc: Any) -> None:
         import rclpy
 
         try:
+            if self._settle:
+                self._wait_for_quiet_graph()
             self.executor.shutdown(timeout_sec=1.0)
             self.node.destroy_node()
         finally:
