@@ -70,7 +70,7 @@ class RosSession:
         discovery thread reports an endpoint that went away: the destroying thread waits for the report to end,
         and the report waits for a lock that thread holds. Seen in ``record stop``, whose unloads make each
         container remove a recorder's two dozen endpoints just before the command ends: it hung for good in
-        ``destroy_node`` (native and Python stacks in the note of the change)."""
+        ``destroy_node`` (docs/limitations.md). Waiting narrows that window; it cannot close it."""
         self._settle = True
 
     def _wait_for_quiet_graph(self) -> None:
