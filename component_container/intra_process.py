@@ -43,6 +43,9 @@ PUBLICATION_LOG_DEPTH = 256
 # of 1080p frames costs at most this much memory instead of growing until the process is killed.
 KEEP_ALL_MAX_MESSAGES = 1000
 KEEP_ALL_MAX_BYTES = 256 * 1024 * 1024
+# How many destroyed publishers' logs a topic keeps, so that their last DDS samples, still queued in local readers
+# when the publisher was unloaded, are recognised too (kept while the topic has in-process subscriptions).
+RETIRED_LOGS_PER_TOPIC = 8
 # How long closing a subscription waits for its inline callbacks (which must never block) to return.
 INLINE_DRAIN_TIMEOUT = 1.0
 
@@ -268,6 +271,7 @@ class IntraProcessManager:
         self._lock = threading.Lock()
         self._subscriptions: dict[str, list[IntraProcessSubscription]] = {}
         self._publications: dict[str, list[IntraProcessPublication]] = {}
+        self._retired: dict[str, deque[LocalPublicationLog]] = {}
         self._generation = 0  # changes with every subscription added or removed
 
     def add_publication(self, topic: str, qos: QoSProfile) -> IntraProcessPublication:
@@ -330,13 +334,20 @@ class IntraProcessManager:
             subscription.offer(message, (published_ns, time.time_ns()))
 
     def remove_publication(self, publication: IntraProcessPublication) -> None:
+        """Unregister a publication; its DDS write log stays recognisable while the topic has in-process
+        subscriptions: their DDS readers may not have taken its last samples yet."""
         with self._lock:
             _remove(self._publications, publication.topic, publication)
+            if publication.topic in self._subscriptions:
+                retired = self._retired.setdefault(publication.topic, deque(maxlen=RETIRED_LOGS_PER_TOPIC))
+                retired.append(publication.log)
 
     def remove_subscription(self, subscription: IntraProcessSubscription) -> None:
         """Unregister and close a subscription: once this returns, no publisher calls into it any more."""
         with self._lock:
             _remove(self._subscriptions, subscription.topic, subscription)
+            if subscription.topic not in self._subscriptions:
+                self._retired.pop(subscription.topic, None)  # nobody left to take a retired writer's samples
             self._generation += 1
         subscription.close()
 
@@ -376,12 +387,13 @@ class IntraProcessManager:
             return bool(self._publications.get(topic))
 
     def is_local_publication(self, topic: str, sequence: int | None, source_timestamp: int) -> bool:
-        """Whether a DDS sample on ``topic`` was written by a publisher in this container."""
+        """Whether a DDS sample on ``topic`` was written by a publisher in this container (one destroyed since
+        included)."""
         if sequence is None:
             return False
         with self._lock:
-            publications = list(self._publications.get(topic, ()))
-        return any(p.log.contains(sequence, source_timestamp) for p in publications)
+            logs = [p.log for p in self._publications.get(topic, ())] + list(self._retired.get(topic, ()))
+        return any(log.contains(sequence, source_timestamp) for log in logs)
 
 
 def _remove(registry: dict[str, list], topic: str, entry: object) -> None:

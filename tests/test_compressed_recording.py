@@ -29,9 +29,10 @@ from component_container.startup_file import load_request
 from components.image_encoder.image_encoder import ImageEncoder
 from ipc_testing import ContainerProcess, wait_until
 from ipc_testing.foxglove_client import install_client
+from ipc_testing.in_process import probe
 from ipc_testing.process import run_command
 from test_cli import cli_parallel
-from test_image_encoder import IPC, Probe, decode, manager, psnr  # noqa: F401 - manager: the fixture
+from test_image_encoder import IPC, decode, manager, psnr  # noqa: F401 - manager: the fixture
 
 REPO = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 320, 240
@@ -97,18 +98,18 @@ def record(manager: ComponentManager, tmp_path: Path, codec: str, **parameters: 
         "record.topics": [CAMERA], **parameters})
     output = f"{CAMERA}/{'video' if codec == 'h264' else 'compressed'}"
     assert wait_until(lambda: output in recorder.node._topics, 20.0), "the recorder never took the encoder's output"
-    probe = Probe(manager, Image, CAMERA)
+    raw = probe(manager, Image, CAMERA)
     camera = load(manager, "CameraDriver", f"cam_{codec}", width=WIDTH, height=HEIGHT, fps=15.0, content="photo",
                   topic=CAMERA)
-    assert wait_until(lambda: len(probe.messages) >= FRAMES, 120.0)
+    assert wait_until(lambda: len(raw.messages) >= FRAMES, 120.0)
     manager.unload(camera.unique_id)
     encoder = next(c.node for c in manager.components() if isinstance(c.node, ImageEncoder))
     assert wait_until(lambda: encoder.stats()["topics"][CAMERA]["waiting"] == 0, 20.0)
-    # the probe subscription's callback for the camera's last frame may still be queued when the encoder is done
-    wait_until(lambda: len(probe.messages) == encoder.stats()["topics"][CAMERA]["received"], 20.0)
+    # the encoder's subscription callback for the camera's last frames may still be queued after the unload
+    wait_until(lambda: len(raw.messages) == encoder.stats()["topics"][CAMERA]["received"], 20.0)
     counts = encoder.stats()["topics"][CAMERA]
-    assert counts["received"] == len(probe.messages) and counts["rejected"] == 0, counts
-    print(f"{codec}: the encoder skipped {counts['skipped']} of {len(probe.messages)} frames")
+    assert counts["received"] == len(raw.messages) and counts["rejected"] == 0, counts
+    print(f"{codec}: the encoder skipped {counts['skipped']} of {len(raw.messages)} frames")
     # the recorder counts raw frames: what it got from the encoder, and what the encoder lost
     assert wait_until(lambda: recorder.node.stats()["current"]["topics"][output]["received"] == counts["received"],
                       20.0), recorder.node.stats()["current"]["topics"]
@@ -116,7 +117,7 @@ def record(manager: ComponentManager, tmp_path: Path, codec: str, **parameters: 
     assert CAMERA not in stats["topics"]  # recorded compressed instead
     assert stats["drop_reasons"].get(output, {}) == ({"encoder_behind": counts["skipped"]} if counts["skipped"]
                                                      else {}), stats["drop_reasons"]
-    return probe.messages, counts["skipped"]
+    return raw.messages, counts["skipped"]
 
 
 def check_frames(decoded: np.ndarray, stamps: list[int], raw: list[Image], skipped: int, codec: str) -> None:

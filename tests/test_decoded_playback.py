@@ -32,7 +32,6 @@ from baglib.read.reader import BagMessage, BagReader
 from baglib.read.timeline import Timeline
 from baglib.write.writer import BagWriter
 from component_container.component_manager import ComponentConstructionError, ComponentManager
-from component_container.component_node import ComponentNode
 from component_container.startup_file import load_request
 from components.image_encoder import codecs
 from components.image_encoder.frame_times import frame_times
@@ -43,6 +42,7 @@ from components.player.read_ahead import ReadAhead
 from components.photo_content import PhotoContent
 from components.sensor_driver import stamp_from_ns
 from ipc_testing import call, in_process_manager, wait_until
+from ipc_testing.in_process import InlineProbe, probe
 
 WIDTH, HEIGHT = 320, 240
 FRAMES = 12
@@ -140,14 +140,9 @@ def manager() -> Iterator[ComponentManager]:
         yield manager
 
 
-class Probe(ComponentNode):
-    """Keeps every Image of ``topic`` it gets in-process (inline, no executor needed)."""
-
-    def __init__(self, manager: ComponentManager, topic: str) -> None:
-        super().__init__(f"probe_{abs(hash(topic))}", intra_process_manager=manager.intra_process_manager,
-                         context=manager.context)
-        self.messages: list[Image] = []
-        self.create_subscription(Image, topic, self.messages.append, RELIABLE, intra_process_inline=True)
+def image_probe(manager: ComponentManager, topic: str) -> InlineProbe:
+    """Every Image of ``topic`` the manager's components publish (reliable, as the player's publishers)."""
+    return probe(manager, Image, topic, RELIABLE)
 
 
 def load_player(manager: ComponentManager, uri: Path, **parameters: Any) -> Any:
@@ -163,7 +158,7 @@ def pixels_of(image: Image) -> np.ndarray:
 
 def test_a_compressed_bag_plays_as_images_of_the_original_size_encoding_and_stamps(
         manager: ComponentManager, bag: CompressedBag) -> None:
-    video, stills = Probe(manager, "/cam/image"), Probe(manager, "/cam2/image")
+    video, stills = image_probe(manager, "/cam/image"), image_probe(manager, "/cam2/image")
     player = load_player(manager, bag.path, **{"play.decode": True})
     assert wait_until(lambda: len(video.messages) == FRAMES and len(stills.messages) == FRAMES, 30.0), \
         (len(video.messages), len(stills.messages))
@@ -182,7 +177,7 @@ def test_a_compressed_bag_plays_as_images_of_the_original_size_encoding_and_stam
 
 def test_a_video_stream_starts_at_a_keyframe_and_counts_the_frames_before_it(
         manager: ComponentManager, bag: CompressedBag) -> None:
-    video = Probe(manager, "/cam/image")
+    video = image_probe(manager, "/cam/image")
     start = 2  # two frames into the first group of pictures
     player = load_player(manager, bag.path, **{"play.decode_topics": [VIDEO],
                                                "play.start_offset.nsec": start * PERIOD_NS})
@@ -204,7 +199,7 @@ def test_a_frame_that_fails_to_decode_is_counted_and_its_compressed_message_stil
             still.header.stamp = stamp_from_ns(T0 + index * PERIOD_NS)
             still.data = data if index != damaged else b"\xff\xd8 not a picture"
             writer.write(STILLS, serialize_message(still), T0 + index * PERIOD_NS, T0 + index * PERIOD_NS)
-    images = Probe(manager, "/cam2/image")
+    images = image_probe(manager, "/cam2/image")
     player = load_player(manager, tmp_path / "damaged", **{"play.decode": True})
     assert player._playback.wait_finished(30.0)
     assert len(images.messages) == FRAMES - 1
@@ -223,7 +218,7 @@ def test_several_streams_decode_side_by_side_each_frame_once_and_in_order(
     cameras = 2
     bag = CompressedBag(tmp_path / "bag", cameras=cameras)
     outputs = {topic: topic.rpartition("/")[0] for topic in bag.topics}
-    probes = {topic: Probe(manager, output) for topic, output in outputs.items()}
+    probes = {topic: image_probe(manager, output) for topic, output in outputs.items()}
     player = load_player(manager, bag.path, **{"play.decode": True})
     assert player._playback.wait_finished(30.0)
     for camera in range(cameras):
@@ -240,7 +235,7 @@ def test_several_streams_decode_side_by_side_each_frame_once_and_in_order(
 
 def test_each_loop_decodes_the_bag_again_from_its_first_keyframe(manager: ComponentManager, bag: CompressedBag
                                                                  ) -> None:
-    video = Probe(manager, "/cam/image")
+    video = image_probe(manager, "/cam/image")
     player = load_player(manager, bag.path, **{"play.decode_topics": [VIDEO], "play.loop": True})
     assert wait_until(lambda: len(video.messages) >= 2 * FRAMES, 30.0), len(video.messages)
     player.stop()
@@ -251,7 +246,7 @@ def test_each_loop_decodes_the_bag_again_from_its_first_keyframe(manager: Compon
 
 def test_a_pass_waits_for_the_pictures_of_its_head_start_before_its_clock_starts(
         manager: ComponentManager, bag: CompressedBag) -> None:
-    node = Probe(manager, "/unused")
+    node = image_probe(manager, "/unused")
     logged: list[str] = []
     decoding = Decoding([DecodedStream(node, topic, decoded_name(topic), topic == VIDEO, RELIABLE, msg_class,
                                        logged.append) for topic, msg_class in ((VIDEO, CompressedVideo),
@@ -300,7 +295,7 @@ def test_a_stream_whose_frames_all_fail_does_not_hold_up_the_others(
             for topic, message in ((broken_still, bad_still), (VIDEO, good_video), (broken_video, bad_video),
                                    (STILLS, good_still)):
                 writer.write(topic, serialize_message(message), t, t)
-    video, stills = Probe(manager, "/cam/image"), Probe(manager, "/cam2/image")
+    video, stills = image_probe(manager, "/cam/image"), image_probe(manager, "/cam2/image")
     player = load_player(manager, tmp_path / "mixed", **{"play.decode": True})
     assert player._playback.wait_finished(30.0)
     stamps = [stamp_from_ns(stamp_ns(index)) for index in range(FRAMES)]
@@ -386,7 +381,7 @@ def test_a_stream_decodes_at_a_lower_priority_than_the_reader_and_so_do_the_thre
 def test_a_decoding_thread_per_stream_that_stop_and_unload_end(manager: ComponentManager, tmp_path: Path) -> None:
     bag = CompressedBag(tmp_path / "bag", cameras=2)
     streams = sorted(f"decode:{topic}" for topic in bag.topics)
-    images = Probe(manager, "/cam/image")
+    images = image_probe(manager, "/cam/image")
     # Paused with a read-ahead of one message per stream: every stream has a message handed to its thread, and the
     # pass cannot end, so the threads wait for more.
     loaded = manager.load(load_request({

@@ -32,6 +32,7 @@ from components.image_encoder import codecs, scheduling
 from components.sensor_driver import stamp_from_ns
 from ffmpeg_tools import ffmpeg
 from ipc_testing import call, in_process_manager, wait_until
+from ipc_testing.in_process import InlineProbe, destroyed_with, probe
 from ipc_testing.process import native_stacks
 
 WIDTH, HEIGHT = 320, 240
@@ -59,17 +60,6 @@ def picture(index: int) -> np.ndarray:
     y, x = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float32)
     disc = ((x - 40 - 6 * index) ** 2 + (y - 120) ** 2 < 900) * 120
     return np.stack([(x * 0.7 + index) % 256, (y + disc) % 256, (x + y) * 0.4 % 256], axis=-1).astype(np.uint8)
-
-
-class Probe(ComponentNode):
-    """Keeps every message of ``topic`` it gets in-process (inline, no executor needed)."""
-
-    def __init__(self, manager: ComponentManager, msg_type: Any, topic: str) -> None:
-        super().__init__(f"probe_{abs(hash(topic))}", intra_process_manager=manager.intra_process_manager,
-                         context=manager.context)
-        self.messages: list[Any] = []
-        self.create_subscription(msg_type, topic, self.messages.append, QoSProfile(depth=100),
-                                 intra_process_inline=True)
 
 
 class Source(ComponentNode):
@@ -105,19 +95,19 @@ def load(manager: ComponentManager, plugin: str, name: str, **parameters: Any) -
                                       "parameters": parameters, "extra_arguments": IPC}, 1)).node
 
 
-def send_all(source: Source, probe: Probe, frames: int) -> None:
+def send_all(source: Source, output: InlineProbe, frames: int) -> None:
     """Publish ``frames`` pictures, each after the previous one's encoding arrived (so none is skipped)."""
     for index in range(frames):
         source.send(index)
-        assert wait_until(lambda: len(probe.messages) > index, 20.0), f"no encoding of frame {index}"
+        assert wait_until(lambda: len(output.messages) > index, 20.0), f"no encoding of frame {index}"
 
 
 def test_h264_and_jpeg_decode_with_ffmpeg_in_order_and_close_to_the_raw_frames(manager: ComponentManager) -> None:
-    source = Source(manager)
+    source = destroyed_with(manager, Source(manager))
     encoders = {codec: load(manager, "ImageEncoder", f"enc_{codec}", topics=[SOURCE], codec=codec,
                             suffix=codec) for codec in ("h264", "jpeg")}
-    video = Probe(manager, CompressedVideo, f"{SOURCE}/h264")
-    stills = Probe(manager, CompressedImage, f"{SOURCE}/jpeg")
+    video = probe(manager, CompressedVideo, f"{SOURCE}/h264")
+    stills = probe(manager, CompressedImage, f"{SOURCE}/jpeg")
     frames = 12
     send_all(source, video, frames)
     assert wait_until(lambda: len(stills.messages) == frames, 20.0)
@@ -149,9 +139,9 @@ def test_h264_and_jpeg_decode_with_ffmpeg_in_order_and_close_to_the_raw_frames(m
 ])
 def test_h265_and_av1_decode_with_ffmpeg(manager: ComponentManager, codec: str, demuxer: str,
                                          first_bytes: bytes) -> None:
-    source = Source(manager)
+    source = destroyed_with(manager, Source(manager))
     load(manager, "ImageEncoder", f"enc_{codec}", topics=[SOURCE], codec=codec)
-    video = Probe(manager, CompressedVideo, f"{SOURCE}/video")
+    video = probe(manager, CompressedVideo, f"{SOURCE}/video")
     frames = 6
     send_all(source, video, frames)
     assert {m.format for m in video.messages} == {codec}
@@ -162,14 +152,16 @@ def test_h265_and_av1_decode_with_ffmpeg(manager: ComponentManager, codec: str, 
 
 
 def test_a_keyframe_on_request_decodes_on_its_own(manager: ComponentManager) -> None:
-    topic = "/enc_key_test/image"  # a topic of its own: no reader of another test's joins (a new reader gets a
-    source = Source(manager, topic)  # keyframe too, which would spoil the delta frame below)
+    # a topic of its own: no reader of another test's joins (a new reader gets a keyframe too, which would spoil
+    # the delta frame below)
+    topic = "/enc_key_test/image"
+    source = destroyed_with(manager, Source(manager, topic))
     load(manager, "ImageEncoder", "enc_key", topics=[topic], codec="h264", keyframe_interval=1000)
-    video = Probe(manager, CompressedVideo, f"{topic}/video")
+    video = probe(manager, CompressedVideo, f"{topic}/video")
     send_all(source, video, 4)
     # A delta frame alone decodes to nothing: what makes the check below mean something.
     assert len(decode(bytes(video.messages[3].data), "h264", WIDTH, HEIGHT)) == 0
-    client = Node("enc_key_client", context=manager.context)
+    client = destroyed_with(manager, Node("enc_key_client", context=manager.context))
     try:
         reply = call(client, client.create_client(Trigger, "/enc_key/request_keyframe"), Trigger.Request())
     finally:
@@ -180,7 +172,7 @@ def test_a_keyframe_on_request_decodes_on_its_own(manager: ComponentManager) -> 
     alone = decode(bytes(video.messages[4].data), "h264", WIDTH, HEIGHT)
     assert len(alone) == 1 and psnr(alone[0], source.sent[4]) > 32
     # A new reader (a viewer, a recorder starting) gets a keyframe at once, without asking.
-    late = Probe(manager, CompressedVideo, f"{topic}/video")
+    late = probe(manager, CompressedVideo, f"{topic}/video")
     source.send(5)
     assert wait_until(lambda: len(late.messages) == 1, 20.0)
     assert len(decode(bytes(late.messages[0].data), "h264", WIDTH, HEIGHT)) == 1
@@ -197,10 +189,10 @@ def test_a_slow_encoder_skips_frames_counts_them_and_never_blocks_the_publisher(
         return real_encode(self, image)
 
     monkeypatch.setattr(codecs.StillCodec, "encode", slow_encode)
-    source = Source(manager)
+    source = destroyed_with(manager, Source(manager))
     encoder = load(manager, "ImageEncoder", "enc_slow", topics=[SOURCE], codec="jpeg")
-    stills = Probe(manager, CompressedImage, f"{SOURCE}/compressed")
-    raw = Probe(manager, Image, SOURCE)
+    stills = probe(manager, CompressedImage, f"{SOURCE}/compressed")
+    raw = probe(manager, Image, SOURCE)
     source.send(0)
     assert entered.wait(20.0)
     for index in range(1, 10):  # every publish returns while the encoder is stuck on frame 0
@@ -214,7 +206,7 @@ def test_a_slow_encoder_skips_frames_counts_them_and_never_blocks_the_publisher(
     release.set()
     assert wait_until(lambda: len(stills.messages) == 3, 20.0)
     assert [index_of(m.header.stamp) for m in stills.messages] == [0, 8, 9]  # the newest waited
-    client = Node("enc_slow_client", context=manager.context)
+    client = destroyed_with(manager, Node("enc_slow_client", context=manager.context))
     try:
         reply = call(client, client.create_client(Trigger, "/enc_slow/get_stats"), Trigger.Request(), again=True)
     finally:
@@ -225,8 +217,8 @@ def test_a_slow_encoder_skips_frames_counts_them_and_never_blocks_the_publisher(
 def test_camera_frames_are_encoded_by_reference_and_accounted_for(manager: ComponentManager) -> None:
     topic = "/enc_camera/image_raw"
     encoder = load(manager, "ImageEncoder", "enc_cam", topics=[topic], codec="h264", preset="ultrafast")
-    video = Probe(manager, CompressedVideo, f"{topic}/video")
-    raw = Probe(manager, Image, topic)
+    video = probe(manager, CompressedVideo, f"{topic}/video")
+    raw = probe(manager, Image, topic)
     camera = load(manager, "CameraDriver", "enc_camera", width=WIDTH, height=HEIGHT, fps=60.0)
     assert wait_until(lambda: len(video.messages) >= 20, 30.0)
     manager.unload(next(c.unique_id for c in manager.components() if c.node is camera))
@@ -261,7 +253,7 @@ BAD = [
 
 def test_bad_parameters_are_load_errors_naming_them_and_the_container_keeps_running(
         manager: ComponentManager) -> None:
-    text = Node("enc_text", context=manager.context)
+    text = destroyed_with(manager, Node("enc_text", context=manager.context))
     text.create_publisher(String, "/enc_test/text", 1)
     try:
         for parameters, named in BAD:
@@ -275,9 +267,9 @@ def test_bad_parameters_are_load_errors_naming_them_and_the_container_keeps_runn
 
 
 def test_a_frame_the_codec_cannot_take_is_rejected_and_counted(manager: ComponentManager) -> None:
-    source = Source(manager)
+    source = destroyed_with(manager, Source(manager))
     encoder = load(manager, "ImageEncoder", "enc_odd", topics=[SOURCE], codec="h264")
-    video = Probe(manager, CompressedVideo, f"{SOURCE}/video")
+    video = probe(manager, CompressedVideo, f"{SOURCE}/video")
     source.send(0, picture(0)[:, :WIDTH - 1].copy())  # odd width: 4:2:0 cannot hold it
     source.send(1)
     assert wait_until(lambda: len(video.messages) == 1, 20.0)
@@ -288,13 +280,13 @@ def test_a_frame_the_codec_cannot_take_is_rejected_and_counted(manager: Componen
 
 def test_regex_finds_image_topics_on_the_graph(manager: ComponentManager) -> None:
     topic = "/enc_regex_test/image"
-    source = Source(manager, topic)
-    text = Node("enc_regex_text", context=manager.context)
+    source = destroyed_with(manager, Source(manager, topic))
+    text = destroyed_with(manager, Node("enc_regex_text", context=manager.context))
     text.create_publisher(String, "/enc_regex_test/text", 1)  # matches the regex, but is no image
     try:
         encoder = load(manager, "ImageEncoder", "enc_regex", regex="^/enc_regex_test/", polling_interval=0.1)
         assert wait_until(lambda: topic in encoder.stats()["topics"], 20.0)
-        stills = Probe(manager, CompressedImage, f"{topic}/compressed")
+        stills = probe(manager, CompressedImage, f"{topic}/compressed")
         send_all(source, stills, 2)
         assert list(encoder.stats()["topics"]) == [topic]  # not the text topic, nor its own output
     finally:

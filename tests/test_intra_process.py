@@ -154,6 +154,45 @@ def test_external_subscriber_gets_everything_and_local_one_no_duplicates(context
     outside_exec.shutdown()
 
 
+def test_a_dds_sample_taken_after_its_publisher_was_destroyed_is_still_known_as_local(contexts, ipm):
+    """An unload destroys a publisher whose last DDS samples may still wait in the local readers' queues (the
+    executor had not taken them yet): they were delivered in-process already and must not come a second time."""
+    inside, outside = contexts
+    pub_node = inside.component("pub", ipm)
+    sub_node = inside.component("sub", ipm)
+    local_got: list[str] = []
+    local = sub_node.create_subscription(String, "unloaded_chatter", lambda m: local_got.append(m.data), 100)
+    # a reader outside, so that the publisher writes to DDS; a plain reader inside, to know when the local
+    # readers have the samples (same participant, same writer)
+    external = outside.node("external").create_subscription(String, "unloaded_chatter", lambda m: None, 100)
+    witness_got: list[str] = []
+    witness = inside.node("dds_witness")
+    witness.create_subscription(String, "unloaded_chatter", lambda m: witness_got.append(m.data), 100)
+    publisher = pub_node.create_publisher(String, "unloaded_chatter", 100)
+    assert wait_for(lambda: publisher.get_subscription_count() >= 3 and external.get_publisher_count() >= 1
+                    and local.dds_subscription.get_publisher_count() >= 1)
+    for index in range(20):
+        publisher.publish(String(data=f"m{index}"))
+    assert local.received_count == 20  # queued in-process; nobody has spun yet
+    pub_node.destroy_publisher(publisher)  # the unload, before the executor takes the DDS samples
+    executor = SingleThreadedExecutor(context=inside.context)
+    executor.add_node(sub_node)
+    executor.add_node(witness)
+    assert spin_until(executor, lambda: len(witness_got) == 20, timeout=20)
+    spin_until(executor, lambda: False, timeout=0.3)  # what else the local subscription would take
+    assert local_got == [f"m{index}" for index in range(20)]
+    executor.shutdown()
+
+
+def wait_for(condition: Callable[[], bool], timeout: float = 20.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
 def test_external_publisher_reaches_in_process_subscriber(contexts, ipm):
     inside, outside = contexts
     sub_node = inside.component("sub", ipm)
