@@ -31,7 +31,8 @@ from components.image_encoder.stream import EncodeStream
 from ffmpeg_tools import ffmpeg
 from ipc_testing import wait_until
 from test_compressed_recording import bag_messages, stamp_ns
-from test_image_encoder import Probe, decode, load, manager, psnr  # noqa: F401 - manager: the fixture
+from ipc_testing.in_process import probe
+from test_image_encoder import decode, load, manager, psnr  # noqa: F401 - manager: the fixture
 
 WIDTH, HEIGHT = 64, 48
 FRAMES = 4
@@ -295,8 +296,8 @@ def test_a_depth_camera_comes_back_bit_exact_from_compressed_depth(manager: Comp
     topic = "/pix_depth/image_raw"
     encoder = load(manager, "ImageEncoder", "pix_depth_enc", topics=[topic], codec="compressedDepth")
     assert encoder.output_topic(topic) == f"{topic}/compressedDepth"  # known before any frame: the recorder's need
-    depth = Probe(manager, CompressedImage, f"{topic}/compressedDepth")
-    raw = Probe(manager, Image, topic)
+    depth = probe(manager, CompressedImage, f"{topic}/compressedDepth")
+    raw = probe(manager, Image, topic)
     camera = load(manager, "CameraDriver", "pix_depth", width=320, height=240, encoding="16UC1", content="photo",
                   fps=60.0)
     assert wait_until(lambda: len(depth.messages) >= 12, 30.0)
@@ -315,8 +316,8 @@ def test_a_depth_camera_comes_back_bit_exact_from_compressed_depth(manager: Comp
 def test_a_bayer_camera_gives_an_h264_stream_that_ffmpeg_decodes(manager: ComponentManager) -> None:
     topic = "/pix_bayer/image_raw"
     load(manager, "ImageEncoder", "pix_bayer_enc", topics=[topic], codec="h264")
-    video = Probe(manager, CompressedVideo, f"{topic}/video")
-    raw = Probe(manager, Image, topic)
+    video = probe(manager, CompressedVideo, f"{topic}/video")
+    raw = probe(manager, Image, topic)
     camera = load(manager, "CameraDriver", "pix_bayer", width=320, height=240, encoding="bayer_rggb8",
                   content="photo", fps=60.0)
     assert wait_until(lambda: len(video.messages) >= 12, 30.0)
@@ -343,7 +344,7 @@ def test_a_recorder_with_compress_depth_records_the_depth_camera_bit_exact(manag
         "record.compress_topics": [topic], "record.topics": [topic]})
     output = f"{topic}/compressedDepth"
     assert wait_until(lambda: output in recorder._topics, 20.0), "the recorder never took the encoder's output"
-    raw = Probe(manager, Image, topic)
+    raw = probe(manager, Image, topic)
     camera = load(manager, "CameraDriver", "pix_rec_cam", width=160, height=120, encoding="16UC1",
                   content="photo", fps=30.0, topic=topic)
     assert wait_until(lambda: len(raw.messages) >= 10, 30.0)

@@ -35,7 +35,8 @@ from components.image_encoder.image_encoder import ImageEncoder
 from components.sensor_driver import stamp_from_ns
 from ffmpeg_tools import ffmpeg
 from ipc_testing import in_process_manager, wait_until
-from test_image_encoder import Probe, picture
+from ipc_testing.in_process import probe
+from test_image_encoder import picture
 
 IPC = {"use_intra_process_comms": True}
 WIDTH, HEIGHT = 320, 240
@@ -274,7 +275,7 @@ def test_an_overloaded_encoder_is_in_the_bags_accounting(manager: ComponentManag
         "record.max_rates": ["/over/cam1/video:10"]})
     outputs = [f"{camera}/video" for camera in cameras]
     assert wait_until(lambda: all(o in recorder.node._topics for o in outputs), 20.0)
-    losses = Probe(manager, MessagesLostEvent, "/events/messages_lost")
+    losses = probe(manager, MessagesLostEvent, "/events/messages_lost")
     frames = Frames(manager, cameras)
     for _ in range(60):  # a burst: the encoder's mailbox of two overflows
         frames.send()
