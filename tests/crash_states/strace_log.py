@@ -116,24 +116,25 @@ _WATCHED_CALLS = _WRITES | {
 }
 
 
+#: What _split_args looks at: a whole string (all-hex: no quote inside), a bracket or a comma.
+_ARG_TOKENS = re.compile(r'"[^"]*"|[\[\]{}(),]')
+
+
 def _split_args(text: str) -> list[str]:
-    """Split a syscall's argument text at its top-level commas (strings are all-hex: no quotes inside)."""
+    """Split a syscall's argument text at its top-level commas. The strings (a write's data: megabytes of
+    ``\\xNN``) are skipped whole by the regular expression, not walked character by character."""
     parts: list[str] = []
     depth = 0
     start = 0
-    in_string = False
-    for index, char in enumerate(text):
-        if char == '"':
-            in_string = not in_string
-        elif in_string:
-            continue
-        elif char in "[{(":
+    for match in _ARG_TOKENS.finditer(text):
+        token = match.group()
+        if token in ("[", "{", "("):
             depth += 1
-        elif char in "]})":
+        elif token in ("]", "}", ")"):
             depth -= 1
-        elif char == "," and depth == 0:
-            parts.append(text[start:index].strip())
-            start = index + 1
+        elif token == "," and depth == 0:
+            parts.append(text[start:match.start()].strip())
+            start = match.end()
     tail = text[start:].strip()
     if tail:
         parts.append(tail)
