@@ -5,7 +5,7 @@ complete exactly when its ``metadata.yaml`` is there. What is to be uploaded, an
 multipart upload id and the parts the server confirmed), is kept in a journal next to the bags
 (:mod:`~baglib.upload.journal`), so an upload cut by a network drop, a server restart, SIGKILL or a power cut goes
 on from its last confirmed part. Every file is verified against the local one before it may be deleted
-(:mod:`~baglib.upload.transfer`). The client is boto3 with the standard AWS credential chain
+(:mod:`~baglib.upload.transfer`). The client is botocore with the standard AWS credential chain
 (:mod:`~baglib.upload.client`); the uploads run in a process of their own (:mod:`~baglib.upload.worker`), so they
 never take the recorder's CPU time or GIL.
 

@@ -1,11 +1,16 @@
-"""The S3 client (boto3) and what its errors mean to a person.
+"""The S3 client (botocore, the core of the AWS SDK boto3) and what its errors mean to a person.
 
-Credentials come from boto3's standard chain only (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, ``AWS_PROFILE``
+Credentials come from the AWS SDK's standard chain only (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, ``AWS_PROFILE``
 with ``~/.aws/credentials`` and ``~/.aws/config``): nothing here takes a secret as an argument, so none can end up
 in a parameter, a log line or a bag. An explicit endpoint (any S3-compatible store) is addressed path-style, as
 local servers need. botocore's default CRC32 checksums on every request are turned off
 (``request_checksum_calculation="when_required"``): several S3-compatible servers reject them, and every part
 carries its Content-MD5 instead, which the transfer checks against the ETag the server answers.
+
+Every client has a botocore session of its own (the credentials are looked up anew each time), and they share one
+loader of botocore's service descriptions: S3's is a large JSON document, whose parsing cost each new session 60 to
+100 ms of CPU (a process that makes several clients, an upload worker per endpoint and a bag's listing, paid it each
+time); with the loader shared, a client after the first takes about 12 ms.
 
 Timeouts are short on purpose: a server that stalls must show up as an error in ``~/get_stats`` within seconds,
 and botocore does not retry on its own: the upload queue retries with a back-off of its own.
@@ -15,13 +20,17 @@ from __future__ import annotations
 import socket
 from typing import Any
 
-import boto3
 import botocore.exceptions
+import botocore.loaders
+import botocore.session
 from botocore.config import Config
 
 #: Seconds to connect and to wait for each read from the server.
 CONNECT_TIMEOUT = 5.0
 READ_TIMEOUT = 10.0
+
+#: botocore's reader of its service descriptions, with their cache: shared by the clients this process makes.
+_LOADER = botocore.loaders.create_loader()
 
 #: Error codes that mean the credentials are wrong or not allowed to write here.
 _CREDENTIAL_CODES = {"InvalidAccessKeyId", "SignatureDoesNotMatch", "AccessDenied", "InvalidToken",
@@ -43,7 +52,8 @@ class UploadError(Exception):
 def make_client(endpoint_url: str = "", read_timeout: float = READ_TIMEOUT) -> Any:
     """An S3 client for ``endpoint_url`` (empty: what the AWS configuration says) with the standard credential
     chain; raises UploadError when no credentials are configured at all."""
-    session = boto3.session.Session()
+    session = botocore.session.get_session()  # a new one: its own credentials and configuration
+    session.register_component("data_loader", _LOADER)
     if session.get_credentials() is None:
         raise UploadError("no AWS credentials: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or "
                           "~/.aws/credentials", permanent=True)
@@ -51,8 +61,8 @@ def make_client(endpoint_url: str = "", read_timeout: float = READ_TIMEOUT) -> A
                     retries={"total_max_attempts": 1, "mode": "standard"},
                     request_checksum_calculation="when_required", response_checksum_validation="when_required",
                     s3={"addressing_style": "path"} if endpoint_url else None)
-    return session.client("s3", endpoint_url=endpoint_url or None,
-                          region_name=session.region_name or "us-east-1", config=config)
+    return session.create_client("s3", endpoint_url=endpoint_url or None,
+                                 region_name=session.get_config_variable("region") or "us-east-1", config=config)
 
 
 def is_not_found(error: botocore.exceptions.ClientError) -> bool:
