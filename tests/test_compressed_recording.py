@@ -186,7 +186,7 @@ def test_fleet_verbs_find_compressed_sessions_and_unload_their_encoders(tmp_path
     limited. Before them, a session whose codec no container has is refused: nothing announced, why on stderr."""
     rig = [{"package": "components", "plugin": f"components::{plugin}", "name": name, "parameters": parameters,
             "extra_arguments": IPC}
-           for plugin, name, parameters in (("CameraDriver", "cam", {"width": 640, "height": 480, "fps": 10.0}),
+           for plugin, name, parameters in (("CameraDriver", "cam", {"width": 320, "height": 240, "fps": 10.0}),
                                             ("ImuDriver", "imu", {"rate": 50.0}))]
     load_file = tmp_path / "rig.yaml"
     load_file.write_text(yaml.safe_dump({"components": rig}))
