@@ -331,7 +331,7 @@ def test_load_unknown_package_and_plugin(clients: dict[str, ContainerClient]) ->
     package, plugin = cli_parallel(("load", MAIN, "no_such_package", TALKER),
                                    ("load", MAIN, "components", "components::NoSuchThing"))
     assert package.returncode == 1 and package.stdout == "", package
-    assert package.stderr.startswith(
+    assert ours(package.stderr).startswith(
         "Failed to load component: Could not find requested resource in ament index: package 'no_such_package' is "
         "not installed in the Python environment "), package.stderr
     assert "(no entry point of the group 'rclpy_components' belongs to it); 'ipc-component types' run in that " \
