@@ -21,9 +21,11 @@ RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/chatter",
-                    env: dict[str, str] | None = None, cwd: Path | None = None) -> tuple[list[str], str]:
+                    env: dict[str, str] | None = None, cwd: Path | None = None,
+                    qos: QoSProfile = RELIABLE) -> tuple[list[str], str]:
     """Run ``command`` (a ``bag play`` command line) with ``--start-paused``, resume it once ``probe``'s
-    ``std_msgs/String`` subscription of ``topic`` has matched the player's publisher, and wait for its end.
+    ``std_msgs/String`` subscription of ``topic`` (``qos``: deep enough for the bursts the bag holds) has matched
+    the player's publisher, and wait for its end.
 
     The player must be the topic's only publisher: an earlier player that has exited can stay on the graph for a
     while, and a new subscription matches it at once, so the wait for a match would end before the new player is
@@ -34,7 +36,7 @@ def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/c
     assert wait_until(lambda: probe.count_publishers(topic) == 0, 30.0, probe), (
         f"{topic} still has a publisher before the player starts: {probe.get_publishers_info_by_topic(topic)}")
     got: list[String] = []
-    subscription = probe.create_subscription(String, topic, got.append, RELIABLE)
+    subscription = probe.create_subscription(String, topic, got.append, qos)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
     try:
         process = subprocess.Popen([str(part) for part in command] + ["--start-paused"], stdout=subprocess.PIPE,

@@ -30,7 +30,6 @@ from pathlib import Path
 import pytest
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosbag2_interfaces.srv import Resume
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
@@ -40,7 +39,8 @@ from baglib.format.cdr_fast import serialize
 from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.read.reader import BagReader, BagReadError
 from baglib.write.writer import BagWriter
-from container_process import call, read_only_view, wait_until
+from container_process import read_only_view
+from ipc_testing.playback import play_to_the_end
 from test_recover import SQLITE_CRASH_CHILD
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
@@ -201,28 +201,11 @@ def test_playing_leaves_every_bag_as_it_was(medium: str, shelf: Shelf, probe: No
     before = {case: snapshot(shelf.writable / case) for case in CASES}
     temporary = tmp_path / "tmp"
     temporary.mkdir()
-    got: list[str] = []
-    every = QoSProfile(depth=COUNT * len(CASES), reliability=ReliabilityPolicy.RELIABLE)  # equal stamps: bursts
-    subscription = probe.create_subscription(String, "/chatter", lambda msg: got.append(msg.data), every)
-    resume = probe.create_client(Resume, "/rosbag2_player/resume")
-    process = subprocess.Popen([CLI, "bag", "play", *map(str, bags), "--start-paused", "--no-progress"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "TMPDIR": str(temporary)})
-    try:
-        assert wait_until(lambda: subscription.get_publisher_count() > 0 or process.poll() is not None, 30.0,
-                          probe)
-        if process.poll() is None:
-            call(probe, resume, Resume.Request(), 30.0, again=True)
-            wait_until(lambda: process.poll() is not None, 30.0, probe)  # spinning: taken while it plays
-        stdout, stderr = process.communicate(timeout=10)
-        assert process.returncode == 0, stderr
-        assert got == [f"message {n}" for n in range(COUNT) for _ in CASES], (stdout, stderr)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-        probe.destroy_client(resume)
-        probe.destroy_subscription(subscription)
+    # equal stamps: bursts of a message per bag, so a subscription deep enough for all of them
+    every = QoSProfile(depth=COUNT * len(CASES), reliability=ReliabilityPolicy.RELIABLE)
+    got, stdout = play_to_the_end(probe, [CLI, "bag", "play", *bags, "--no-progress"],
+                                  env={**os.environ, "TMPDIR": str(temporary)}, qos=every)
+    assert got == [f"message {n}" for n in range(COUNT) for _ in CASES], stdout
     assert {case: snapshot(shelf.writable / case) for case in CASES} == before
     assert not list(temporary.iterdir()), "the command left temporary files"
 
