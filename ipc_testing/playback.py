@@ -20,6 +20,14 @@ from ipc_testing.calls import call, wait_until
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
+def no_earlier_publisher(probe: Node, topic: str, timeout: float = 30.0) -> None:
+    """Wait until ``topic`` has no publisher in ``probe``'s graph, before a player is started whose match a test
+    waits for: an earlier player that has exited can stay on the graph for a while, and a new subscription matches
+    it at once, so the wait for a match would end before the new player is matched."""
+    assert wait_until(lambda: probe.count_publishers(topic) == 0, timeout, probe), (
+        f"{topic} still has a publisher before the player starts: {probe.get_publishers_info_by_topic(topic)}")
+
+
 def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/chatter",
                     env: dict[str, str] | None = None, cwd: Path | None = None,
                     qos: QoSProfile = RELIABLE) -> tuple[list[str], str]:
@@ -27,14 +35,12 @@ def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/c
     ``std_msgs/String`` subscription of ``topic`` (``qos``: deep enough for the bursts the bag holds) has matched
     the player's publisher, and wait for its end.
 
-    The player must be the topic's only publisher: an earlier player that has exited can stay on the graph for a
-    while, and a new subscription matches it at once, so the wait for a match would end before the new player is
-    matched (its first messages then go to nobody). So it waits first for the earlier ones to leave the graph.
+    The player must be the topic's only publisher, so it waits first for earlier ones to leave the graph
+    (:func:`no_earlier_publisher`): otherwise the new player's first messages could go to nobody.
 
     Returns the strings received and the command's stdout; AssertionError if it never matched or failed.
     """
-    assert wait_until(lambda: probe.count_publishers(topic) == 0, 30.0, probe), (
-        f"{topic} still has a publisher before the player starts: {probe.get_publishers_info_by_topic(topic)}")
+    no_earlier_publisher(probe, topic)
     got: list[String] = []
     subscription = probe.create_subscription(String, topic, got.append, qos)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")

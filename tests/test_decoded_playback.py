@@ -43,6 +43,7 @@ from components.photo_content import PhotoContent
 from components.sensor_driver import stamp_from_ns
 from ipc_testing import call, in_process_manager, wait_until
 from ipc_testing.in_process import InlineProbe, probe
+from ipc_testing.playback import no_earlier_publisher
 
 WIDTH, HEIGHT = 320, 240
 FRAMES = 12
@@ -432,6 +433,7 @@ def test_bag_play_decode_before_the_bag_plays_it_and_its_errors_name_the_options
 
 
 def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBag) -> None:
+    no_earlier_publisher(probe, "/cam/image")  # the in-process players of the tests before: gone before this one
     got: list[Image] = []
     subscription = probe.create_subscription(Image, "/cam/image", got.append, RELIABLE)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
