@@ -32,7 +32,7 @@ from component_container.component_manager import ComponentManager
 from component_container.discovery_profile import use_fastdds_profile
 from component_container.process_tuning import apply_low_latency
 from component_container.startup_file import StartupFileError, load_requests
-from component_container.supervisor import ERROR_POLICIES, ExitRequest
+from component_container.supervisor import ERROR_POLICIES, ExitRequest, join_in_main_thread
 
 # Beyond the shutdown timeout, what the last steps (manager node, rclpy context) may take before a forced exit.
 EXIT_MARGIN = 2.0
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
 
     finisher = threading.Thread(target=shut_down, name="shutdown", daemon=True)
     finisher.start()
-    finisher.join(args.shutdown_timeout + EXIT_MARGIN)
+    join_in_main_thread(finisher, args.shutdown_timeout + EXIT_MARGIN)
     if finisher.is_alive():
         print(f"Shutdown did not finish within {args.shutdown_timeout:.1f} s: exiting with status 1",
               file=sys.stderr)

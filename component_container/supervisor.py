@@ -23,6 +23,8 @@ from typing import Any, Callable
 ERROR_POLICIES = ("unload", "exit")
 #: Failed components stay visible on /diagnostics (as errors) until this many newer failures push them out.
 FAILURES_KEPT = 16
+#: How often the main thread looks up from a wait: the longest a signal's Python handler can be held back.
+MAIN_THREAD_POLL = 0.1
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,7 @@ class ExitRequest:
             self.count += 1
             return self.count
 
-    def wait_in_main_thread(self, poll: float = 0.1) -> None:
+    def wait_in_main_thread(self, poll: float = MAIN_THREAD_POLL) -> None:
         """Return once an exit was requested, looking every ``poll`` s (a sleep, during which signals are
         handled at once)."""
         while not self.count:
@@ -67,6 +69,20 @@ class ExitRequest:
     @property
     def requested(self) -> bool:
         return self.count > 0
+
+
+def join_in_main_thread(thread: threading.Thread, timeout: float, poll: float = MAIN_THREAD_POLL) -> None:
+    """``thread.join(timeout)`` in slices of ``poll`` s, so that the main thread runs a signal's Python handler
+    within ``poll`` s of the signal, wherever the signal landed.
+
+    One long ``join`` is not enough: Python runs handlers in the main thread, which a signal wakes only if the
+    kernel gives the signal to that thread, and only if it comes while the thread sleeps. A process-directed
+    signal may go to any thread that does not block it (a Fast DDS thread, say), and one that comes while the
+    main thread is between releasing the GIL and sleeping is spent before the sleep; either way the handler
+    waited out the whole join (a second SIGTERM ignored for the 60 s of ``--shutdown-timeout``)."""
+    deadline = time.monotonic() + timeout
+    while thread.is_alive() and (remaining := deadline - time.monotonic()) > 0:
+        thread.join(min(poll, remaining))
 
 
 class Supervisor:

@@ -1,6 +1,7 @@
 """A container process started the way a user starts one, and stopped by its pid whatever happens."""
 from __future__ import annotations
 
+import ctypes
 import fcntl
 import os
 import shutil
@@ -12,6 +13,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+_LIBC = ctypes.CDLL(None, use_errno=True)
+_SYS_TGKILL = 234  # x86_64
 
 def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> bool:
     """Signal ``process`` and wait; SIGKILL it if it does not exit within ``timeout``, after writing its threads'
@@ -28,6 +31,19 @@ def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: f
         process.kill()
         process.wait()
         return False
+
+
+def signal_another_thread(pid: int, sig: int) -> int:
+    """Give ``sig`` to a thread of process ``pid`` other than its main thread, one that does not block it
+    (``tgkill``): what the kernel may do with any signal sent to the process. Returns that thread's id."""
+    for task in sorted(Path(f"/proc/{pid}/task").iterdir(), key=lambda path: int(path.name)):
+        blocked = int(next(line for line in (task / "status").read_text().splitlines()
+                           if line.startswith("SigBlk:")).split()[1], 16)
+        if int(task.name) != pid and not blocked & (1 << (sig - 1)):
+            if _LIBC.syscall(_SYS_TGKILL, pid, int(task.name), sig) != 0:
+                raise OSError(ctypes.get_errno(), f"tgkill({pid}, {task.name}, {sig}) failed")
+            return int(task.name)
+    raise LookupError(f"process {pid} has no thread besides its main one that takes signal {sig}")
 
 
 def child_log(path: Path | None) -> IO[str]:

@@ -27,6 +27,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from component_container.component_executors import EXECUTOR_KINDS
+from ipc_testing.process import signal_another_thread
 from container_process import (Containers, Received, SharedContainer, listing, node_names, unload_all, wait_until,
                                written)
 
@@ -287,14 +288,23 @@ def test_unload_and_shutdown_are_bounded_by_the_shutdown_timeout(containers: Con
     assert "Unloading /talker" in process.output
 
 
-def test_a_second_signal_forces_the_exit(containers: Containers) -> None:
+@pytest.mark.parametrize("taken_by", ["main thread", "another thread"])
+def test_a_second_signal_forces_the_exit(containers: Containers, taken_by: str) -> None:
+    """The second SIGTERM ends the container at once, whichever of its threads the signal is given to: the
+    kernel may give a signal sent to the process to any thread that does not block it, but only the main thread
+    runs Python's handlers (and it waits for the shutdown meanwhile)."""
     process, client = containers.start("--allow-module-plugins", "--shutdown-timeout", "60")
     assert client.load(f"{PLUGINS}:HangingDestructor", "tests").success
     process.process.send_signal(signal.SIGTERM)
     # the first signal's shutdown is inside the hanging destroy_node (and may wait up to 60 s for it)
     assert wait_until(lambda: "Unloading /hanging_destructor" in process.output, 20.0), process.output
     assert process.alive(), "the first signal should wait (up to 60 s) for the hanging component"
-    assert process.stop(signal.SIGTERM, timeout=30.0) == 1
+    if taken_by == "main thread":
+        assert process.stop(signal.SIGTERM, timeout=30.0) == 1
+    else:
+        signal_another_thread(process.pid, signal.SIGTERM)
+        assert wait_until(lambda: not process.alive(), 30.0), process.output
+        assert process.process.returncode == 1
     assert "Second signal" in process.output
     assert "Shutdown did not finish" not in process.output  # the second signal ended it, not the 60 s bound
 
