@@ -27,7 +27,7 @@ import pkgutil
 import random
 import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -75,18 +75,23 @@ TEST_ONLY_PACKAGES = {"test_msgs"}
 def interface_packages() -> list[str]:
     """Importable packages with rosidl typesupport: top-level modules plus this repo's srv/ packages.
 
-    The srv/ packages are listed by folder because an editable install serves them through an import
+    The installed packages are looked at where ``pkgutil`` found them, without ``find_spec``: setuptools'
+    distutils hook answers ``find_spec("pip")`` by unloading distutils, with a warning. The srv/ packages are
+    listed by folder, and found with ``find_spec``, because an editable install serves them through an import
     hook that ``pkgutil`` does not enumerate.
     """
-    candidates = {module.name for module in pkgutil.iter_modules() if module.ispkg} - TEST_ONLY_PACKAGES
-    candidates |= {path.name for path in (REPO / "srv").iterdir() if path.is_dir()}
-    packages = []
-    for name in sorted(candidates):
-        spec = importlib.util.find_spec(name)
-        locations = spec.submodule_search_locations if spec else None
-        if locations and any(any(Path(folder).glob(f"{name}_s__rosidl_typesupport_c*")) for folder in locations):
-            packages.append(name)
-    return packages
+    def has_typesupport(name: str, folders: Iterable[str]) -> bool:
+        return any(any(Path(folder).glob(f"{name}_s__rosidl_typesupport_c*")) for folder in folders)
+
+    packages = {module.name for module in pkgutil.iter_modules()
+                if module.ispkg and module.name not in TEST_ONLY_PACKAGES
+                and has_typesupport(module.name, [os.path.join(getattr(module.module_finder, "path", ""),
+                                                               module.name)])}
+    for folder in (REPO / "srv").iterdir():
+        spec = importlib.util.find_spec(folder.name) if folder.is_dir() else None
+        if spec and has_typesupport(folder.name, spec.submodule_search_locations or []):
+            packages.add(folder.name)
+    return sorted(packages)
 
 
 def message_classes() -> list[type]:
