@@ -3,15 +3,24 @@
 A player that publishes before an external subscriber has matched loses the first messages (rosbag2 users pass
 ``--delay`` and hope discovery is done by then). Tests cannot hope: they start the player paused, wait for their
 subscription to match its publisher, then call ``~/resume``.
+
+That is the subscription's side of the match. The player's writer matches the subscription when the player's
+participant has taken in the subscription's announcement, which a loaded machine can delay past the resume:
+the first messages then went to no reader (fresh-clone run, Kilted: the first three of each of six bags). So
+the topic is played transient-local (a QoS override file, as rosbag2 users give one) and the subscription asks
+for it: a writer that matches late hands over what it already wrote, up to the subscription's depth.
 """
 from __future__ import annotations
 
+import copy
 import subprocess
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+import yaml
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbag2_interfaces.srv import Resume
 from std_msgs.msg import String
 
@@ -31,9 +40,9 @@ def no_earlier_publisher(probe: Node, topic: str, timeout: float = 30.0) -> None
 def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/chatter",
                     env: dict[str, str] | None = None, cwd: Path | None = None,
                     qos: QoSProfile = RELIABLE) -> tuple[list[str], str]:
-    """Run ``command`` (a ``bag play`` command line) with ``--start-paused``, resume it once ``probe``'s
-    ``std_msgs/String`` subscription of ``topic`` (``qos``: deep enough for the bursts the bag holds) has matched
-    the player's publisher, and wait for its end.
+    """Run ``command`` (a ``bag play`` command line) with ``--start-paused`` and ``topic`` played transient-local,
+    resume it once ``probe``'s ``std_msgs/String`` subscription of ``topic`` (``qos``, made transient-local: deep
+    enough for the bursts the bag holds) has matched the player's publisher, and wait for its end.
 
     The player must be the topic's only publisher, so it waits first for earlier ones to leave the graph
     (:func:`no_earlier_publisher`): otherwise the new player's first messages could go to nobody.
@@ -42,11 +51,18 @@ def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/c
     """
     no_earlier_publisher(probe, topic)
     got: list[String] = []
+    qos = copy.copy(qos)
+    qos.history, qos.durability = HistoryPolicy.KEEP_LAST, DurabilityPolicy.TRANSIENT_LOCAL
     subscription = probe.create_subscription(String, topic, got.append, qos)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    overrides = tempfile.NamedTemporaryFile("w", prefix="play_qos_", suffix=".yaml")  # noqa: SIM115
     try:
-        process = subprocess.Popen([str(part) for part in command] + ["--start-paused"], stdout=subprocess.PIPE,
-                                   stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
+        yaml.safe_dump({topic: {"history": "keep_last", "depth": qos.depth, "reliability": "reliable",
+                                "durability": "transient_local"}}, overrides)
+        overrides.flush()
+        process = subprocess.Popen([str(part) for part in command]
+                                   + ["--start-paused", "--qos-profile-overrides-path", overrides.name],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
         try:
             assert wait_until(lambda: subscription.get_publisher_count() > 0, 30.0, probe), "never matched"
             call(probe, resume, Resume.Request(), 30.0, again=True)
@@ -59,5 +75,6 @@ def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/c
         assert process.returncode == 0, stderr
         return [m.data for m in got], stdout
     finally:
+        overrides.close()
         probe.destroy_client(resume)
         probe.destroy_subscription(subscription)

@@ -18,8 +18,8 @@ from typing import Any
 
 import pytest
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosbag2_interfaces.srv import PlayNext
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosbag2_interfaces.srv import PlayNext, Resume
 from std_msgs.msg import String
 
 from baglib.format.cdr_fast import serialize
@@ -56,6 +56,44 @@ def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
     assert got == [f"message {n}" for n in range(20)]
     assert stdout.splitlines()[-1].startswith("[FINISHED]  0.950 / 0.950 s  rate 2.00  20 msgs")
     assert "\r" not in stdout  # no progress line when stdout is not a terminal
+
+
+def test_a_subscription_matched_after_the_start_gets_every_message_of_a_topic_played_transient_local(
+        probe: Node, tmp_path: Path) -> None:
+    """What ``playback.play_to_the_end`` relies on: a topic played transient-local (a QoS override file) gives a
+    subscription that matched only after the first messages went out (as when the player's writer takes in a
+    subscription late) those messages too, in order. A volatile subscription created at the same moment gets
+    only what came after."""
+    bag = chatter_bag(tmp_path / "bag", 40, 50)  # 2 s: the late subscriptions match long before the end
+    overrides = tmp_path / "qos.yaml"
+    overrides.write_text("/chatter: {history: keep_last, depth: 40, reliability: reliable, "
+                         "durability: transient_local}\n")
+    playback.no_earlier_publisher(probe, "/chatter")
+    early: list[String] = []
+    probe.create_subscription(String, "/chatter", early.append, RELIABLE)
+    resume = probe.create_client(Resume, "/rosbag2_player/resume")
+    process = subprocess.Popen([CLI, "bag", "play", str(bag), "--start-paused", "--qos-profile-overrides-path",
+                                str(overrides)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: probe.count_publishers("/chatter") > 0, 30.0, probe), "no player"
+        call(probe, resume, Resume.Request(), 30.0, again=True)
+        assert wait_until(lambda: len(early) >= 5, 30.0, probe), early
+        late: dict[str, list[String]] = {"transient_local": [], "volatile": []}
+        for durability, got in late.items():
+            qos = QoSProfile(depth=40, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL if durability == "transient_local"
+                             else DurabilityPolicy.VOLATILE)
+            probe.create_subscription(String, "/chatter", got.append, qos)
+        assert wait_until(lambda: process.poll() is not None, 60.0, probe)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.wait(timeout=10) == 0, process.stderr.read() if process.stderr else ""
+    every = [f"message {n}" for n in range(40)]
+    assert [m.data for m in late["transient_local"]] == every
+    volatile = [m.data for m in late["volatile"]]
+    assert volatile == every[len(every) - len(volatile):], volatile  # what came after it matched, in order
+    assert "message 0" not in volatile, "the late volatile subscription should have missed the start"
 
 
 def test_progress_line_on_a_terminal_and_ctrl_c(tmp_path: Path) -> None:
