@@ -9,9 +9,10 @@ has no ``_ROS_WHEELS_BOOTSTRAP_COMPLETE`` (so the ros_wheels_bootstrapper start-
 a shell). The container is started first and answered once, so discovery of the command's own participant
 is what is measured, not the container's start-up. Between runs, the container is put back into the same
 state with a plain rclpy client (a Talker loaded before each ``unload`` run, the loaded one removed after
-each ``load`` run); that is not timed.
+each ``load`` run); that is not timed. The times go to ``cli_latency.json`` in a result folder
+(benchmarks/result_folder.py), whose table docs/performance.md shows.
 
-    python benchmarks/cli_latency.py [--runs 10]
+    python benchmarks/cli_latency.py [--runs 10] [--results DIR]
 
 Isolation: a random ``ROS_DOMAIN_ID`` (unless set) and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, set
 before rclpy is imported; the container is stopped by its pid.
@@ -22,17 +23,19 @@ import isolation  # noqa: F401  (first: the ROS environment before rclpy is impo
 
 import argparse  # noqa: E402
 import os  # noqa: E402
-import pathlib  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 from typing import Callable, Sequence  # noqa: E402
 
 import rclpy  # noqa: E402
 
+from benchmarks.locations import RESULTS  # noqa: E402
+from benchmarks.result_folder import run_environment, run_header, save  # noqa: E402
 from ipc_testing import ContainerClient, ContainerProcess  # noqa: E402
 
 CONTAINER = "/ComponentManager"
@@ -68,11 +71,16 @@ def measure(runs: int, command: Callable[[], list[str]], before: Callable[[], No
     return seconds
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=10)
-    args = parser.parse_args()
-    tool = shutil.which("ipc-component", path=str(pathlib.Path(sys.executable).parent))
+    parser.add_argument("--results", default=str(RESULTS), help="the result folder goes under this directory "
+                                                                 "('': none)")
+    args = parser.parse_args(argv)
+    report = run_header("cli_latency.py", list(argv if argv is not None else sys.argv[1:]))
+    report.update(environment=run_environment(), runs=args.runs, container=CONTAINER, target_s=TARGET, commands={})
+    started = time.monotonic()
+    tool = shutil.which("ipc-component", path=str(Path(sys.executable).parent))
     if tool is None:
         raise SystemExit("ipc-component is not installed next to this Python")
     env = user_environment()
@@ -106,12 +114,16 @@ def main() -> int:
         print(f"{'command':<38} {'min':>6} {'median':>7} {'max':>6}  (s, target {TARGET:g})")
         for name, (command, before, after) in cases.items():
             seconds = measure(args.runs, command, before, after, env)
+            report["commands"]["ipc-component " + name] = {"seconds": seconds}
             print(f"{'ipc-component ' + name:<38} {min(seconds):6.2f} {statistics.median(seconds):7.2f} "
                   f"{max(seconds):6.2f}", flush=True)
         print(f"machine load afterwards {os.getloadavg()[0]:.2f}")
         status = container.stop()
     node.destroy_node()
     rclpy.try_shutdown()
+    report.update(loadavg_end=os.getloadavg(), elapsed_s=time.monotonic() - started, container_exit=status)
+    if args.results:
+        print(f"results: {save(report, 'cli_latency', Path(args.results))}")
     return 0 if status == 0 else 1
 
 

@@ -566,6 +566,19 @@ def upload_table(upload: dict[str, Any]) -> list[str]:
     return lines
 
 
+def cli_latency_table(run: dict[str, Any]) -> list[str]:
+    commands = part(run, "commands")
+    rows = [[f"`{name}`", " / ".join(f"{value:.2f}" for value in (min(entry["seconds"]),
+                                                                   statistics.median(entry["seconds"]),
+                                                                   max(entry["seconds"])))]
+            for name, entry in commands.items()]
+    environment = run["environment"]
+    return [*markdown(["command", "min / median / max s"], rows), "",
+            f"{run['runs']} runs of each against a running container `{run['container']}`, on "
+            f"{environment['cpus']} CPUs (load average {environment['loadavg_start'][0]:.1f} at the start, "
+            f"{run['loadavg_end'][0]:.1f} at the end)."]
+
+
 @dataclass
 class Table:
     source: str   # the result file it is made from: record or replay (.json)
@@ -604,6 +617,8 @@ TABLES: dict[str, Table] = {
     "pixel_formats": Table("pixel_formats", "pairs", "python benchmarks/pixel_formats.py", pixel_formats_table,
                            "Pixel formats"),
     "upload": Table("upload", "throughput or S1", "python benchmarks/upload_bench.py", upload_table, "Upload"),
+    "cli_latency": Table("cli_latency", "commands", "python benchmarks/cli_latency.py --runs 10", cli_latency_table,
+                         "ipc-component latency"),
 }
 
 
