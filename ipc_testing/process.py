@@ -16,6 +16,7 @@ from typing import IO, Any
 _LIBC = ctypes.CDLL(None, use_errno=True)
 _SYS_TGKILL = 234  # x86_64
 
+
 def stop_process(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> bool:
     """Signal ``process`` and wait; SIGKILL it if it does not exit within ``timeout``, after writing its threads'
     native stacks to stderr (a test's captured output). Returns whether it exited by itself (False: it had to be
