@@ -17,6 +17,7 @@ import subprocess
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import yaml
 from rclpy.node import Node
@@ -40,25 +41,35 @@ def no_earlier_publisher(probe: Node, topic: str, timeout: float = 30.0) -> None
 def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/chatter",
                     env: dict[str, str] | None = None, cwd: Path | None = None,
                     qos: QoSProfile = RELIABLE) -> tuple[list[str], str]:
-    """Run ``command`` (a ``bag play`` command line) with ``--start-paused`` and ``topic`` played transient-local,
-    resume it once ``probe``'s ``std_msgs/String`` subscription of ``topic`` (``qos``, made transient-local: deep
-    enough for the bursts the bag holds) has matched the player's publisher, and wait for its end.
+    """:func:`play` of ``std_msgs/String`` messages: the strings received, and the command's stdout."""
+    got, stdout = play(probe, command, topic, String, env=env, cwd=cwd, qos=qos)
+    return [message.data for message in got], stdout
+
+
+def play(probe: Node, command: Sequence[str | Path], topic: str, msg_type: type, played_topic: str | None = None,
+         env: dict[str, str] | None = None, cwd: Path | None = None,
+         qos: QoSProfile = RELIABLE) -> tuple[list[Any], str]:
+    """Run ``command`` (a ``bag play`` command line) with ``--start-paused`` and ``played_topic`` (the bag's topic
+    that ``topic`` is published from: itself unless the player decodes it to ``topic``) played transient-local,
+    resume it once ``probe``'s ``msg_type`` subscription of ``topic`` (``qos``, made transient-local: deep enough
+    for the bursts the bag holds) has matched the player's publisher, and wait for its end.
 
     The player must be the topic's only publisher, so it waits first for earlier ones to leave the graph
     (:func:`no_earlier_publisher`): otherwise the new player's first messages could go to nobody.
 
-    Returns the strings received and the command's stdout; AssertionError if it never matched or failed.
+    Returns the messages received and the command's stdout; AssertionError if it never matched or failed.
     """
     no_earlier_publisher(probe, topic)
-    got: list[String] = []
+    got: list[Any] = []
     qos = copy.copy(qos)
     qos.history, qos.durability = HistoryPolicy.KEEP_LAST, DurabilityPolicy.TRANSIENT_LOCAL
-    subscription = probe.create_subscription(String, topic, got.append, qos)
+    subscription = probe.create_subscription(msg_type, topic, got.append, qos)
     resume = probe.create_client(Resume, "/rosbag2_player/resume")
     overrides = tempfile.NamedTemporaryFile("w", prefix="play_qos_", suffix=".yaml")  # noqa: SIM115
     try:
-        yaml.safe_dump({topic: {"history": "keep_last", "depth": qos.depth, "reliability": "reliable",
-                                "durability": "transient_local"}}, overrides)
+        profile = {"history": "keep_last", "depth": qos.depth, "reliability": "reliable",
+                   "durability": "transient_local"}
+        yaml.safe_dump({played_topic or topic: profile}, overrides)
         overrides.flush()
         process = subprocess.Popen([str(part) for part in command]
                                    + ["--start-paused", "--qos-profile-overrides-path", overrides.name],
@@ -73,7 +84,7 @@ def play_to_the_end(probe: Node, command: Sequence[str | Path], topic: str = "/c
                 process.kill()
         stdout, stderr = process.communicate(timeout=10)
         assert process.returncode == 0, stderr
-        return [m.data for m in got], stdout
+        return got, stdout
     finally:
         overrides.close()
         probe.destroy_client(resume)

@@ -24,7 +24,6 @@ from foxglove_msgs.msg import CompressedVideo
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
-from rosbag2_interfaces.srv import Resume
 from sensor_msgs.msg import CompressedImage, Image
 
 from baglib.format.metadata import TopicInfo, qos_profile_dict
@@ -41,9 +40,9 @@ from components.player.playback import HEAD_START_NS
 from components.player.read_ahead import ReadAhead
 from components.photo_content import PhotoContent
 from components.sensor_driver import stamp_from_ns
-from ipc_testing import call, in_process_manager, wait_until
+from ipc_testing import in_process_manager, wait_until
 from ipc_testing.in_process import InlineProbe, probe
-from ipc_testing.playback import no_earlier_publisher
+from ipc_testing.playback import play
 
 WIDTH, HEIGHT = 320, 240
 FRAMES = 12
@@ -433,24 +432,8 @@ def test_bag_play_decode_before_the_bag_plays_it_and_its_errors_name_the_options
 
 
 def test_bag_play_decode_delivers_images_over_dds(probe: Node, bag: CompressedBag) -> None:
-    no_earlier_publisher(probe, "/cam/image")  # the in-process players of the tests before: gone before this one
-    got: list[Image] = []
-    subscription = probe.create_subscription(Image, "/cam/image", got.append, RELIABLE)
-    resume = probe.create_client(Resume, "/rosbag2_player/resume")
-    process = subprocess.Popen([CLI, "bag", "play", str(bag.path), "--decode", VIDEO, "--start-paused",
-                                "--wait-for-all-acked", "10000"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert wait_until(lambda: subscription.get_publisher_count() > 0, 60.0, probe), "never matched"
-        call(probe, resume, Resume.Request(), 30.0, again=True)
-        assert wait_until(lambda: len(got) == FRAMES, 60.0, probe), len(got)
-        assert process.wait(30.0) == 0, process.communicate()[1]
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.communicate(timeout=10)
-        probe.destroy_client(resume)
-        probe.destroy_subscription(subscription)
+    got, _ = play(probe, [CLI, "bag", "play", str(bag.path), "--decode", VIDEO, "--wait-for-all-acked", "10000"],
+                  "/cam/image", Image, played_topic=VIDEO, qos=RELIABLE)
     assert [m.header.stamp for m in got] == [stamp_from_ns(T0 + index * PERIOD_NS) for index in range(FRAMES)]
     assert {(m.width, m.height, m.encoding) for m in got} == {(WIDTH, HEIGHT, "rgb8")}
     assert min(psnr(pixels_of(m), sent) for m, sent in zip(got, bag.frames)) >= MIN_PSNR_DB
