@@ -32,6 +32,7 @@ from component_container.component_manager import ComponentManager
 from component_container.discovery_profile import use_fastdds_profile
 from component_container.process_tuning import apply_low_latency
 from component_container.startup_file import StartupFileError, load_requests
+from component_container.exit_timer import end_within
 from component_container.supervisor import ERROR_POLICIES, ExitRequest, join_in_main_thread
 
 # Beyond the shutdown timeout, what the last steps (manager node, rclpy context) may take before a forced exit.
@@ -140,8 +141,12 @@ def main(argv: list[str] | None = None) -> int:
         if not manager.shutdown(args.shutdown_timeout):
             status[0] = max(status[0], 1)
         service.stop(1.0)  # never finalize the interpreter under a waiting executor
-        manager.destroy_node()
-        rclpy.try_shutdown()
+
+        def destroy() -> None:  # the participant with the last node: bounded even when it holds the GIL
+            manager.destroy_node()
+            rclpy.try_shutdown()
+
+        end_within(EXIT_MARGIN, 1, destroy)
 
     finisher = threading.Thread(target=shut_down, name="shutdown", daemon=True)
     finisher.start()

@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
+from ipc_component.ros_session import end_ros_later
 from ipc_component.verb_arguments import in_options
 
 PLAYER_PLUGIN = "components::Player"
@@ -313,7 +314,14 @@ def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no
     finally:
         if manager is not None:
             manager.shutdown()
-            manager.destroy_node()
-        rclpy.try_shutdown(context=context)
+
+        def teardown() -> None:
+            try:
+                if manager is not None:
+                    manager.destroy_node()
+            finally:
+                rclpy.try_shutdown(context=context)
+
+        end_ros_later(teardown)
         for sig, handler in previous.items():
             signal.signal(sig, handler)

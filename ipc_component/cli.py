@@ -29,7 +29,7 @@ from typing import Sequence
 
 from ipc_component import (bag_burst, bag_convert, bag_export, bag_merge, bag_play, bag_remote, bag_upload, create,
                            record_fleet, record_status, top)
-from ipc_component.ros_session import BUDGET, CliError, RosSession
+from ipc_component.ros_session import BUDGET, CliError, RosSession, end_ros
 from ipc_component.verb_arguments import (LOG_LEVEL_HELP, add_verb, parameter_msgs, parse_log_level,
                                           parse_unique_id, remap_rules)
 
@@ -322,13 +322,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         try:
-            return _run(sys.argv[1:] if argv is None else argv)
+            status = _run(sys.argv[1:] if argv is None else argv)
         finally:
             sys.stdout.flush()  # a closed pipe shows here (after -h too), not in Python's handler at exit
     except KeyboardInterrupt:
-        return 130
+        status = 130
     except BrokenPipeError:
-        return _reader_gone()
+        status = _reader_gone()
+    return end_ros(status)
 
 
 def _run(argv: Sequence[str]) -> int:

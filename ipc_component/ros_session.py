@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 import time
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 if TYPE_CHECKING:
     from ipc_component.fleet_link import Fleet
@@ -18,6 +18,9 @@ GONE_GRACE = 2.0         # s: a container whose service stays absent this long w
 #: s: a command that loaded or unloaded components waits until its graph has not changed for SETTLE_QUIET (at most
 #: SETTLE_LIMIT) before it destroys its participant: see RosSession.graph_changed
 SETTLE_QUIET, SETTLE_LIMIT = 0.3, 3.0
+#: s: what destroying a command's node and rclpy context may take (tens of ms, normally) before the command ends
+#: without it: see end_ros
+TEARDOWN_LIMIT = 5.0
 # Fast DDS's highest domain: its ports (7400 + 250 * domain + offsets) must stay below 65536. Above it, Fast DDS
 # ends the process with status 1 and no message on stderr.
 MAX_FASTDDS_DOMAIN = 232
@@ -25,6 +28,36 @@ MAX_FASTDDS_DOMAIN = 232
 
 class CliError(Exception):
     """A failure to report on stderr; the command exits with 1."""
+
+
+#: What end_ros runs: each session's destruction of its node and rclpy context, in the order they ended.
+_teardowns: list[Callable[[], None]] = []
+
+
+def end_ros_later(teardown: Callable[[], None]) -> None:
+    """Leave destroying a session's node and context (``teardown``) to :func:`end_ros`, once the command is done."""
+    _teardowns.append(teardown)
+
+
+def end_ros(status: int) -> int:
+    """Destroy what the command's ROS sessions left (:func:`end_ros_later`), last, and return ``status``; if
+    that has not finished within TEARDOWN_LIMIT s, the process ends with ``status`` all the same.
+
+    Why last, and bounded: Fast DDS 2.14 and 3.2 can livelock destroying a participant (docs/limitations.md),
+    for good, and out of Python's reach (component_container.exit_timer). The command's work is done and
+    printed by then; it ends with the status it has, after the Python stacks of the stuck teardown on stderr.
+    The other participants take it as gone when its lease runs out, as after a kill (seen in ``record start``
+    and ``record stop``, which hung instead).
+    """
+    from component_container.exit_timer import end_within
+
+    def teardown_all() -> None:
+        while _teardowns:
+            _teardowns.pop(0)()
+
+    if _teardowns:
+        end_within(TEARDOWN_LIMIT, status, teardown_all)
+    return status
 
 
 class RosSession:
@@ -90,13 +123,18 @@ class RosSession:
     def __exit__(self, *exc: Any) -> None:
         import rclpy
 
+        def teardown() -> None:
+            try:
+                self.executor.shutdown(timeout_sec=1.0)
+                self.node.destroy_node()
+            finally:
+                rclpy.try_shutdown(context=self.context)
+
         try:
             if self._settle:
                 self._wait_for_quiet_graph()
-            self.executor.shutdown(timeout_sec=1.0)
-            self.node.destroy_node()
         finally:
-            rclpy.try_shutdown(context=self.context)
+            end_ros_later(teardown)
 
     def find_container(self, container: str, deadline: float) -> None:
         """Wait (until ``deadline``) for ``container`` to show up as a container; CliError if it does not."""

@@ -1,6 +1,7 @@
 """A container process started the way a user starts one, and stopped by its pid whatever happens."""
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import fcntl
 import os
@@ -9,6 +10,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -88,18 +90,34 @@ def run_command(argv: Sequence[str], timeout: float, env: Mapping[str, str] | No
     stacks (gdb) and their Python stacks (``PYTHONFAULTHANDLER``: SIGABRT makes a Python program print every
     thread's traceback, even one stuck in native code). ``subprocess.run`` loses all of it: its pipes' partial
     output is dropped with the process. The output goes through files, which hold whatever was written."""
+    return run_commands([argv], timeout, env, **popen)[0]
+
+
+def run_commands(commands: Sequence[Sequence[str]], timeout: float, env: Mapping[str, str] | None = None,
+                 **popen: Any) -> list[subprocess.CompletedProcess]:
+    """:func:`run_command` for several commands that run at the same time, all within ``timeout``; the first
+    that overruns is reported, and the others are killed."""
     environment = dict(os.environ if env is None else env, PYTHONFAULTHANDLER="1")
-    with child_log(None) as out, child_log(None) as err:
-        process = subprocess.Popen(list(argv), stdout=out, stderr=err, text=True, env=environment, **popen)
-        try:
-            process.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            stacks = native_stacks(process.pid)
-            stop_process(process, signal.SIGABRT, timeout=10)
-            raise AssertionError(f"{' '.join(argv)} did not finish within {timeout:g} s; its output so far (the "
-                                 f"Python stacks at its end):\n--- stdout\n{read_log(out)}--- stderr\n{read_log(err)}"
-                                 f"{stacks}") from None
-        return subprocess.CompletedProcess(process.args, process.returncode, read_log(out), read_log(err))
+    deadline = time.monotonic() + timeout
+    with contextlib.ExitStack() as stack:
+        logs = [(stack.enter_context(child_log(None)), stack.enter_context(child_log(None))) for _ in commands]
+        processes = [subprocess.Popen(list(argv), stdout=out, stderr=err, text=True, env=environment, **popen)
+                     for argv, (out, err) in zip(commands, logs)]
+        for argv, process, (out, err) in zip(commands, processes, logs):
+            try:
+                process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                stacks = native_stacks(process.pid)
+                stop_process(process, signal.SIGABRT, timeout=10)
+                for other in processes:
+                    if other.poll() is None:
+                        other.kill()
+                        other.wait()
+                raise AssertionError(
+                    f"{' '.join(argv)} did not finish within {timeout:g} s; its output so far (the Python stacks at "
+                    f"its end):\n--- stdout\n{read_log(out)}--- stderr\n{read_log(err)}{stacks}") from None
+        return [subprocess.CompletedProcess(process.args, process.returncode, read_log(out), read_log(err))
+                for process, (out, err) in zip(processes, logs)]
 
 
 class ContainerProcess:

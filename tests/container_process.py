@@ -70,9 +70,9 @@ class Containers:
         self.probe = probe
         self.started: list[ContainerProcess] = []
 
-    def start(self, *args: str, container: str = "/ComponentManager",
-              wait: bool = True) -> tuple[ContainerProcess, ContainerClient]:
-        process = ContainerProcess(*args, cwd=str(REPO))
+    def start(self, *args: str, container: str = "/ComponentManager", wait: bool = True,
+              env: dict[str, str] | None = None) -> tuple[ContainerProcess, ContainerClient]:
+        process = ContainerProcess(*args, cwd=str(REPO), env=env)
         self.started.append(process)
         client = ContainerClient(self.probe, container)
         if wait:

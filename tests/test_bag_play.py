@@ -27,6 +27,8 @@ from baglib.format.metadata import TopicInfo, qos_profile_dict
 from baglib.write.writer import BagWriter
 from container_process import call, wait_until
 from ipc_testing import playback
+from ipc_testing.held_participant import HELD, held_participant_library
+from ipc_testing.process import run_command
 
 CLI = str(Path(sys.executable).with_name("ipc-component"))
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -56,6 +58,18 @@ def test_plays_to_the_end_and_exits_zero(probe: Node, tmp_path: Path) -> None:
     assert got == [f"message {n}" for n in range(20)]
     assert stdout.splitlines()[-1].startswith("[FINISHED]  0.950 / 0.950 s  rate 2.00  20 msgs")
     assert "\r" not in stdout  # no progress line when stdout is not a terminal
+
+
+def test_a_participant_that_never_finishes_its_destruction_does_not_hold_the_player(
+        tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Fast DDS's livelock at the end of ``bag play`` (ipc_testing.held_participant): the player's own container
+    is torn down last and bounded like every command's; the playback's status and last line stand."""
+    library = held_participant_library(tmp_path_factory.getbasetemp())
+    result = run_command([CLI, "bag", "play", str(chatter_bag(tmp_path / "bag", 5, 10))], 60.0,
+                         env=dict(os.environ, LD_PRELOAD=str(library)))
+    assert result.returncode == 0, result
+    assert result.stdout.splitlines()[-1].startswith("[FINISHED]  0.040 / 0.040 s"), result
+    assert HELD in result.stderr and "Timeout" in result.stderr and "in destroy_node" in result.stderr, result
 
 
 def test_a_subscription_matched_after_the_start_gets_every_message_of_a_topic_played_transient_local(

@@ -23,6 +23,8 @@ import pytest
 import rclpy
 
 from container_process import ContainerClient, ContainerProcess, wait_until
+from ipc_testing.held_participant import HELD, held_participant_library
+from ipc_testing.process import run_commands
 from ipc_testing.process_context import process_context
 
 IPC_COMPONENT = shutil.which("ipc-component", path=str(pathlib.Path(sys.executable).parent)) \
@@ -79,28 +81,15 @@ class Probe(ComponentNode):
 # --- helpers ----------------------------------------------------------------------------------------------
 def cli(*args: str, timeout: float = 90.0, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """Run ``ipc-component`` with ``args`` (``env``: variables changed for it); a generous ``timeout`` only
-    catches a CLI that hangs."""
-    assert IPC_COMPONENT, "the ipc-component console script is not installed next to this Python"
-    return subprocess.run([IPC_COMPONENT, *args], capture_output=True, text=True, timeout=timeout,
-                          env=dict(os.environ, **(env or {})))
+    catches a CLI that hangs, reported with its output and stacks (ipc_testing.process.run_command)."""
+    return cli_parallel(args, timeout=timeout, env=env)[0]
 
 
-def cli_parallel(*commands: tuple[str, ...], timeout: float = 90.0) -> list[subprocess.CompletedProcess]:
+def cli_parallel(*commands: tuple[str, ...], timeout: float = 90.0,
+                 env: dict[str, str] | None = None) -> list[subprocess.CompletedProcess]:
     """Run several ``ipc-component`` commands at the same time (each waits for discovery on its own)."""
-    processes = [subprocess.Popen([IPC_COMPONENT, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True, env=dict(os.environ)) for args in commands]
-    results = []
-    for args, process in zip(commands, processes):
-        try:
-            stdout, stderr = process.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            for other in processes:
-                if other.poll() is None:
-                    other.kill()
-                    other.wait()
-            raise
-        results.append(subprocess.CompletedProcess([IPC_COMPONENT, *args], process.returncode, stdout, stderr))
-    return results
+    assert IPC_COMPONENT, "the ipc-component console script is not installed next to this Python"
+    return run_commands([[IPC_COMPONENT, *args] for args in commands], timeout, dict(os.environ, **(env or {})))
 
 
 def lines(*texts: str) -> str:
@@ -426,6 +415,22 @@ def test_unload_tries_every_id_and_reports_each_failure(clients: dict[str, Conta
 def test_unload_invalid_id() -> None:
     result = cli("unload", "/nowhere", "abc", env=NO_ROS)  # refused before any ROS contact
     assert_fails(result, lines("Invalid component unique id 'abc': expected a non-negative integer"))
+
+
+def test_a_participant_that_never_finishes_its_destruction_does_not_hold_the_command(
+        clients: dict[str, ContainerClient], tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Fast DDS's livelock at a command's end (ipc_testing.held_participant: destroying the participant never
+    returns, and holds the GIL): each command still ends, with its own output and status, after the Python
+    stacks of its held teardown (ipc_component.ros_session.TEARDOWN_LIMIT later)."""
+    held = {"LD_PRELOAD": str(held_participant_library(tmp_path_factory.getbasetemp()))}
+    loaded, refused = cli_parallel(("load", OTHER, "components", TALKER), ("unload", MAIN, "4242"), env=held)
+    (unique_id,) = clients[OTHER].list().unique_ids
+    assert (loaded.returncode, loaded.stdout) == (
+        0, lines(f"Loaded component {unique_id} into '{OTHER}' container node as '/talker'")), loaded
+    assert (refused.returncode, refused.stdout) == (1, ""), refused
+    assert f"Failed to unload component 4242 from '{MAIN}' container node" in refused.stderr, refused
+    for result in (loaded, refused):
+        assert HELD in result.stderr and "Timeout" in result.stderr and "in destroy_node" in result.stderr, result
 
 
 # --- types ------------------------------------------------------------------------------------------------

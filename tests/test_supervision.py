@@ -27,6 +27,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from component_container.component_executors import EXECUTOR_KINDS
+from ipc_testing.held_participant import HELD, held_participant_library
 from ipc_testing.process import signal_another_thread
 from container_process import (Containers, Received, SharedContainer, listing, node_names, unload_all, wait_until,
                                written)
@@ -307,6 +308,20 @@ def test_a_second_signal_forces_the_exit(containers: Containers, taken_by: str) 
         assert process.process.returncode == 1
     assert "Second signal" in process.output
     assert "Shutdown did not finish" not in process.output  # the second signal ended it, not the 60 s bound
+
+
+def test_a_participant_that_never_finishes_its_destruction_does_not_hold_the_exit(
+        containers: Containers, probe: Node, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Fast DDS's livelock as the container destroys its participant, the last step of its shutdown
+    (ipc_testing.held_participant: it never returns, and holds the GIL, so no Python thread, timer or signal
+    handler runs again): the container still exits with status 1, the shutdown's overrun status, after the
+    Python stacks of where it was held; its components were unloaded before."""
+    library = held_participant_library(tmp_path_factory.getbasetemp())
+    process, client = containers.start("--shutdown-timeout", "2", env={"LD_PRELOAD": str(library)})
+    talker(client, "sup_held_chatter")
+    assert process.stop(signal.SIGTERM, timeout=30.0) == 1, process.output
+    assert "Unloading /talker" in process.output
+    assert HELD in process.output and "Timeout" in process.output and "in destroy_node" in process.output
 
 
 # --- reused message objects ---------------------------------------------------------------------------------
