@@ -61,7 +61,8 @@ def end_ros(status: int) -> int:
 
 
 class RosSession:
-    """rclpy set up for one command: its own context, a hidden node and an executor; shut down on exit."""
+    """rclpy set up for one command: its own context, a hidden node and an executor; destroyed by :func:`end_ros`
+    when the command ends (leaving the ``with`` block only waits for a quiet graph, see :meth:`graph_changed`)."""
 
     def __init__(self, ros_args: Sequence[str]) -> None:
         import rclpy

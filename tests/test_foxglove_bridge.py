@@ -190,11 +190,15 @@ def test_a_client_offering_neither_name_gets_the_servers_refusal(rig) -> None:
 def test_a_stalled_client_costs_the_recorder_and_the_other_client_nothing(rig, probe: Node, tmp_path: Path) -> None:
     """Client A stops reading (SIGSTOP) for five seconds while B watches the same camera and IMU and a
     recorder records them: B's runs stay contiguous, the recorder drops nothing, the bridge's own queues drop
-    nothing; what A missed is the difference between what the bridge handed to its outbox and what it got."""
+    nothing; what A missed is the difference between what the bridge handed to its outbox and what it got.
+
+    Each client's outbox holds 256 messages (about 1.1 s of the camera and IMU together): B reads in this test
+    process, which a loaded machine can pause for longer than the default 32 messages last (0.14 s; B once lost
+    4 frames so, in a full suite run); A's five seconds (about 1150 messages) overflow it either way."""
     process, container = rig
     recorder = load(container, "components::Recorder", "recorder",
                     {"record.topics": [CAMERA, IMU], "storage.uri": str(tmp_path / "bag")})
-    unique_id, url = load_bridge(rig)
+    unique_id, url = load_bridge(rig, message_backlog_size=256)
     try:
         with FoxgloveClient(url) as stalled, FoxgloveClient(url) as watcher:
             for client in (stalled, watcher):
