@@ -20,7 +20,7 @@ GONE_GRACE = 2.0         # s: a container whose service stays absent this long w
 SETTLE_QUIET, SETTLE_LIMIT = 0.3, 3.0
 #: s: what destroying a command's node and rclpy context may take (tens of ms, normally) before the command ends
 #: without it: see end_ros
-TEARDOWN_LIMIT = 5.0
+TEARDOWN_LIMIT = 2.0
 # Fast DDS's highest domain: its ports (7400 + 250 * domain + offsets) must stay below 65536. Above it, Fast DDS
 # ends the process with status 1 and no message on stderr.
 MAX_FASTDDS_DOMAIN = 232

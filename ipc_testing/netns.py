@@ -9,6 +9,11 @@ one machine through shared memory, which no network partition cuts.
 
 Taking a host's link down (:meth:`Network.cut`) partitions it from the others. Needs root (CAP_NET_ADMIN and
 CAP_SYS_ADMIN); :func:`unavailable` says why not where that is missing.
+
+A network outlives a test process that is killed (SIGKILL, or a run stopped mid-test): namespaces and bridges are
+the kernel's, not the process's. Each network therefore records its owner (pid and start time) under
+:data:`OWNERS` before it makes anything, and every new network first removes those whose owner is gone
+(:func:`remove_stale`).
 """
 from __future__ import annotations
 
@@ -18,10 +23,13 @@ import subprocess
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 #: The private subnet of the bridge: 10.213.<n>.0/24 with n chosen per network so that parallel runs differ.
 SUBNET = "10.213"
 OPERATOR = "operator"
+#: One file per network (named by its tag) holding its owner's pid and start time; tmpfs, as /run/netns is.
+OWNERS = Path("/run/ipc_testing_netns")
 
 
 def unavailable() -> str | None:
@@ -35,6 +43,33 @@ def unavailable() -> str | None:
     if probe.returncode != 0:
         return f"cannot create namespaces: {probe.stderr.strip()}"
     return None
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of process ``pid`` (clock ticks after boot), or None if there is no such process: with the
+    pid, it names one process, whatever pid reuse came since."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat[stat.rindex(")") + 2:].split()[19]
+
+
+def remove_stale() -> list[str]:
+    """Remove the namespaces and bridge of every recorded network whose owner process is gone; their tags."""
+    removed = []
+    for record in sorted(OWNERS.glob("*")):
+        pid, _, started = record.read_text().partition(" ")
+        if pid.isdigit() and _start_time(int(pid)) == started.strip():
+            continue
+        tag = record.name
+        listing = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+        for namespace in (line.split()[0] for line in listing.splitlines() if line.startswith(f"ipc{tag}")):
+            subprocess.run(["ip", "netns", "del", namespace], capture_output=True)  # takes its veth pair along
+        subprocess.run(["ip", "link", "del", f"ipcbr{tag}"], capture_output=True)
+        record.unlink(missing_ok=True)
+        removed.append(tag)
+    return removed
 
 
 def _ip(*args: str, namespace: str | None = None) -> None:
@@ -57,6 +92,7 @@ class Network:
 
     def __init__(self, hosts: Sequence[str]) -> None:
         tag = uuid.uuid4().hex[:6]
+        self.tag = tag
         self.bridge = f"ipcbr{tag}"
         subnet = f"{SUBNET}.{int(tag, 16) % 250 + 1}"
         self.hosts = {name: Host(name, f"ipc{tag}{name}", f"{subnet}.{i + 10}", f"ipc{tag}{i}")
@@ -64,6 +100,9 @@ class Network:
         self._made: list[Host] = []
 
     def __enter__(self) -> "Network":
+        remove_stale()
+        OWNERS.mkdir(parents=True, exist_ok=True)
+        (OWNERS / self.tag).write_text(f"{os.getpid()} {_start_time(os.getpid())}")
         try:
             _ip("link", "add", self.bridge, "type", "bridge")
             _ip("link", "set", self.bridge, "up")
@@ -91,6 +130,7 @@ class Network:
             subprocess.run(["ip", "netns", "del", host.namespace], capture_output=True)
         self._made.clear()
         subprocess.run(["ip", "link", "del", self.bridge], capture_output=True)
+        (OWNERS / self.tag).unlink(missing_ok=True)
 
     def prefix(self, host: str) -> list[str]:
         """A command prefix that runs the rest in ``host``'s namespaces, with its host name; it execs, so the pid
