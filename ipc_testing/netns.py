@@ -59,9 +59,12 @@ def remove_stale() -> list[str]:
     """Remove the namespaces and bridge of every recorded network whose owner process is gone; their tags."""
     removed = []
     for record in sorted(OWNERS.glob("*")):
-        pid, _, started = record.read_text().partition(" ")
-        if pid.isdigit() and _start_time(int(pid)) == started.strip():
+        try:
+            pid, _, started = record.read_text().partition(" ")
+        except FileNotFoundError:  # its owner removed it meanwhile
             continue
+        if not pid.isdigit() or _start_time(int(pid)) == started.strip():
+            continue  # a record being written (see Network.__enter__) or a live owner's
         tag = record.name
         listing = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
         for namespace in (line.split()[0] for line in listing.splitlines() if line.startswith(f"ipc{tag}")):
@@ -102,7 +105,9 @@ class Network:
     def __enter__(self) -> "Network":
         remove_stale()
         OWNERS.mkdir(parents=True, exist_ok=True)
-        (OWNERS / self.tag).write_text(f"{os.getpid()} {_start_time(os.getpid())}")
+        written = OWNERS.parent / f".ipc_testing_netns.{self.tag}"  # outside OWNERS: never read half-written
+        written.write_text(f"{os.getpid()} {_start_time(os.getpid())}")
+        os.replace(written, OWNERS / self.tag)
         try:
             _ip("link", "add", self.bridge, "type", "bridge")
             _ip("link", "set", self.bridge, "up")

@@ -49,3 +49,18 @@ def test_a_network_whose_owner_was_killed_is_removed_by_the_next_one() -> None:
         if owner.poll() is None:
             stop_process(owner, 9)
         remove_stale()
+
+
+def test_a_record_without_an_owner_yet_is_not_taken_for_a_dead_one() -> None:
+    """Records appear whole (written aside, then renamed), so a record that names no pid is not a dead owner's:
+    its network is left alone (a parallel worker's, being made)."""
+    tag = "0badc0"
+    OWNERS.mkdir(parents=True, exist_ok=True)
+    (OWNERS / tag).write_text("")
+    subprocess.run(["ip", "netns", "add", f"ipc{tag}h1"], check=True)
+    try:
+        remove_stale()
+        assert namespaces(tag) == [f"ipc{tag}h1"], "a network whose record names no owner was removed"
+    finally:
+        subprocess.run(["ip", "netns", "del", f"ipc{tag}h1"], capture_output=True)
+        (OWNERS / tag).unlink(missing_ok=True)
