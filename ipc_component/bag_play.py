@@ -314,14 +314,6 @@ def run_player(parameters: dict[str, Any], bags: list[str], remap: list[str], no
     finally:
         if manager is not None:
             manager.shutdown()
-
-        def teardown() -> None:
-            try:
-                if manager is not None:
-                    manager.destroy_node()
-            finally:
-                rclpy.try_shutdown(context=context)
-
-        end_ros_later(teardown)
+        end_ros_later(manager, context)
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -34,8 +34,20 @@ class CliError(Exception):
 _teardowns: list[Callable[[], None]] = []
 
 
-def end_ros_later(teardown: Callable[[], None]) -> None:
-    """Leave destroying a session's node and context (``teardown``) to :func:`end_ros`, once the command is done."""
+def end_ros_later(node: Any, context: Any, executor: Any = None) -> None:
+    """Leave destroying ``node`` (if any), shutting down ``executor`` (if any) and ``context`` to :func:`end_ros`,
+    once the command is done."""
+    import rclpy
+
+    def teardown() -> None:
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=1.0)
+            if node is not None:
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+
     _teardowns.append(teardown)
 
 
@@ -122,20 +134,11 @@ class RosSession:
                 last, since = now, time.monotonic()
 
     def __exit__(self, *exc: Any) -> None:
-        import rclpy
-
-        def teardown() -> None:
-            try:
-                self.executor.shutdown(timeout_sec=1.0)
-                self.node.destroy_node()
-            finally:
-                rclpy.try_shutdown(context=self.context)
-
         try:
             if self._settle:
                 self._wait_for_quiet_graph()
         finally:
-            end_ros_later(teardown)
+            end_ros_later(self.node, self.context, self.executor)
 
     def find_container(self, container: str, deadline: float) -> None:
         """Wait (until ``deadline``) for ``container`` to show up as a container; CliError if it does not."""
