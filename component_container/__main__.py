@@ -37,6 +37,8 @@ from component_container.supervisor import ERROR_POLICIES, ExitRequest, join_in_
 
 # Beyond the shutdown timeout, what the last steps (manager node, rclpy context) may take before a forced exit.
 EXIT_MARGIN = 2.0
+# Making the container node (normally well under a second) or refusing it, before a forced exit with status 2.
+START_LIMIT = 10.0
 
 
 def positive_seconds(text: str) -> float:
@@ -113,16 +115,24 @@ def main(argv: list[str] | None = None) -> int:
         apply_low_latency()
     use_fastdds_profile()
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        manager = ComponentManager(args.executor, use_intra_process_comms=args.use_intra_process_comms,
-                                   allow_module_plugins=args.allow_module_plugins,
-                                   allow_plugins=args.allow_plugins, bag_root=args.bag_root,
-                                   on_component_error=args.on_component_error,
-                                   shutdown_timeout=args.shutdown_timeout, exit_request=exit_request)
-    except Exception as exc:  # bad thread_num and the like: say so and exit non-zero
-        print(f"Cannot start the container: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
+    built: list[ComponentManager] = []
+
+    def start() -> None:
+        try:
+            built.append(ComponentManager(args.executor, use_intra_process_comms=args.use_intra_process_comms,
+                                          allow_module_plugins=args.allow_module_plugins,
+                                          allow_plugins=args.allow_plugins, bag_root=args.bag_root,
+                                          on_component_error=args.on_component_error,
+                                          shutdown_timeout=args.shutdown_timeout, exit_request=exit_request))
+        except Exception as exc:  # bad thread_num and the like: say so and exit non-zero
+            print(f"Cannot start the container: {exc}", file=sys.stderr)
+            rclpy.try_shutdown()
+
+    # A refused start destroys the half-built node, and with it the participant: bounded like the last step.
+    end_within(START_LIMIT, 2, start)
+    if not built:
         return 2
+    manager = built[0]
     for request in startup:
         try:
             manager.load(request)

@@ -27,6 +27,7 @@ from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from ipc_testing.held_participant import HELD, held_participant_library
 from container_process import (
     REPO,
     ContainerClient,
@@ -426,6 +427,18 @@ def test_invalid_thread_num_is_refused(containers: Containers, thread_num: int) 
     assert process.process.wait(timeout=20) == 2
     output = process.output
     assert "Cannot start the container: thread_num must be a positive number of threads" in output, output
+
+
+def test_a_refused_start_whose_participant_never_finishes_its_destruction_still_exits_2(
+        containers: Containers, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """A refused start destroys the half-built container node, and with it the participant, where Fast DDS can
+    livelock (a fresh-clone run: ``thread_num:=-1``, held for good, killed after 20 s). Held on demand
+    (ipc_testing.held_participant): the container still exits with the refusal's status 2, after the stacks."""
+    library = held_participant_library(tmp_path_factory.getbasetemp())
+    process, _ = containers.start("--executor", "multi", "--ros-args", "-p", "thread_num:=-1", wait=False,
+                                  env={"LD_PRELOAD": str(library)})
+    assert process.process.wait(timeout=60) == 2, process.output
+    assert HELD in process.output and "Timeout" in process.output and "in __init__" in process.output
 
 
 # --- start-up file ------------------------------------------------------------------------------------------
