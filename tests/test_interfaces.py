@@ -146,25 +146,35 @@ def test_python_types_have_the_jazzy_fields() -> None:
 
 
 # --- composition_interfaces on the wire ---------------------------------------------------------------------
-def _endpoints(get_info: Any, topic: str, node_name: str, timeout: float = 10.0) -> list[Any]:
+def _endpoints(get_info: Any, topic: str, pid: int, timeout: float = 10.0) -> list[Any]:
+    """The endpoints on ``topic`` of the container node of the process ``pid``, once their node is known (an
+    endpoint can be seen before its participant's node names; it is then in no node). A participant's GUID prefix
+    holds the low 16 bits of its process id (bytes 4-5, little-endian; ipc_testing.process_context), so another
+    container of the same name in the graph (one the test starts, or one a test before it killed, kept until its
+    lease ends) is not counted."""
     deadline = time.monotonic() + timeout
     while True:
-        found = [i for i in get_info(topic, no_mangle=True) if i.node_name == node_name]
+        found = [i for i in get_info(topic, no_mangle=True) if i.node_name == "ComponentManager"
+                 and int.from_bytes(bytes(i.endpoint_gid)[4:6], "little") == pid & 0xFFFF]
         if found or time.monotonic() > deadline:
             return found
         time.sleep(0.05)
 
 
 def test_wire_type_hashes_of_a_running_container() -> None:
+    """Each service of the container under test has one request reader and one reply writer, of the wire types
+    and hashes of rclcpp's; a second container of the same name runs beside it (as in a CI run where the graph
+    still held a killed one), and its endpoints are not taken for the first one's."""
     node = Node("wire_hash_probe", context=process_context())
-    with ContainerProcess(cwd=str(REPO)) as container:
+    with ContainerProcess(cwd=str(REPO)) as other, ContainerProcess(cwd=str(REPO)) as container:
         try:
             ContainerClient(node).wait()
+            assert _endpoints(node.get_subscriptions_info_by_topic, "rq/ComponentManager/_container/load_nodeRequest",
+                              other.pid), "the other container is not in the graph"
             for service, type_name in SERVICES.items():
                 base = f"ComponentManager/_container/{service}"
-                requests = _endpoints(node.get_subscriptions_info_by_topic, f"rq/{base}Request",
-                                      "ComponentManager")
-                replies = _endpoints(node.get_publishers_info_by_topic, f"rr/{base}Reply", "ComponentManager")
+                requests = _endpoints(node.get_subscriptions_info_by_topic, f"rq/{base}Request", container.pid)
+                replies = _endpoints(node.get_publishers_info_by_topic, f"rr/{base}Reply", container.pid)
                 assert len(requests) == 1 and len(replies) == 1, (service, requests, replies)
                 assert requests[0].topic_type == f"composition_interfaces::srv::dds_::{type_name}_Request_"
                 assert replies[0].topic_type == f"composition_interfaces::srv::dds_::{type_name}_Response_"
@@ -172,8 +182,9 @@ def test_wire_type_hashes_of_a_running_container() -> None:
                 assert str(replies[0].topic_type_hash) == WIRE_HASHES[f"{type_name}_Response"], service
                 assert requests[0].node_namespace == "/" and replies[0].node_namespace == "/"
         finally:
-            assert container.stop() == 0, container.output
+            stopped = container.stop(), other.stop()  # by a signal: neither stays in the graph as a ghost
             node.destroy_node()
+            assert stopped == (0, 0), container.output + other.output
     assert not container.alive()
 
 
