@@ -28,7 +28,7 @@ import contextlib
 import os
 import threading
 import time
-from typing import Iterator
+from typing import Any, Iterator
 
 import rclpy
 from rclpy.context import Context
@@ -73,13 +73,18 @@ def client_context() -> Iterator[Context]:
             rclpy.try_shutdown(context=anchor.context)
 
 
+def process_id(info: Any) -> int:
+    """The low 16 bits of the process id of the participant of an endpoint (``TopicEndpointInfo``): bytes 4-5 of its
+    GUID prefix, little-endian, on Fast DDS 2 and 3."""
+    return int.from_bytes(bytes(info.endpoint_gid)[4:6], "little")
+
+
 def ghost_processes(node: Node, wait: float) -> set[int]:
     """The process ids (low 16 bits) of participants in ``node``'s graph whose process no longer runs, after
     waiting up to ``wait`` s for them to leave (a container that was just stopped cleanly is on its way out)."""
     deadline = time.monotonic() + wait
     while True:
-        named = {int.from_bytes(bytes(info.endpoint_gid)[4:6], "little")
-                 for topic in _EVERY_NODES_TOPICS for info in node.get_publishers_info_by_topic(topic)}
+        named = {process_id(info) for topic in _EVERY_NODES_TOPICS for info in node.get_publishers_info_by_topic(topic)}
         running = {int(name) & 0xFFFF for name in os.listdir("/proc") if name.isdigit()}
         if not named - running or time.monotonic() >= deadline:
             return named - running

@@ -20,7 +20,7 @@ from rclpy.node import Node
 
 import composition_interfaces
 from container_process import ContainerClient, ContainerProcess
-from ipc_testing.process_context import process_context
+from ipc_testing.process_context import process_context, process_id
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -149,13 +149,13 @@ def test_python_types_have_the_jazzy_fields() -> None:
 def _endpoints(get_info: Any, topic: str, pid: int, timeout: float = 10.0) -> list[Any]:
     """The endpoints on ``topic`` of the container node of the process ``pid``, once their node is known (an
     endpoint can be seen before its participant's node names; it is then in no node). A participant's GUID prefix
-    holds the low 16 bits of its process id (bytes 4-5, little-endian; ipc_testing.process_context), so another
+    holds the low 16 bits of its process id (ipc_testing.process_context.process_id), so another
     container of the same name in the graph (one the test starts, or one a test before it killed, kept until its
     lease ends) is not counted."""
     deadline = time.monotonic() + timeout
     while True:
-        found = [i for i in get_info(topic, no_mangle=True) if i.node_name == "ComponentManager"
-                 and int.from_bytes(bytes(i.endpoint_gid)[4:6], "little") == pid & 0xFFFF]
+        found = [i for i in get_info(topic, no_mangle=True)
+                 if i.node_name == "ComponentManager" and process_id(i) == pid & 0xFFFF]
         if found or time.monotonic() > deadline:
             return found
         time.sleep(0.05)
