@@ -1,26 +1,27 @@
-"""The one rclpy context of a test process, whose Fast DDS participant lives as long as the process.
+"""The rclpy contexts of a test process, whose Fast DDS participants live as long as the process.
 
-Why: every rclpy context is a Fast DDS participant, destroyed with the context's last node. Fast DDS 2.14 (Jazzy's
-wheels) can livelock destroying one: ``DomainParticipant::set_listener(nullptr)`` waits for the participant's
-discovery callbacks in flight by spinning on a condition variable's ``wait_until`` whose deadline never blocks,
-re-taking the listener mutex at once each time; a discovery callback that has begun needs that mutex to finish, so
-it never gets it, and the destroying thread spins on (with the GIL held, the whole process stops). It takes a
-discovery event arriving at the very moment of destruction, so it is rare per participant; a test run that made a
-context per test destroyed about 350 participants in its workers, and two of about twenty runs hung
-(docs/limitations.md, Platform, has the stacks). Tests that share this context destroy none: nodes come and go, the
-participant stays, held by an anchor node, until the process ends (pytest-xdist ends a worker that does not exit
-within 10 s of its last test).
+Why: every rclpy context is a Fast DDS participant, destroyed with the context's last node, and destroying one is
+not safe while discovery goes on. Fast DDS 2.14 (Jazzy's wheels) can livelock:
+``DomainParticipant::set_listener(nullptr)`` waits for the participant's discovery callbacks in flight by spinning
+on a condition variable's ``wait_until`` whose deadline never blocks, re-taking the listener mutex at once each
+time; a discovery callback that has begun needs that mutex to finish, so it never gets it, and the destroying
+thread spins on (with the GIL held, the whole process stops). A test run that made a context per test destroyed
+about 350 participants in its workers, and two of about twenty runs hung (docs/limitations.md, Platform, has the
+stacks). Fast DDS 3.2 (Kilted's wheels) crashed instead: a worker's segmentation fault in rclpy's
+``Node.destroy_node`` of a context's last node, once in twelve runs that destroyed about fifteen participants each.
+So no test destroys a participant: each context here is made on first use and held by an anchor node until the
+process ends (pytest-xdist ends a worker that does not exit within 10 s of its last test); nodes come and go.
 
-A test that needs a second participant in the process (the DDS path between two contexts) still makes a context
-of its own; every other in-process node belongs here, and nothing shuts this context down.
-
-Except the clients of container processes (:func:`client_context`): a participant that outlives a SIGKILLed
-container keeps it as a ghost until its lease ends (20 s), and meanwhile finds a container started after it
-about 2.5 s late (a participant kept across kills: 3.0 s from start to the first answered ListNodes; a new one:
-0.55 s). So the clients have a context of their own, kept from test to test while no ghost is in its graph, and
-replaced after a test that left one: a participant's GUID prefix holds its process id (bytes 4-5, little-endian,
-the low 16 bits: Fast DDS 2 and 3), so a publisher on ``/rosout`` or ``/parameter_events`` whose process no longer
-runs is a ghost's. A container stopped by a signal it handles leaves none (its participant says goodbye).
+* :func:`process_context`: rclpy's default context, for every in-process node that needs no other participant.
+* :func:`peer_context`: a second participant in the process, a peer over DDS as another process's would be.
+* :func:`client_context`: the clients of container processes. A participant that outlives a SIGKILLed container
+  keeps it as a ghost until the container's lease ends (20 s by Fast DDS's default), and meanwhile finds a
+  container started after it about 3 s late instead of 0.5 s; once the ghost is gone it finds one as fast as a new
+  participant would. So the clients have a pool of contexts: a test gets the first one whose graph holds no ghost,
+  and a new one only when each does (a few per worker while tests that kill containers follow one another).
+  A participant's GUID prefix holds its process id (bytes 4-5, little-endian, the low 16 bits: Fast DDS 2 and 3),
+  so a publisher on ``/rosout`` or ``/parameter_events`` whose process no longer runs is a ghost's. A container
+  stopped by a signal it handles leaves none (its participant says goodbye).
 """
 from __future__ import annotations
 
@@ -35,42 +36,57 @@ from rclpy.context import Context
 from rclpy.node import Node
 
 _lock = threading.Lock()
-_anchor: Node | None = None
-_client_anchor: Node | None = None
+#: The anchor node of each kept context, by its name.
+_anchors: dict[str, Node] = {}
+#: The anchors of the clients' contexts, oldest first.
+_clients: list[Node] = []
 #: Topics every rclpy node publishes on: their publishers name every participant with a node.
 _EVERY_NODES_TOPICS = ("/rosout", "/parameter_events")
 
 
+def _anchored(name: str, context: Context, **init: Any) -> Node:
+    """An anchor node holding ``context``'s participant (initializing the context first if it is not)."""
+    if not context.ok():
+        rclpy.init(context=context, **init)
+    return Node(name, context=context, start_parameter_services=False)
+
+
+def kept_context(name: str, domain_id: int | None = None) -> Context:
+    """A context of its own for this process (on ``domain_id``, the environment's by default), made on the first
+    call with ``name`` and kept, with its participant, until the process ends."""
+    with _lock:
+        if name not in _anchors:
+            _anchors[name] = _anchored(f"ipc_testing_{name}_anchor", Context(),
+                                       **({} if domain_id is None else {"domain_id": domain_id}))
+        return _anchors[name].context
+
+
 def process_context() -> Context:
     """rclpy's default context, initialized on first use and kept, with its participant, until the process ends."""
-    global _anchor
     with _lock:
         context = rclpy.get_default_context()
-        if not context.ok():
-            rclpy.init(context=context)
-            _anchor = None
-        if _anchor is None:
-            _anchor = Node("ipc_testing_process_anchor", context=context)
+        if "process" not in _anchors or not context.ok():
+            _anchors["process"] = _anchored("ipc_testing_process_anchor", context)
         return context
+
+
+def peer_context() -> Context:
+    """A second participant in the process, kept like the first: a peer over DDS of the process's nodes."""
+    return kept_context("peer")
 
 
 @contextlib.contextmanager
 def client_context() -> Iterator[Context]:
-    """The context for a test's clients of container processes: the last test's, unless that one left a ghost in
-    its graph (then a new one); its participant is held by an anchor node."""
-    global _client_anchor
-    if _client_anchor is None or not _client_anchor.context.ok():
-        context = Context()
-        rclpy.init(context=context)
-        _client_anchor = Node("ipc_testing_client_anchor", context=context)
-    anchor = _client_anchor
+    """The context for a test's clients of container processes: the first of the clients' contexts whose graph
+    holds no ghost, or a new one."""
+    anchor = next((client for client in _clients if not ghost_processes(client, wait=0.0)), None)
+    if anchor is None:
+        anchor = _anchored(f"ipc_testing_client_anchor_{len(_clients)}", Context())
+        _clients.append(anchor)
     try:
         yield anchor.context
     finally:
-        if ghost_processes(anchor, wait=0.3):
-            _client_anchor = None
-            anchor.destroy_node()
-            rclpy.try_shutdown(context=anchor.context)
+        ghost_processes(anchor, wait=0.3)  # a container the test stopped cleanly leaves before the next test looks
 
 
 def process_id(info: Any) -> int:

@@ -28,12 +28,10 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-import rclpy
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rcl_interfaces.srv import GetParameters
-from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -51,7 +49,7 @@ from components.lidar_driver import LidarDriver
 
 from container_process import ContainerClient, small_filesystem
 from ipc_testing import ContainerProcess, call, spin_for, wait_until
-from ipc_testing.process_context import process_context
+from ipc_testing.process_context import kept_context, process_context
 
 REPO = Path(__file__).resolve().parents[1]
 IPC = {"use_intra_process_comms": True}
@@ -256,13 +254,13 @@ REFERENCE_DOMAINS = 200
 
 
 class References:
-    """Driver instances in a private context on another domain, used only for make_image & co."""
+    """Driver instances in a context of the process's own on another domain (kept, as every participant of a test
+    process is: ipc_testing/process_context.py), used only for make_image & co."""
 
     def __init__(self) -> None:
-        self.context = Context()
         own = int(os.environ.get("ROS_DOMAIN_ID", "0"))
         # Never a test session's domain: those are 1..160 plus the worker index (conftest.py), these above.
-        rclpy.init(context=self.context, domain_id=REFERENCE_DOMAINS + own % 32)
+        self.context = kept_context("references", domain_id=REFERENCE_DOMAINS + own % 32)
         self._drivers: dict[tuple, Any] = {}
 
     def driver(self, cls: type, **params: Any) -> Any:
@@ -276,7 +274,6 @@ class References:
     def close(self) -> None:
         for driver in self._drivers.values():
             driver.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 # --- reading bags back ----------------------------------------------------------------------------------------
