@@ -161,6 +161,32 @@ def test_a_writer_given_up_on_at_the_stop_leaves_counts_that_match_the_bag(manag
     manager.unload(loaded.unique_id)
 
 
+@pytest.mark.parametrize("manager", [0.5], indirect=True)
+def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_no_second_failure(
+        manager: ComponentManager, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """The unload gives up on a writer stuck on its disk; when the disk comes back, the writer closes the bag with
+    its counts after the node is gone. The bag's closing event has no node left to publish it (rclpy refuses even
+    the destroyed node's name), which is no failure of the bag."""
+    bag = tmp_path / "bag"
+    imu = load(manager, "components::ImuDriver", rate=1000.0)
+    loaded = load(manager, "test_recorder_accounting:SlowRecorder", "test_recorder_accounting",
+                  **{"storage.uri": str(bag), "record.topics": [IMU]})
+    recorder = loaded.node
+    assert wait_until(lambda: recorder.stats()["current"]["topics"].get(IMU, {}).get("written", 0) >= 10, 20.0)
+    SlowBagWriter.DISK_UP.clear()
+    assert wait_until(lambda: recorder.stats()["current"]["backlog_bytes"] > 0, 20.0), recorder.stats()
+    manager.unload(imu.unique_id)
+    manager.unload(loaded.unique_id)
+    assert "did not finish" in recorder.stats()["finished"][-1]["error"]
+    SlowBagWriter.DISK_UP.set()
+    output: list[str] = []  # the container's log, on stdout and stderr
+    assert wait_until(lambda: output.extend(capfd.readouterr()) or "finished after all" in "".join(output), 20.0), \
+        "".join(output)
+    assert "after the failure" not in "".join(output), "".join(output)
+    final = recorder.stats()["finished"][-1]
+    assert "did not finish" in final["error"] and bag_counts(bag)[IMU] == final["topics"][IMU]["written"], final
+
+
 # --- events/messages_lost -----------------------------------------------------------------------------------
 class Listener:
     """A plain node (not the container's: over DDS) collecting events/messages_lost."""

@@ -34,6 +34,7 @@ from typing import Any, Callable
 
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.exceptions import InvalidHandle
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -232,9 +233,13 @@ class Recorder(ComponentNode):
     def _publish_split(self, closed_file: str, opened_file: str) -> None:
         if self._uploads is not None and closed_file:
             self._uploads.file_closed(Path(closed_file))
-        if self.context.ok():
+        if not self.context.ok():
+            return
+        try:
             self._split_events.publish(WriteSplitEvent(closed_file=closed_file, opened_file=opened_file,
                                                        node_name=self.get_fully_qualified_name()))
+        except InvalidHandle:  # a bag closed late, by a writer given up on at the unload: no node left to say so
+            pass
 
     # --- discovery and intake -----------------------------------------------------------------------------
     def _discover_topics(self) -> None:
