@@ -37,6 +37,7 @@ from container_process import (
     SharedContainer,
     listing,
     node_names,
+    rosout_writers,
     pid_alive,
     proc_status,
     unload_all,
@@ -493,7 +494,7 @@ def test_signal_unloads_components_and_exits_zero(containers: Containers, probe:
     assert output.index("Unloading /sig/listener (id 2)") < output.index("Unloading /sig/talker (id 1)")
     assert not pid_alive(process.pid)
     assert wait_until(lambda: not {("talker", "/sig"), ("listener", "/sig"), ("ComponentManager", "/")}
-                      & node_names(probe), 10.0), node_names(probe)
+                      & node_names(probe), 10.0), (process.pid & 0xFFFF, node_names(probe), rosout_writers(probe))
 
 
 # --- resources ----------------------------------------------------------------------------------------------
