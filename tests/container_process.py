@@ -44,7 +44,7 @@ def node_names(node: Node) -> set[tuple[str, str]]:
 
 def rosout_writers(node: Node) -> set[tuple[str, int, bool]]:
     """Every node in ``node``'s graph with a /rosout publisher: its name, its process id (low 16 bits, from its
-    participant's GUID) and whether that process runs (False: a ghost); for failure messages about the graph."""
+    participant's GUID) and whether that process runs (False: a ghost)."""
     running = {int(name) & 0xFFFF for name in os.listdir("/proc") if name.isdigit()}
     return {(info.node_name, process_id(info), process_id(info) in running)
             for info in node.get_publishers_info_by_topic("/rosout")}

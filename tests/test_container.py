@@ -493,8 +493,11 @@ def test_signal_unloads_components_and_exits_zero(containers: Containers, probe:
     assert "Unloading /sig/listener (id 2)" in output and "Unloading /sig/talker (id 1)" in output, output
     assert output.index("Unloading /sig/listener (id 2)") < output.index("Unloading /sig/talker (id 1)")
     assert not pid_alive(process.pid)
-    assert wait_until(lambda: not {("talker", "/sig"), ("listener", "/sig"), ("ComponentManager", "/")}
-                      & node_names(probe), 10.0), (process.pid & 0xFFFF, node_names(probe), rosout_writers(probe))
+    # Gone from the graph: its components by name, every node of its process (ComponentManager among them) by the
+    # process id in their participant's GUID, another process's ComponentManager being none of this test's.
+    assert wait_until(lambda: not {("talker", "/sig"), ("listener", "/sig")} & node_names(probe)
+                      and not {writer for writer in rosout_writers(probe) if writer[1] == process.pid & 0xFFFF},
+                      10.0), (process.pid & 0xFFFF, node_names(probe), rosout_writers(probe))
 
 
 # --- resources ----------------------------------------------------------------------------------------------
