@@ -9,11 +9,13 @@ thread spins on (with the GIL held, the whole process stops). A test run that ma
 about 350 participants in its workers, and two of about twenty runs hung (docs/limitations.md, Platform, has the
 stacks). Fast DDS 3.2 (Kilted's wheels) crashed instead: a worker's segmentation fault in rclpy's
 ``Node.destroy_node`` of a context's last node, once in twelve runs that destroyed about fifteen participants each.
-So no test destroys a participant: each context here is made on first use and held by an anchor node until the
-process ends (pytest-xdist ends a worker that does not exit within 10 s of its last test); nodes come and go.
+So the contexts here are made on first use and held by an anchor node until the process ends (pytest-xdist ends
+a worker that does not exit within 10 s of its last test); nodes come and go. (The tests of the DDS path between
+two participants of one process still make the second one per test: a peer kept across tests once lost the
+process's participant for good in a worker, both of its next tests failing to match.)
 
 * :func:`process_context`: rclpy's default context, for every in-process node that needs no other participant.
-* :func:`peer_context`: a second participant in the process, a peer over DDS as another process's would be.
+* :func:`kept_context`: another context of the process, on another domain if asked.
 * :func:`client_context`: the clients of container processes. A participant that outlives a SIGKILLed container
   keeps it as a ghost until the container's lease ends (20 s by Fast DDS's default), and meanwhile finds a
   container started after it about 3 s late instead of 0.5 s; once the ghost is gone it finds one as fast as a new
@@ -68,11 +70,6 @@ def process_context() -> Context:
         if "process" not in _anchors or not context.ok():
             _anchors["process"] = _anchored("ipc_testing_process_anchor", context)
         return context
-
-
-def peer_context() -> Context:
-    """A second participant in the process, kept like the first: a peer over DDS of the process's nodes."""
-    return kept_context("peer")
 
 
 @contextlib.contextmanager

@@ -13,6 +13,7 @@ import types
 from typing import Any, Callable, Iterator
 
 import pytest
+import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -25,17 +26,22 @@ from component_container.component_node import REUSE_WATCH, ComponentNode, Intra
 from component_container.intra_process import IntraProcessManager
 
 from container_process import ContainerClient, ContainerProcess
-from ipc_testing.process_context import peer_context, process_context
+from ipc_testing.process_context import process_context
 
 
 class Nodes:
-    """The nodes a test makes in one of the process's contexts, destroyed after the test: the process's context
-    ("inside", the container's participant) or its peer context ("outside", another participant: a peer over DDS,
-    as another process's would be). A node left to the garbage collector would keep its topics in the graph of
-    later tests. The contexts themselves, and their participants, are kept (ipc_testing/process_context.py)."""
+    """The nodes a test makes in one context, destroyed with it: the process's context ("inside", the container's
+    participant) or one of the test's own ("outside", another participant: a peer over DDS, as another process's
+    would be). A node left to the garbage collector would keep its topics in the graph of later tests, and take
+    its context's participant down at some random moment (ipc_testing/process_context.py)."""
 
-    def __init__(self, context: Context) -> None:
-        self.context = context
+    def __init__(self, own: bool) -> None:
+        self.own = own
+        if own:
+            self.context = Context()
+            rclpy.init(context=self.context)
+        else:
+            self.context = process_context()
         self.nodes: list[Node] = []
 
     def component(self, name: str, ipm: IntraProcessManager | None = None) -> ComponentNode:
@@ -51,12 +57,15 @@ class Nodes:
     def close(self) -> None:
         for node in self.nodes:
             node.destroy_node()
+        if self.own:
+            rclpy.try_shutdown(context=self.context)
 
 
 @pytest.fixture
 def contexts() -> Iterator[tuple[Nodes, Nodes]]:
-    """The nodes of the container ("inside") and of a peer over DDS ("outside")."""
-    inside, outside = Nodes(process_context()), Nodes(peer_context())
+    """The nodes of the container ("inside") and of a peer over DDS ("outside"); the peer's participant exists
+    only if the test makes a node there."""
+    inside, outside = Nodes(own=False), Nodes(own=True)
     try:
         yield inside, outside
     finally:
