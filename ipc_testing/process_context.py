@@ -58,8 +58,7 @@ def kept_context(name: str, domain_id: int | None = None) -> Context:
     call with ``name`` and kept, with its participant, until the process ends."""
     with _lock:
         if name not in _anchors:
-            _anchors[name] = _anchored(f"ipc_testing_{name}_anchor", Context(),
-                                       **({} if domain_id is None else {"domain_id": domain_id}))
+            _anchors[name] = _anchored(f"ipc_testing_{name}_anchor", Context(), domain_id=domain_id)
         return _anchors[name].context
 
 
@@ -92,13 +91,18 @@ def process_id(info: Any) -> int:
     return int.from_bytes(bytes(info.endpoint_gid)[4:6], "little")
 
 
+def running_process_ids() -> set[int]:
+    """The low 16 bits of the ids of the processes that run now, to compare with :func:`process_id`."""
+    return {int(name) & 0xFFFF for name in os.listdir("/proc") if name.isdigit()}
+
+
 def ghost_processes(node: Node, wait: float) -> set[int]:
     """The process ids (low 16 bits) of participants in ``node``'s graph whose process no longer runs, after
     waiting up to ``wait`` s for them to leave (a container that was just stopped cleanly is on its way out)."""
     deadline = time.monotonic() + wait
     while True:
         named = {process_id(info) for topic in _EVERY_NODES_TOPICS for info in node.get_publishers_info_by_topic(topic)}
-        running = {int(name) & 0xFFFF for name in os.listdir("/proc") if name.isdigit()}
+        running = running_process_ids()
         if not named - running or time.monotonic() >= deadline:
             return named - running
         time.sleep(0.05)

@@ -14,7 +14,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ipc_testing import ContainerClient, ContainerProcess, call, wait_until  # noqa: F401 - shared by the tests
-from ipc_testing.process_context import process_id
+from ipc_testing.process_context import process_id, running_process_ids
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def node_names(node: Node) -> set[tuple[str, str]]:
 def rosout_writers(node: Node) -> set[tuple[str, int, bool]]:
     """Every node in ``node``'s graph with a /rosout publisher: its name, its process id (low 16 bits, from its
     participant's GUID) and whether that process runs (False: a ghost)."""
-    running = {int(name) & 0xFFFF for name in os.listdir("/proc") if name.isdigit()}
+    running = running_process_ids()
     return {(info.node_name, process_id(info), process_id(info) in running)
             for info in node.get_publishers_info_by_topic("/rosout")}
 
