@@ -34,6 +34,8 @@ from components.recorder.message_cache import CachedMessage, MessageCache, paylo
 from components.recorder.recorder import Recorder
 from ipc_testing import in_process_manager, wait_until
 from ipc_testing.process_context import process_context
+from ipc_testing.s3_server import S3Server
+from upload_harness import bucket, s3, stored  # noqa: F401 - fixtures
 
 IMU = "/imu/imu"
 CAMERA = "/camera/image_raw"
@@ -162,15 +164,18 @@ def test_a_writer_given_up_on_at_the_stop_leaves_counts_that_match_the_bag(manag
 
 
 @pytest.mark.parametrize("manager", [0.5], indirect=True)
-def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_no_second_failure(
-        manager: ComponentManager, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_uploaded_and_no_second_failure(
+        manager: ComponentManager, s3: S3Server, bucket: str, tmp_path: Path,
+        capfd: pytest.CaptureFixture[str]) -> None:
     """The unload gives up on a writer stuck on its disk; when the disk comes back, the writer closes the bag with
     its counts after the node is gone. The bag's closing event has no node left to publish it (rclpy refuses even
-    the destroyed node's name), which is no failure of the bag."""
+    the destroyed node's name), which is no failure of the bag; the finalized bag still goes to the store whole,
+    ``metadata.yaml`` with it."""
     bag = tmp_path / "bag"
     imu = load(manager, "components::ImuDriver", rate=1000.0)
     loaded = load(manager, "test_recorder_accounting:SlowRecorder", "test_recorder_accounting",
-                  **{"storage.uri": str(bag), "record.topics": [IMU]})
+                  **{"storage.uri": str(bag), "record.topics": [IMU], "upload.uri": f"s3://{bucket}/robot",
+                     "upload.endpoint_url": s3.endpoint_url})
     recorder = loaded.node
     assert wait_until(lambda: recorder.stats()["current"]["topics"].get(IMU, {}).get("written", 0) >= 10, 20.0)
     SlowBagWriter.DISK_UP.clear()
@@ -185,6 +190,9 @@ def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_no_second_failure(
     assert "after the failure" not in "".join(output), "".join(output)
     final = recorder.stats()["finished"][-1]
     assert "did not finish" in final["error"] and bag_counts(bag)[IMU] == final["topics"][IMU]["written"], final
+    local = {f"robot/bag/{path.name}": path.read_bytes() for path in bag.iterdir()}
+    assert "robot/bag/metadata.yaml" in local, sorted(local)
+    assert wait_until(lambda: stored(s3, bucket) == local, 30.0), (sorted(stored(s3, bucket)), sorted(local))
 
 
 # --- events/messages_lost -----------------------------------------------------------------------------------

@@ -211,11 +211,18 @@ class Recorder(ComponentNode):
             return None
         self._warn_missing_action_topics()
         session.finish(timeout=FINISH_SHARE * self.shutdown_timeout,
-                       on_late_close=functools.partial(self._finished.changed, session))
+                       on_late_close=functools.partial(self._bag_closed_late, session))
         self._loss_events.close_bag(session)
         if self._uploads is not None and session.writer.closed:
             self._uploads.bag_closed(session.writer.path)
         return self._finished.add(session, may_change=window_ended or session.writing_after_finish)
+
+    def _bag_closed_late(self, session: RecordingSession) -> None:
+        """The writer the stop gave up on closed the bag after all (on its thread, maybe after the unload): its
+        counts changed, and the finalized bag is uploaded like any other."""
+        self._finished.changed(session)
+        if self._uploads is not None:
+            self._uploads.bag_closed(session.writer.path)
 
     def _warn_missing_action_topics(self) -> None:
         """A warning per action of ``record.actions`` whose five topics were not all recorded (rosbag2 is silent):

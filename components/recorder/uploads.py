@@ -5,11 +5,13 @@ empty: the AWS configuration), ``upload.delete_after`` (delete each file here on
 and ``upload.max_rate`` (bytes/s, 0: unlimited). Credentials come from the AWS chain, never from a parameter.
 
 The recorder only queues: a file closed at a split goes into the journal next to the bag (on a thread of this
-module's, off the writer thread), and a finalized bag's ``metadata.yaml`` after all its files. The uploads
-themselves run in the container's upload process (components/recorder/upload_process.py, baglib/upload/worker.py),
-which outlives an unloaded recorder until its queue is done. The upload state is in ``~/get_stats`` (``upload``),
-on ``/diagnostics`` (the recorder's, then the container's for an unloaded one) and so in ``top`` and ``record
-status``. Files already verified in the store are the first the disk guard may take back (:meth:`reclaim`).
+module's, off the writer thread), and a finalized bag's ``metadata.yaml`` after all its files. A bag closed late, by
+a writer the unload gave up on, goes into the journal after the recorder is gone, on the writer's thread. The
+uploads themselves run in the container's upload process (components/recorder/upload_process.py,
+baglib/upload/worker.py), which outlives an unloaded recorder until its queue is done. The upload state is in
+``~/get_stats`` (``upload``), on ``/diagnostics`` (the recorder's, then the container's for an unloaded one) and so
+in ``top`` and ``record status``. Files already verified in the store are the first the disk guard may take back
+(:meth:`reclaim`).
 """
 from __future__ import annotations
 
@@ -64,7 +66,9 @@ class BagUploads:
     def __init__(self, options: UploadOptions) -> None:
         self.options = options
         self._journals: dict[Path, UploadJournal] = {}
+        self._held: list[Path] = []  # the journals whose upload process the recorder holds until close
         self._lock = threading.Lock()
+        self._closed = False
         self._queue: queue.SimpleQueue[tuple[Path, list[Path]] | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="upload_queue", daemon=True)
         self._thread.start()
@@ -72,7 +76,7 @@ class BagUploads:
     # --- queueing ---------------------------------------------------------------------------------------
     def file_closed(self, path: Path) -> None:
         """A bag file was closed (a split): queue it. Called on the writer's threads: returns at once."""
-        self._queue.put((path.parent, [path]))
+        self._put(path.parent, [path])
 
     def bag_closed(self, bag: Path) -> None:
         """A bag was finalized: queue what of it is not queued yet, then its ``metadata.yaml``."""
@@ -80,38 +84,61 @@ class BagUploads:
             listed = [bag / name for name in load_metadata(bag).relative_file_paths]
         except Exception:  # noqa: BLE001 - an unfinalized bag: its closed files are queued, its metadata is not
             return
-        self._queue.put((bag, [*listed, bag / METADATA_FILENAME]))
+        self._put(bag, [*listed, bag / METADATA_FILENAME])
+
+    def _put(self, bag: Path, files: list[Path]) -> None:
+        """Queue ``files`` of ``bag``; once the recorder is gone (:meth:`close`), journal them on this thread,
+        holding the journal's upload process meanwhile (started again if it finished)."""
+        with self._lock:
+            if not self._closed:
+                self._queue.put((bag, files))
+                return
+            if bag.parent not in self._journals:
+                self._journals[bag.parent] = UploadJournal(bag.parent / JOURNAL_NAME)
+            journal = self._journals[bag.parent]
+        upload_process.acquire(journal.path, self.options.max_rate)
+        try:
+            self._enqueue(journal, bag, files)
+        finally:
+            upload_process.release(journal.path)
 
     def _run(self) -> None:
         while (item := self._queue.get()) is not None:
             bag, files = item
-            journal = self._journal(bag.parent)
-            location = self.options.location.child(bag.name)
-            for path in files:
-                journal.enqueue(path, self.options.location.uri, self.options.endpoint_url, location.bucket,
-                                location.key(path.name), self.options.delete_after)
-            upload_process.wake(journal.path)
+            self._enqueue(self._journal(bag.parent), bag, files)
+
+    def _enqueue(self, journal: UploadJournal, bag: Path, files: list[Path]) -> None:
+        location = self.options.location.child(bag.name)
+        for path in files:
+            journal.enqueue(path, self.options.location.uri, self.options.endpoint_url, location.bucket,
+                            location.key(path.name), self.options.delete_after)
+        upload_process.wake(journal.path)
 
     def _journal(self, directory: Path) -> UploadJournal:
+        """The journal of ``directory``, its upload process taken on first use until :meth:`close`."""
         with self._lock:
             if directory not in self._journals:
                 journal = self._journals[directory] = UploadJournal(directory / JOURNAL_NAME)
                 upload_process.acquire(journal.path, self.options.max_rate)
+                self._held.append(journal.path)
                 upload_process.wake(journal.path)  # what a previous container left in it
             return self._journals[directory]
 
     def open(self, bag: Path) -> None:
         """A bag is starting at ``bag``: its directory's journal is opened and its upload process started (so
         what an earlier container left there is resumed now, not at the first split)."""
-        self._queue.put((bag, []))
+        self._put(bag, [])
 
     def close(self) -> None:
-        """The recorder is going: queue nothing more, let go of the upload processes (they finish the queue)."""
-        self._queue.put(None)
+        """The recorder is going: let go of the upload processes once the queue is journaled (they finish it);
+        a bag closed later is journaled by its writer's thread (:meth:`_put`)."""
+        with self._lock:
+            self._closed = True
+            self._queue.put(None)
         self._thread.join()
         with self._lock:
-            for journal in self._journals.values():
-                upload_process.release(journal.path)
+            for path in self._held:
+                upload_process.release(path)
 
     # --- state ------------------------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
