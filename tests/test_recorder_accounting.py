@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosbag2_interfaces.msg import MessagesLostEvent
@@ -164,13 +165,13 @@ def test_a_writer_given_up_on_at_the_stop_leaves_counts_that_match_the_bag(manag
 
 
 @pytest.mark.parametrize("manager", [0.5], indirect=True)
-def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_uploaded_and_no_second_failure(
+def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_reported_uploaded_and_no_second_failure(
         manager: ComponentManager, s3: S3Server, bucket: str, tmp_path: Path,
         capfd: pytest.CaptureFixture[str]) -> None:
     """The unload gives up on a writer stuck on its disk; when the disk comes back, the writer closes the bag with
     its counts after the node is gone. The bag's closing event has no node left to publish it (rclpy refuses even
     the destroyed node's name), which is no failure of the bag; the finalized bag still goes to the store whole,
-    ``metadata.yaml`` with it."""
+    ``metadata.yaml`` with it. Until then the container's /diagnostics list the unloaded recorder's work left."""
     bag = tmp_path / "bag"
     imu = load(manager, "components::ImuDriver", rate=1000.0)
     loaded = load(manager, "test_recorder_accounting:SlowRecorder", "test_recorder_accounting",
@@ -183,6 +184,9 @@ def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_uploaded_and_no_se
     manager.unload(imu.unique_id)
     manager.unload(loaded.unique_id)
     assert "did not finish" in recorder.stats()["finished"][-1]["error"]
+    left = unloaded_work(manager)  # the container tells, as long as the bag is not finalized
+    assert len(left) == 1 and "not finalized" in left[0].message and \
+        {value.key: value.value for value in left[0].values}["bags not finalized"] == str(bag), left
     SlowBagWriter.DISK_UP.set()
     output: list[str] = []  # the container's log, on stdout and stderr
     assert wait_until(lambda: output.extend(capfd.readouterr()) or "finished after all" in "".join(output), 20.0), \
@@ -193,6 +197,12 @@ def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_uploaded_and_no_se
     local = {f"robot/bag/{path.name}": path.read_bytes() for path in bag.iterdir()}
     assert "robot/bag/metadata.yaml" in local, sorted(local)
     assert wait_until(lambda: stored(s3, bucket) == local, 30.0), (sorted(stored(s3, bucket)), sorted(local))
+    assert wait_until(lambda: not unloaded_work(manager), 20.0), unloaded_work(manager)
+
+
+def unloaded_work(manager: ComponentManager) -> list[DiagnosticStatus]:
+    """What the container's /diagnostics list of its unloaded components' work going on."""
+    return [status for status in manager._diagnostic_statuses() if "(unloaded" in status.name]
 
 
 # --- events/messages_lost -----------------------------------------------------------------------------------

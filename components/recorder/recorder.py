@@ -96,6 +96,9 @@ class Recorder(ComponentNode):
         self._session: RecordingSession | None = None
         self._health = HealthMonitor()
         self._uploads: BagUploads | None = None
+        # Bags whose writer a stop gave up on (a hung disk), until the writer closes them after all.
+        self._closing: set[RecordingSession] = set()
+        self._closing_lock = threading.Lock()
         super().__init__("recorder", **kwargs)
         try:
             self._options = declare_options(self, overrides)
@@ -212,6 +215,9 @@ class Recorder(ComponentNode):
         self._warn_missing_action_topics()
         session.finish(timeout=FINISH_SHARE * self.shutdown_timeout,
                        on_late_close=functools.partial(self._bag_closed_late, session))
+        with self._closing_lock:
+            if session.writing_after_finish:
+                self._closing.add(session)
         self._loss_events.close_bag(session)
         if self._uploads is not None and session.writer.closed:
             self._uploads.bag_closed(session.writer.path)
@@ -223,6 +229,8 @@ class Recorder(ComponentNode):
         self._finished.changed(session)
         if self._uploads is not None:
             self._uploads.bag_closed(session.writer.path)
+        with self._closing_lock:
+            self._closing.discard(session)  # only now: work_left goes on to report its upload
 
     def _warn_missing_action_topics(self) -> None:
         """A warning per action of ``record.actions`` whose five topics were not all recorded (rosbag2 is silent):
@@ -455,13 +463,18 @@ class Recorder(ComponentNode):
         return health
 
     def work_left(self) -> Health | None:
-        """Uploads going on after the unload (the container's upload process finishes them), until complete."""
-        if self._uploads is None:
+        """After the unload: bags whose writer the stop gave up on, until it closes them (if the disk comes back),
+        and uploads going on (the container's upload process finishes them), until complete."""
+        with self._closing_lock:
+            closing = sorted(str(session.writer.path) for session in self._closing)
+        upload = self._uploads.stats() if self._uploads is not None else None
+        values = upload_values(upload) if upload is not None else {}
+        if closing:
+            return Health(WARN, f"{len(closing)} bag(s) not finalized, the writer stuck on its storage (it closes "
+                                "them if the storage comes back)", {"bags not finalized": ", ".join(closing), **values})
+        if upload is None or upload["complete"] or not upload["running"]:
             return None
-        upload = self._uploads.stats()
-        if upload["complete"] or not upload["running"]:
-            return None
-        return Health(WARN if upload["last_error"] else OK, f"upload {summary_text(upload)}", upload_values(upload))
+        return Health(WARN if upload["last_error"] else OK, f"upload {summary_text(upload)}", values)
 
     # --- services -----------------------------------------------------------------------------------------
     def _set_paused(self, paused: bool) -> None:
