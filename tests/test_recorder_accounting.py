@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import pytest
-from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosbag2_interfaces.msg import MessagesLostEvent
@@ -36,7 +35,7 @@ from components.recorder.recorder import Recorder
 from ipc_testing import in_process_manager, wait_until
 from ipc_testing.process_context import process_context
 from ipc_testing.s3_server import S3Server
-from upload_harness import bucket, s3, stored  # noqa: F401 - fixtures
+from upload_harness import bucket, s3, stored, unloaded_work  # noqa: F401 - fixtures
 
 IMU = "/imu/imu"
 CAMERA = "/camera/image_raw"
@@ -198,11 +197,6 @@ def test_a_bag_closed_late_after_its_recorder_was_unloaded_is_reported_uploaded_
     assert "robot/bag/metadata.yaml" in local, sorted(local)
     assert wait_until(lambda: stored(s3, bucket) == local, 30.0), (sorted(stored(s3, bucket)), sorted(local))
     assert wait_until(lambda: not unloaded_work(manager), 20.0), unloaded_work(manager)
-
-
-def unloaded_work(manager: ComponentManager) -> list[DiagnosticStatus]:
-    """What the container's /diagnostics list of its unloaded components' work going on."""
-    return [status for status in manager._diagnostic_statuses() if "(unloaded" in status.name]
 
 
 # --- events/messages_lost -----------------------------------------------------------------------------------

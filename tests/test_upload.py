@@ -21,7 +21,8 @@ from component_container.startup_file import load_request
 from container_process import small_filesystem
 from ipc_testing import in_process_manager, wait_until
 from ipc_testing.s3_server import S3Server
-from upload_harness import bucket, download, s3, sha256, stored, upload_summary  # noqa: F401 - fixtures
+from upload_harness import (bucket, download, s3, sha256, stored, unloaded_work,  # noqa: F401 - fixtures
+                            upload_summary)
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 IPC = {"use_intra_process_comms": True}
@@ -60,8 +61,7 @@ def imu_sequences(bag: Path) -> list[int]:
 
 def unloaded_uploads_done(manager: ComponentManager, timeout: float) -> bool:
     """The container's /diagnostics stop listing an unloaded recorder's uploads (they completed)."""
-    return bool(wait_until(lambda: not any("(unloaded" in status.name
-                                           for status in manager._diagnostic_statuses()), timeout))
+    return bool(wait_until(lambda: not unloaded_work(manager), timeout))
 
 
 @pytest.mark.parametrize("seconds, split, outage", [(8.0, 1.0, 3.0), pytest.param(60.0, 5.0, 10.0,

@@ -18,7 +18,7 @@ from container_process import small_filesystem
 from ipc_testing import in_process_manager, wait_until
 from ipc_testing.s3_server import SECRET_KEY, S3Server
 from test_upload import load, unloaded_uploads_done
-from upload_harness import bucket, s3, stored, upload_summary  # noqa: F401 - fixtures
+from upload_harness import bucket, s3, stored, unloaded_work, upload_summary  # noqa: F401 - fixtures
 
 MIB = 1 << 20
 
@@ -54,7 +54,7 @@ def failing_then_stopped(manager: ComponentManager, recorder: Any, root: Path, e
     health = recorder.node.health()
     assert health.values["upload error"] == error and "upload failing" in health.message, health
     manager.unload(recorder.unique_id)
-    statuses = [s for s in manager._diagnostic_statuses() if "(unloaded" in s.name]
+    statuses = unloaded_work(manager)
     assert statuses and expected in statuses[0].message, [(s.name, s.message) for s in statuses]
     local = sorted(path.name for path in (root / "run").iterdir())
     assert len(local) >= 3 and "metadata.yaml" in local  # every file still here

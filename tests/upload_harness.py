@@ -11,8 +11,10 @@ from typing import Any
 
 import pytest
 from botocore.exceptions import ResponseStreamingError
+from diagnostic_msgs.msg import DiagnosticStatus
 
 from baglib.upload.journal import JOURNAL_NAME, UploadJournal
+from component_container.component_manager import ComponentManager
 from ipc_testing.s3_server import S3Server
 
 _buckets = itertools.count()
@@ -75,3 +77,9 @@ def upload_summary(bag_root: Path, uri: str) -> dict[str, Any]:
         return journal.summary(uri)
     finally:
         journal.close()
+
+
+def unloaded_work(manager: ComponentManager) -> list[DiagnosticStatus]:
+    """What the container's /diagnostics list of its unloaded components' work going on (their uploads, their bags
+    not finalized)."""
+    return [status for status in manager._diagnostic_statuses() if "(unloaded" in status.name]
