@@ -275,9 +275,6 @@ def _session_recorders(ros: RosSession, args: argparse.Namespace) -> _Recorders:
     """The recorders of ``--session`` (of every fleet session without it), in as many sessions and containers as
     there are, with their containers connected and their clock offsets measured."""
     placed = find_recorders(ros, args.spin_time, args.session, fleet_only=True)
-    if not placed:
-        raise CliError("No recorder of " + (f"session '{args.session}'" if args.session else "a fleet session")
-                       + " found")
     fleet = ros.fleet(sorted({recorder.container for recorder in placed}))
     fleet.connect(time.monotonic() + BUDGET)
     fleet.measure_offsets(time.monotonic() + BUDGET)

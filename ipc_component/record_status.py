@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 from baglib.format import fleet_keys
 from baglib.upload.journal import summary_text
 from ipc_component.recorder_lookup import find_recorders
-from ipc_component.ros_session import BUDGET, CliError, RosSession
+from ipc_component.ros_session import BUDGET, RosSession
 from ipc_component.text_table import format_table
 from ipc_component.verb_arguments import add_verb
 
@@ -65,8 +65,6 @@ def run_status(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     with RosSession(ros_args) as ros:
         placed = [(recorder.container, recorder.node)
                   for recorder in find_recorders(ros, args.spin_time, args.session, fleet_only=False)]
-        if not placed:
-            raise CliError("No recorder found" + (f" of session '{args.session}'" if args.session else ""))
         fleet = ros.fleet(sorted({container for container, _ in placed}))
         fleet.connect(time.monotonic() + BUDGET)
         links = {link.name: link for link in fleet.links}

@@ -265,6 +265,20 @@ def test_a_node_without_the_container_services_is_no_container(
     assert_fails(loaded, lines("Unable to find container node '/not_a_container'", searched()))
 
 
+def test_a_record_verb_that_finds_no_recorder_names_what_it_found(clients: dict[str, ContainerClient],
+                                                                  tmp_path: pathlib.Path) -> None:
+    load(clients[MAIN], "components::Recorder", name="record_cli_a", namespace=MAIN,
+         parameters={"storage.uri": str(tmp_path / "bag"), "record.topics": ["/chatter"]})
+    load(clients[OTHER], TALKER)
+    status, stop = cli_parallel(("record", "status", "--session", "cli_b", "--spin-time", "3"),
+                                ("record", "stop", "--session", "cli_b", "--spin-time", "3"))
+    found = lines(f"    {MAIN}: {MAIN}/record_cli_a (session 'cli_a')", f"    {OTHER}: no recorder among 1 component(s)")
+    assert_fails(status, "No recorder of session 'cli_b' found in the 2 container(s) discovered\n" + found)
+    assert_fails(stop, "No recorder of session 'cli_b' found in the 2 container(s) discovered\n" + found)
+    nowhere = cli("record", "status", "--spin-time", "0.3", env={"ROS_DOMAIN_ID": "230"})
+    assert_fails(nowhere, lines("No recorder found: no container discovered within 0.3 s (--spin-time)", searched("230")))
+
+
 # --- load -------------------------------------------------------------------------------------------------
 def test_load(clients: dict[str, ContainerClient]) -> None:
     result = cli("load", MAIN, "components", TALKER)
