@@ -14,6 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from ipc_component.repeated_call import RepeatedCall
+from ipc_testing.fastdds_shm import describe_stranded
 
 
 def call(node: Node, client: Any, request: Any = None, timeout: float = 20.0, *, again: bool = False) -> Any:
@@ -25,7 +26,7 @@ def call(node: Node, client: Any, request: Any = None, timeout: float = 20.0, *,
     if request is None:
         request = client.srv_type.Request()
     if not client.wait_for_service(timeout_sec=timeout):
-        raise AssertionError(f"service {client.srv_name} did not appear within {timeout:g} s")
+        raise _silence(f"service {client.srv_name} did not appear within {timeout:g} s")
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     deadline = time.monotonic() + timeout
@@ -49,8 +50,14 @@ def call(node: Node, client: Any, request: Any = None, timeout: float = 20.0, *,
         executor.remove_node(node)
         executor.shutdown()
     if reply is None:
-        raise AssertionError(f"no reply from {client.srv_name} within {timeout:g} s")
+        raise _silence(f"no reply from {client.srv_name} within {timeout:g} s")
     return reply
+
+
+def _silence(what: str) -> AssertionError:
+    """The failure of a call that heard nothing, with the processes Fast DDS cut off from their shared-memory
+    ports, if any (ipc_testing.fastdds_shm): the one cause of silence that nothing else reports."""
+    return AssertionError(". ".join(filter(None, [what, describe_stranded()])))
 
 
 def spin_for(node: Node, seconds: float, until: Callable[[], bool] | None = None) -> bool:
