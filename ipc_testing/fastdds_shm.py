@@ -4,10 +4,11 @@ A participant reads its unicast traffic from shared-memory ports (``/dev/shm/fas
 ``fastdds_port<N>`` on Fast DDS 3), each held by its one reader through an exclusive lock on ``<port>_el``. Fast
 DDS removes a port's segment when a process finds the port broken (its mutex held by a writer that was killed
 holding it, a health check that timed out) and creates a new one under the same name. The reader, still holding
-the lock, goes on reading the old segment, which no longer has a name; everything sent to the port goes into the new
-one, which nobody reads. The process no longer hears any peer over shared memory, for good, and the next participant
-that tries the port logs ``Failed init_port ...: open_and_lock_file failed``. A test that waits in vain for such a
-process sees only silence; :func:`describe_stranded` says what happened.
+the lock, goes on reading the old segment, which no longer has a name. Peers that had the port open still write into
+the old segment; every participant that starts afterwards opens the port by its name and writes into the new one,
+which nobody reads: no newcomer reaches the process, for good, and the next participant that tries the port logs
+``Failed init_port ...: open_and_lock_file failed``. A test that waits in vain for such a process sees only silence;
+:func:`describe_stranded` says what happened.
 """
 from __future__ import annotations
 
@@ -87,5 +88,5 @@ def describe_stranded() -> str:
         except FileNotFoundError:
             continue
         named.append(f"process {pid} ({command.strip()[:120]}) reads {', '.join(ports)}")
-    return ("Fast DDS removed the shared-memory ports of live processes, which hear no peer over them any more: "
+    return ("Fast DDS removed the shared-memory ports of live processes, which no participant started since reaches: "
             + "; ".join(named)) if named else ""

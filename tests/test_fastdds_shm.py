@@ -46,6 +46,6 @@ def test_a_container_whose_ports_fast_dds_removed_answers_no_newcomer_and_the_fa
     late = subprocess.run([sys.executable, "-c", LATE_CLIENT], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert late.stdout.startswith(
         "no reply from /ComponentManager/_container/list_nodes within 3 s. Fast DDS removed the shared-memory ports "
-        "of live processes, which hear no peer over them any more: "), late
+        "of live processes, which no participant started since reaches: "), late
     # among them this container (another test's process in that state would be named too: it is one)
     assert re.search(rf"process {process.pid} \([^)]*\) reads {', '.join(ports)}(;|$)", late.stdout, re.M), late
