@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Collection
 
 from composition_interfaces.srv import ListNodes
 from rclpy.executors import Executor
@@ -90,13 +90,15 @@ class _Lister:
 
 
 def list_containers(node: Node, executor: Executor, *, deadline: float, discovery_until: float,
-                    container: str | None = None, list_components: bool = True) -> list[ContainerListing]:
+                    container: str | None = None, list_components: bool = True,
+                    awaited: Collection[str] = ()) -> list[ContainerListing]:
     """Discover containers and (optionally) list their components, all before ``deadline``.
 
     Without ``container``, the graph is watched until ``discovery_until`` and every container found is
-    listed as soon as it appears. With ``container``, discovery stops as soon as that one is found; the
-    result is empty if it is not found before ``deadline``. Listing failures (service not ready, no reply
-    before the deadline) are reported in :attr:`ContainerListing.error`.
+    listed as soon as it appears; containers named in ``awaited`` (the ones a user named exactly) are waited for
+    past ``discovery_until``, until ``deadline``, as ``load`` waits for its one. With ``container``, discovery
+    stops as soon as that one is found; the result is empty if it is not found before ``deadline``. Listing
+    failures (service not ready, no reply before the deadline) are reported in :attr:`ContainerListing.error`.
     """
     discovery_until = min(discovery_until, deadline) if container is None else deadline
     found: set[str] = set()
@@ -117,7 +119,7 @@ def list_containers(node: Node, executor: Executor, *, deadline: float, discover
                     for name in current:
                         if name not in listers:
                             listers[name] = _Lister(node, name)
-                if time.monotonic() >= discovery_until:
+                if time.monotonic() >= discovery_until and found.issuperset(awaited):
                     discovering = False
             now = time.monotonic()
             for lister in listers.values():

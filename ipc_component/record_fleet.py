@@ -133,13 +133,15 @@ def _select(containers: Sequence[str], patterns: Sequence[str]) -> tuple[list[st
     return [c for c in containers if any(fnmatch.fnmatchcase(c, p) for p in patterns)], missing
 
 
-def _discover(ros: RosSession, spin_time: float) -> dict[str, list[tuple[int, str]]]:
-    """Every container of the domain with its components (None for a container that did not list them)."""
+def _discover(ros: RosSession, spin_time: float, named: Sequence[str]) -> dict[str, list[tuple[int, str]]]:
+    """Every container of the domain with its components (None for a container that did not list them); those
+    ``named`` exactly (not by a pattern) are waited for past ``spin_time``, up to BUDGET more."""
     from ipc_component.container_discovery import list_containers
 
     start = time.monotonic()
     listings = list_containers(ros.node, ros.executor, deadline=start + BUDGET + spin_time,
-                               discovery_until=start + spin_time)
+                               discovery_until=start + spin_time,
+                               awaited=[name for name in named if not glob.has_magic(name)])
     return {listing.container: (None if listing.error else listing.components) for listing in listings}
 
 
@@ -165,7 +167,7 @@ def run_start(args: argparse.Namespace, ros_args: Sequence[str]) -> int:
     if args.upload:
         upload_uri(args.upload, session)  # so is a bad --upload
     with RosSession(ros_args) as ros:
-        found = _discover(ros, args.spin_time)
+        found = _discover(ros, args.spin_time, args.containers)
         containers, missing = _select(sorted(found), args.containers)
         if not containers:
             raise CliError("No container found" + (f" matching {' '.join(args.containers)}" if args.containers else "")

@@ -92,6 +92,25 @@ def test_a_container_that_does_not_answer_is_named_and_the_others_record(rig, tm
     assert not (tmp_path / "fb" / "partial").exists(), "a recorder was loaded into the stopped container"
 
 
+def test_a_container_named_at_start_is_waited_for_past_the_spin_time(rig, tmp_path: Path) -> None:
+    """``record start`` waits for a container named exactly past ``--spin-time`` (up to 5 s more), as ``load``
+    waits for its one: a container that hangs for 1.5 s as the command starts (SIGSTOP, then SIGCONT) records
+    with the others. Before, it was "not found on the ROS graph" once the spin time was over."""
+    os.kill(rig["fb"].pid, signal.SIGSTOP)
+    command = subprocess.Popen([sys.executable, "-m", "ipc_component.cli", "record", "start", "/fa/container",
+                                "/fb/container", "--session", "late", "--in", "1", "--max-duration", "1",
+                                "--spin-time", "0.2"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+    try:
+        time.sleep(1.5)  # the hang: longer than the command's start and its 0.2 s of discovery
+        os.kill(rig["fb"].pid, signal.SIGCONT)
+        out, err = command.communicate(timeout=90)
+    finally:
+        command.kill()
+    assert command.returncode == 0, out + err
+    assert "/fa/container" in out and "/fb/container" in out, out
+
+
 @pytest.mark.long
 def test_a_killed_container_leaves_a_bag_that_recover_repairs(rig, tmp_path: Path) -> None:
     started = cli("record", "start", "/fa/container", "/fb/container", "--session", "crash", "--in", "0.5",
