@@ -7,13 +7,13 @@ the project, nothing is downloaded at run time. A window of the camera's size pa
 wraps around the date line, so the pan never ends), drifts north and south, zooms out and in by steps among
 :data:`SCALES`, and gets sensor noise on every frame.
 
-Cheap per frame: everything is prepared once per process and encoding (:func:`prepared_photo`): the band of the
-photo without the poles at each scale, widened by one window width for the wrap-around, with levels mapped into
-``[NOISE_LIMIT, 255 - NOISE_LIMIT]``; and a pool of Gaussian noise values stored as ``uint8`` modulo 256
-(:func:`noise_pool`). A frame is one ``numpy.add`` of a slice of the photo and a slice of the pool into the
-frame buffer: the wrapping ``uint8`` sum is the exact sum, since the levels leave room for the noise. Frame
-``n`` is a function of ``n`` alone (:func:`window_of` gives its scale and position, and a table its noise
-offset), as :class:`~components.frame_buffers.FrameBuffers` requires.
+Cheap per frame: everything is prepared once per process and encoding, whatever the cameras' frame sizes
+(:func:`prepared_photo`): the band of the photo without the poles at each scale, widened by the widest camera's
+width for the wrap-around, with levels mapped into ``[NOISE_LIMIT, 255 - NOISE_LIMIT]``; and a pool of Gaussian
+noise values stored as ``uint8`` modulo 256 (:func:`noise_pool`). A frame is one ``numpy.add`` of a slice of
+the photo and a slice of the pool into the frame buffer: the wrapping ``uint8`` sum is the exact sum, since the
+levels leave room for the noise. Frame ``n`` is a function of ``n`` alone (:func:`window_of` gives its scale and
+position, and a table its noise offset), as :class:`~components.frame_buffers.FrameBuffers` requires.
 
 Only source pixels are shown: the scales are at most 1, so no frame is an enlarged (smoother) picture.
 
@@ -71,10 +71,9 @@ class Window(NamedTuple):
     y: int
 
 
-@functools.lru_cache(maxsize=None)
-def prepared_photo(encoding: str, width: int) -> tuple[np.ndarray, ...]:
-    """The photo band at each of :data:`SCALES`, as read-only ``(rows, columns, channels)`` uint8 arrays whose
-    first ``width`` columns are repeated at the right (the wrap-around). Shared by every camera in the process."""
+def photo_levels(encoding: str) -> tuple[np.ndarray, ...]:
+    """The photo band at each of :data:`SCALES`, levels mapped, laid out as ``encoding``'s bytes: ``(rows,
+    columns, channels)`` uint8 arrays. Decoding and resampling the photograph make most of a camera's load time."""
     from PIL import Image as PilImage  # only a camera with photo content needs Pillow loaded
 
     with resources.as_file(resources.files(PHOTO_PACKAGE) / PHOTO_FILE) as path, PilImage.open(path) as photo:
@@ -88,11 +87,42 @@ def prepared_photo(encoding: str, width: int) -> tuple[np.ndarray, ...]:
         scaled = band if scale == 1.0 else band.resize(
             (round(band.width * scale), round(band.height * scale)), PilImage.Resampling.LANCZOS)
         pixels = np.asarray(scaled.point(lut * len(scaled.getbands())), dtype=np.uint8)
-        pixels = arranged(pixels.reshape(scaled.height, scaled.width, -1), encoding)
-        wrapped = np.concatenate([pixels, pixels[:, :min(width, pixels.shape[1])]], axis=1)
+        levels.append(arranged(pixels.reshape(scaled.height, scaled.width, -1), encoding))
+    return tuple(levels)
+
+
+class Prepared(NamedTuple):
+    """The photo of one encoding at each of :data:`SCALES`, each level's first ``margin`` columns repeated at its
+    right (the wrap-around): a window at most ``margin`` wide is one slice, however far east it lies."""
+
+    levels: tuple[np.ndarray, ...]
+    margin: int
+
+
+#: The prepared photo of each encoding in the process, its margin the widest camera's so far.
+_PREPARED: dict[str, Prepared] = {}
+
+
+def prepared_photo(encoding: str, width: int) -> Prepared:
+    """The photo of ``encoding`` for cameras up to ``width`` wide, read-only, shared by every camera of that
+    encoding in the process: it is decoded and resampled once (:func:`photo_levels`); a camera wider than the
+    margin so far widens it from the prepared levels. (Filling a window across the date line with two numpy adds
+    instead of one slice of a margin costs a 1080p frame 60 % more.)"""
+    prepared = _PREPARED.get(encoding)
+    if prepared is not None and width <= prepared.margin:
+        return prepared
+    bands = photo_levels(encoding) if prepared is None else tuple(
+        level[:, :level.shape[1] - prepared.margin] for level in prepared.levels)
+    margin = min(width, min(band.shape[1] for band in bands))
+    levels = []
+    for band in bands:
+        wrapped = np.concatenate([band, band[:, :margin]], axis=1)
         wrapped.setflags(write=False)
         levels.append(wrapped)
-    return tuple(levels)
+    prepared = Prepared(tuple(levels), margin)
+    if margin == width:  # a camera wider than the photo is refused (PhotoContent): its margin is not kept
+        _PREPARED[encoding] = prepared
+    return prepared
 
 
 def arranged(rgb: np.ndarray, encoding: str) -> np.ndarray:
@@ -136,8 +166,8 @@ class PhotoContent:
                              f"got {encoding!r}")
         self.width, self.height = width, height
         self.block = FORMATS[encoding].block
-        self.levels = prepared_photo(encoding, width)
-        rows, columns = self.levels[-1].shape[0], self.levels[-1].shape[1] - width  # the smallest zoom level
+        self.levels, self.margin = prepared_photo(encoding, width)
+        rows, columns = self.levels[-1].shape[0], self.levels[-1].shape[1] - self.margin  # the smallest zoom level
         if width > columns or height > rows:
             raise ValueError(f"parameters 'width' and 'height': content 'photo' frames are at most "
                              f"{columns}x{rows} (the photograph's own pixels at zoom {min(SCALES)}), "
@@ -152,7 +182,7 @@ class PhotoContent:
         phase = (sequence // FRAMES_PER_ZOOM_STEP) % steps
         level = phase if phase < len(SCALES) else steps - phase
         scale = SCALES[level]
-        rows, columns = (self.levels[level].shape[0], self.levels[level].shape[1] - self.width)
+        rows, columns = self.levels[level].shape[0], self.levels[level].shape[1] - self.margin
         # The window's centre in full-resolution photo pixels, then in this level's pixels.
         centre_x = sequence * PAN_PIXELS_PER_FRAME
         full_rows = BAND_ROWS[1] - BAND_ROWS[0]
